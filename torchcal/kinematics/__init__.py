@@ -1,0 +1,1 @@
+"""Robot models, the differentiable error layer, forward kinematics, Jacobians and IK."""

@@ -1,0 +1,354 @@
+"""Robot descriptions: the immutable nominal model, read from an MDH YAML or a URDF.
+
+A :class:`RobotModel` holds the nominal kinematics in SI units as an MDH(+beta) table between a
+fixed ``base -> frame 0`` transform and a fixed ``frame N -> flange`` transform, plus the
+nominal tool point in the ``flange`` frame. For a URDF the structure comes from
+pytorch-kinematics and the table from the axis method (:mod:`torchcal.kinematics.axes`);
+for a YAML the table is the file's and pytorch-kinematics gets an equivalent URDF, so nominal FK
+of both routes can be checked against each other.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import torch
+import yaml
+
+from torchcal.errors import ModelError
+from torchcal.kinematics import transforms as tf
+from torchcal.kinematics.mdh import chain_transforms
+
+_LENGTH_UNITS = {"m": 1.0, "mm": 1e-3, "cm": 1e-2}
+_ANGLE_UNITS = {"rad": 1.0, "deg": math.pi / 180.0}
+_ROW_KEYS = ("alpha", "a", "d", "theta")
+_OPTIONAL_ROW_KEYS = ("beta", "min", "max", "velocity")
+
+
+@dataclass(frozen=True)
+class RobotModel:
+    """Nominal robot kinematics, SI units, float64.
+
+    Attributes:
+        name: robot name.
+        joint_names: one name per revolute joint, in chain order.
+        table: ``(N, 5)`` MDH rows ``[alpha, a, beta, theta_offset, d]`` (rad, m).
+        joint_limits: ``(N, 2)`` lower/upper joint limits, rad.
+        tool: ``(3,)`` nominal TCP / reflector position in the ``flange`` frame, m.
+        T_base_0: ``(4, 4)`` fixed ``base -> frame 0`` transform (identity for a YAML robot).
+        T_n_flange: ``(4, 4)`` fixed ``frame N -> flange`` transform (identity for a YAML robot).
+        source: file the model was read from, if any.
+        urdf: URDF text describing the same chain (for pytorch-kinematics).
+        base_link / end_link: URDF link names of ``base`` and ``flange``.
+    """
+
+    name: str
+    joint_names: tuple[str, ...]
+    table: torch.Tensor
+    joint_limits: torch.Tensor
+    tool: torch.Tensor
+    T_base_0: torch.Tensor = field(default_factory=lambda: torch.eye(4, dtype=torch.float64))
+    T_n_flange: torch.Tensor = field(default_factory=lambda: torch.eye(4, dtype=torch.float64))
+    source: str | None = None
+    urdf: str | None = None
+    base_link: str = "base"
+    end_link: str = "flange"
+    velocity_limits: torch.Tensor | None = None
+
+    @property
+    def dof(self) -> int:
+        return int(self.table.shape[0])
+
+    def flange_pose(self, q: torch.Tensor) -> torch.Tensor:
+        """Nominal ``T_base_flange`` ``(..., 4, 4)`` for joint angles ``q`` ``(..., N)`` in rad."""
+        table = self.table.to(q)
+        rot, pos = chain_transforms(q, table)
+        return self.T_base_0.to(q) @ tf.homogeneous(rot, pos) @ self.T_n_flange.to(q)
+
+    def tcp_position(self, q: torch.Tensor) -> torch.Tensor:
+        """Nominal TCP position in ``base`` ``(..., 3)``, m."""
+        pose = self.flange_pose(q)
+        return pose[..., :3, :3] @ self.tool.to(q) + pose[..., :3, 3]
+
+    def within_limits(self, q: torch.Tensor, tol: float = 1e-9) -> torch.Tensor:
+        lim = self.joint_limits.to(q)
+        return ((q >= lim[:, 0] - tol) & (q <= lim[:, 1] + tol)).all(-1)
+
+    def sample_joints(self, n: int, generator: torch.Generator, margin: float = 0.0) -> torch.Tensor:
+        """Uniform random joint angles ``(n, N)`` within limits (shrunk by ``margin`` rad)."""
+        lo = self.joint_limits[:, 0] + margin
+        hi = self.joint_limits[:, 1] - margin
+        u = torch.rand(n, self.dof, generator=generator, dtype=torch.float64)
+        return lo + u * (hi - lo)
+
+    def pk_chain(self, dtype: torch.dtype = torch.float64, device: str | torch.device = "cpu"):
+        """The pytorch-kinematics serial chain of this robot (structure and nominal FK)."""
+        import pytorch_kinematics as pk
+
+        text = self.urdf if self.urdf is not None else mdh_to_urdf(self)
+        chain = pk.build_serial_chain_from_urdf(text.encode(), self.end_link, self.base_link)
+        return chain.to(dtype=dtype, device=device)
+
+
+# ---------------------------------------------------------------------------------------- YAML
+
+
+def _number(value, path: Path, where: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ModelError(f"{path}: {where} must be a number, got {value!r}")
+    if not math.isfinite(float(value)):
+        raise ModelError(f"{path}: {where} must be finite, got {value!r}")
+    return float(value)
+
+
+def robot_from_yaml(path: str | Path) -> RobotModel:
+    """Read a robot YAML of the data contract (``kinematics.convention: mdh``)."""
+    path = Path(path)
+    try:
+        doc = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as exc:
+        raise ModelError(f"{path}: not valid YAML ({exc.__class__.__name__})") from None
+    if not isinstance(doc, dict) or not isinstance(doc.get("kinematics"), dict):
+        raise ModelError(f"{path}: expected a mapping with a 'kinematics' section")
+    kin = doc["kinematics"]
+    convention = str(kin.get("convention", "")).lower()
+    if convention != "mdh":
+        raise ModelError(
+            f"{path}: kinematics.convention is {kin.get('convention')!r}; only 'mdh' "
+            "(Craig's modified DH) is supported in YAML. Give a URDF for other descriptions."
+        )
+    length_unit = str(kin.get("length_unit", "mm"))
+    angle_unit = str(kin.get("angle_unit", "deg"))
+    if length_unit not in _LENGTH_UNITS:
+        raise ModelError(f"{path}: kinematics.length_unit {length_unit!r} is not one of {sorted(_LENGTH_UNITS)}")
+    if angle_unit not in _ANGLE_UNITS:
+        raise ModelError(f"{path}: kinematics.angle_unit {angle_unit!r} is not one of {sorted(_ANGLE_UNITS)}")
+    ls, as_ = _LENGTH_UNITS[length_unit], _ANGLE_UNITS[angle_unit]
+    joints = kin.get("joints")
+    if not isinstance(joints, list) or not joints:
+        raise ModelError(f"{path}: kinematics.joints must be a non-empty list of rows")
+    rows, limits, velocities = [], [], []
+    for i, row in enumerate(joints, start=1):
+        if not isinstance(row, dict):
+            raise ModelError(f"{path}: joint {i} must be a mapping with keys {_ROW_KEYS}")
+        unknown = set(row) - set(_ROW_KEYS) - set(_OPTIONAL_ROW_KEYS)
+        if unknown:
+            raise ModelError(f"{path}: joint {i} has unknown key(s) {sorted(unknown)}")
+        missing = [k for k in _ROW_KEYS if k not in row]
+        if missing:
+            raise ModelError(f"{path}: joint {i} lacks {missing}")
+        alpha, a, d, theta = (_number(row[k], path, f"joint {i} '{k}'") for k in _ROW_KEYS)
+        beta = _number(row.get("beta", 0.0), path, f"joint {i} 'beta'")
+        lo = _number(row.get("min", -180.0 if angle_unit == "deg" else -math.pi), path, f"joint {i} 'min'")
+        hi = _number(row.get("max", 180.0 if angle_unit == "deg" else math.pi), path, f"joint {i} 'max'")
+        if lo >= hi:
+            raise ModelError(f"{path}: joint {i} has min {lo} >= max {hi}")
+        rows.append([alpha * as_, a * ls, beta * as_, theta * as_, d * ls])
+        limits.append([lo * as_, hi * as_])
+        if "velocity" in row:
+            velocities.append(_number(row["velocity"], path, f"joint {i} 'velocity'") * as_)
+    tool = kin.get("tool", [0.0, 0.0, 0.0])
+    if not isinstance(tool, list) or len(tool) != 3:
+        raise ModelError(f"{path}: kinematics.tool must be a list of 3 numbers [x, y, z]")
+    tool_m = [_number(v, path, "kinematics.tool") * ls for v in tool]
+    n = len(rows)
+    return RobotModel(
+        name=str(doc.get("name", path.stem)),
+        joint_names=tuple(f"joint{i}" for i in range(1, n + 1)),
+        table=torch.tensor(rows, dtype=torch.float64),
+        joint_limits=torch.tensor(limits, dtype=torch.float64),
+        tool=torch.tensor(tool_m, dtype=torch.float64),
+        source=str(path),
+        velocity_limits=torch.tensor(velocities, dtype=torch.float64) if len(velocities) == n else None,
+    )
+
+
+def robot_to_yaml(robot: RobotModel, table: torch.Tensor | None = None, tool: torch.Tensor | None = None) -> str:
+    """A contract YAML (mm, deg) of ``robot``, optionally with a calibrated ``table`` and ``tool``.
+
+    ``beta`` is written only where it is non-zero (YAML readers of the contract ignore nothing:
+    torchcal reads it back).
+    """
+    table = robot.table if table is None else table
+    tool = robot.tool if tool is None else tool
+    deg = 180.0 / math.pi
+    lines = [
+        f"name: {robot.name}",
+        "kinematics:",
+        "  convention: mdh",
+        "  length_unit: mm",
+        "  angle_unit: deg",
+        "  joints:",
+    ]
+    for row, lim in zip(table.tolist(), robot.joint_limits.tolist()):
+        alpha, a, beta, theta, d = row
+        entries = [f"alpha: {alpha * deg:.9g}", f"a: {a * 1e3:.9g}", f"d: {d * 1e3:.9g}", f"theta: {theta * deg:.9g}"]
+        if abs(beta) > 0:
+            entries.append(f"beta: {beta * deg:.9g}")
+        entries += [f"min: {lim[0] * deg:.9g}", f"max: {lim[1] * deg:.9g}"]
+        lines.append("    - {" + ", ".join(entries) + "}")
+    lines.append("  tool: [" + ", ".join(f"{v * 1e3:.9g}" for v in tool.tolist()) + "]")
+    return "\n".join(lines) + "\n"
+
+
+# ---------------------------------------------------------------------------------------- URDF
+
+
+def _rpy(rotation: torch.Tensor) -> list[float]:
+    return tf.matrix_to_euler_xyz(rotation).tolist()
+
+
+def _origin_xml(transform: torch.Tensor) -> str:
+    xyz = " ".join(f"{v:.17g}" for v in transform[:3, 3].tolist())
+    rpy = " ".join(f"{v:.17g}" for v in _rpy(transform[:3, :3]))
+    return f'<origin xyz="{xyz}" rpy="{rpy}"/>'
+
+
+def mdh_to_urdf(robot: RobotModel) -> str:
+    """A URDF of the nominal chain: one revolute joint about z per MDH row.
+
+    Joint ``i``'s origin is ``Rx(alpha) Tx(a) Ry(beta) Rz(theta_offset) Tz(d)``; since ``Rz`` and
+    ``Tz`` commute, the joint rotation about its own z completes the MDH link transform.
+    """
+    zero = torch.zeros(1, dtype=torch.float64)
+    links = [f'<link name="{robot.base_link}"/>']
+    joints = []
+    parent = robot.base_link
+    for i, row in enumerate(robot.table):
+        rot, pos = chain_transforms(zero, row.unsqueeze(0))
+        link_tf = tf.homogeneous(rot, pos)
+        if i == 0:
+            link_tf = robot.T_base_0 @ link_tf
+        child = f"link{i + 1}"
+        lo, hi = robot.joint_limits[i].tolist()
+        links.append(f'<link name="{child}"/>')
+        joints.append(
+            f'<joint name="{robot.joint_names[i]}" type="revolute"><parent link="{parent}"/>'
+            f'<child link="{child}"/>{_origin_xml(link_tf)}<axis xyz="0 0 1"/>'
+            f'<limit lower="{lo:.17g}" upper="{hi:.17g}" effort="0" velocity="0"/></joint>'
+        )
+        parent = child
+    links.append(f'<link name="{robot.end_link}"/>')
+    joints.append(
+        f'<joint name="flange_joint" type="fixed"><parent link="{parent}"/>'
+        f'<child link="{robot.end_link}"/>{_origin_xml(robot.T_n_flange)}</joint>'
+    )
+    body = "\n  ".join(links + joints)
+    return f'<?xml version="1.0"?>\n<robot name="{robot.name}">\n  {body}\n</robot>\n'
+
+
+def _joint_origins_float64(text: str) -> dict[str, torch.Tensor]:
+    """Joint origin transforms ``parent -> joint frame`` of a URDF, float64, by joint name."""
+    from pytorch_kinematics.urdf_parser_py.urdf import URDF
+
+    robot = URDF.from_xml_string(text.encode() if isinstance(text, str) else text)
+    origins = {}
+    for joint in robot.joints:
+        xyz = joint.origin.xyz if joint.origin is not None and joint.origin.xyz is not None else [0, 0, 0]
+        rpy = joint.origin.rpy if joint.origin is not None and joint.origin.rpy is not None else [0, 0, 0]
+        rot = tf.euler_xyz_to_matrix(torch.tensor(rpy, dtype=torch.float64))
+        origins[joint.name] = tf.homogeneous(rot, torch.tensor(xyz, dtype=torch.float64))
+    return origins
+
+
+def robot_from_urdf(
+    path: str | Path,
+    *,
+    base_link: str | None = None,
+    end_link: str | None = None,
+    tool: tuple[float, float, float] | None = None,
+) -> RobotModel:
+    """Read a URDF (m, rad) through pytorch-kinematics and derive its MDH(+beta) table.
+
+    Args:
+        path: URDF file.
+        base_link: link that is the ``base`` frame (default: the URDF root).
+        end_link: link that is the ``flange`` frame (default: the last link of the chain).
+        tool: nominal TCP in the ``flange`` frame, m (default: the flange origin).
+    """
+    import pytorch_kinematics as pk
+
+    from torchcal.kinematics.axes import mdh_from_axes
+
+    path = Path(path)
+    text = path.read_text()
+    try:
+        full = pk.build_chain_from_urdf(text.encode())
+    except Exception as exc:  # the parser raises many types; the user needs the file name
+        raise ModelError(f"{path}: cannot parse URDF ({exc})") from None
+    names = full.get_frame_names(exclude_fixed=False)
+    root = full._root.name if hasattr(full, "_root") else names[0]
+    base_link = base_link or root
+    if end_link is None:
+        end_link = names[-1]
+    for label, link in (("base_link", base_link), ("end_link", end_link)):
+        if link not in names:
+            raise ModelError(f"{path}: {label} '{link}' is not a link of this URDF (links: {', '.join(names)})")
+    try:
+        chain = pk.build_serial_chain_from_urdf(text.encode(), end_link, base_link)
+    except Exception as exc:
+        raise ModelError(f"{path}: no serial chain from '{base_link}' to '{end_link}' ({exc})") from None
+    chain = chain.to(dtype=torch.float64)
+    joint_names = tuple(chain.get_joint_parameter_names())
+    if not joint_names:
+        raise ModelError(f"{path}: no movable joint between '{base_link}' and '{end_link}'")
+    frames = chain.get_joints()
+    for joint in frames:
+        if joint.joint_type != "revolute":
+            raise ModelError(f"{path}: joint '{joint.name}' is {joint.joint_type}; only revolute joints are supported")
+    # pytorch-kinematics gives the chain's structure; its URDF reader rounds rpy to float32
+    # (about 1e-8 m at arm's length), so the origins are re-read in float64 by joint name.
+    origins = _joint_origins_float64(text)
+    transform = torch.eye(4, dtype=torch.float64)
+    points, directions = [], []
+    for frame in chain._serial_frames[1:]:
+        transform = transform @ origins[frame.joint.name]
+        if frame.joint.joint_type == "fixed":
+            continue
+        points.append(transform[:3, 3])
+        directions.append(transform[:3, :3] @ frame.joint.axis.to(torch.float64))
+    T_base_flange = transform
+    axes = mdh_from_axes(torch.stack(points), torch.stack(directions), T_base_flange)
+    limits = []
+    for joint in frames:
+        lim = joint.limits
+        limits.append([float(lim[0]), float(lim[1])] if lim is not None else [-math.pi, math.pi])
+    return RobotModel(
+        name=path.stem,
+        joint_names=joint_names,
+        table=axes.table,
+        joint_limits=torch.tensor(limits, dtype=torch.float64),
+        tool=torch.tensor(tool if tool is not None else (0.0, 0.0, 0.0), dtype=torch.float64),
+        T_base_0=axes.T_base_0,
+        T_n_flange=axes.T_n_flange,
+        source=str(path),
+        urdf=text,
+        base_link=base_link,
+        end_link=end_link,
+    )
+
+
+def load_robot(
+    path: str | Path,
+    *,
+    base_link: str | None = None,
+    end_link: str | None = None,
+    tool: tuple[float, float, float] | None = None,
+) -> RobotModel:
+    """Load a robot from a contract YAML (``.yaml``/``.yml``) or a URDF (``.urdf``/``.xml``)."""
+    path = Path(path)
+    if not path.is_file():
+        raise ModelError(f"{path}: robot file not found")
+    suffix = path.suffix.lower()
+    if suffix in (".yaml", ".yml"):
+        return robot_from_yaml(path)
+    if suffix in (".urdf", ".xml"):
+        return robot_from_urdf(path, base_link=base_link, end_link=end_link, tool=tool)
+    raise ModelError(f"{path}: unknown robot format '{suffix}' (expected .yaml, .yml or .urdf)")
+
+
+def default_robot_path() -> Path:
+    """The embedded digital-twin robot YAML."""
+    return Path(__file__).resolve().parent.parent / "resources" / "robots" / "twin-kr6.yaml"
