@@ -1,0 +1,92 @@
+"""Strict CSV reading shared by every measurement loader.
+
+Every problem is reported as a :class:`~torchcal.errors.DataError` naming the file, the 1-based
+line number as a spreadsheet shows it (the header is line 1) and the column.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from torchcal.errors import DataError
+
+
+@dataclass(frozen=True)
+class CsvTable:
+    """Header and raw string cells of a CSV file with one record per row."""
+
+    path: Path
+    header: tuple[str, ...]
+    rows: list[list[str]]
+    line_numbers: list[int]
+
+    def column(self, name: str, *, allow_empty: bool = False) -> np.ndarray:
+        """Column ``name`` as float64; empty cells become NaN only when ``allow_empty``."""
+        idx = self.header.index(name)
+        out = np.empty(len(self.rows), dtype=np.float64)
+        for k, (row, line) in enumerate(zip(self.rows, self.line_numbers)):
+            cell = row[idx].strip()
+            if cell == "":
+                if allow_empty:
+                    out[k] = math.nan
+                    continue
+                raise DataError("empty cell", path=str(self.path), row=line, column=name)
+            try:
+                value = float(cell)
+            except ValueError:
+                raise DataError(f"'{cell}' is not a number", path=str(self.path), row=line, column=name) from None
+            if not math.isfinite(value):
+                raise DataError(f"'{cell}' is not a finite number", path=str(self.path), row=line, column=name)
+            out[k] = value
+        return out
+
+
+def read_csv_table(path: str | Path) -> CsvTable:
+    """Read a comma-separated file with a header row; blank lines are skipped."""
+    path = Path(path)
+    if not path.is_file():
+        raise DataError("file not found", path=str(path))
+    try:
+        text = path.read_text(encoding="utf-8-sig")
+    except UnicodeDecodeError:
+        raise DataError("not a UTF-8 text file", path=str(path)) from None
+    reader = csv.reader(text.splitlines())
+    header: tuple[str, ...] | None = None
+    rows: list[list[str]] = []
+    lines: list[int] = []
+    for line_no, row in enumerate(reader, start=1):
+        if not row or all(not c.strip() for c in row):
+            continue
+        if header is None:
+            header = tuple(c.strip() for c in row)
+            if any(not h for h in header):
+                raise DataError("header has an empty column name", path=str(path), row=line_no)
+            dupes = sorted({h for h in header if header.count(h) > 1})
+            if dupes:
+                raise DataError(f"header repeats column(s) {dupes}", path=str(path), row=line_no)
+            continue
+        if len(row) != len(header):
+            raise DataError(
+                f"has {len(row)} cells but the header has {len(header)}", path=str(path), row=line_no
+            )
+        rows.append(row)
+        lines.append(line_no)
+    if header is None:
+        raise DataError("file is empty (no header row)", path=str(path))
+    if not rows:
+        raise DataError("has a header but no data rows", path=str(path))
+    return CsvTable(path=path, header=header, rows=rows, line_numbers=lines)
+
+
+def joint_columns(header: tuple[str, ...]) -> list[str]:
+    """The ``q1..qN`` columns of a header, checked to be consecutive from 1."""
+    names = [h for h in header if len(h) > 1 and h[0] == "q" and h[1:].isdigit()]
+    numbers = sorted(int(h[1:]) for h in names)
+    if numbers != list(range(1, len(numbers) + 1)):
+        raise DataError(f"joint columns must be q1..qN without gaps, found {names}")
+    return [f"q{i}" for i in numbers]

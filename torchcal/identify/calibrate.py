@@ -1,0 +1,148 @@
+"""Geometric calibration end to end: register, analyze, solve, quantify.
+
+1. Closed-form rigid registration of the nominal TCP positions (``base``) onto the measured ones
+   (``instrument``) gives the reference ``T_instrument_base``: no user guess.
+2. Identifiability analysis at the start: non-identifiable parameters are named, warned about
+   and fixed at nominal (a base parameter set is estimated, nothing is silently absorbed).
+3. The chosen identifier (LM by default) estimates the base set.
+4. Covariance and 1-sigma of every estimated parameter from the residual variance.
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass, field
+
+import torch
+
+from torchcal.data.measurements import Measurements
+from torchcal.errors import DataError, IdentifiabilityWarning
+from torchcal.identify.base import Identifier, SolveResult
+from torchcal.identify.identifiability import IdentifiabilityReport, analyze
+from torchcal.identify.problem import CalibrationProblem
+from torchcal.identify.uncertainty import covariance
+from torchcal.kinematics.error_model import DEFAULT_PARALLEL_THRESHOLD_DEG, ErrorModel
+from torchcal.kinematics.robot import RobotModel
+from torchcal.kinematics.transforms import rigid_registration
+
+
+@dataclass
+class CalibrationResult:
+    """Everything a geometric fit produced (SI units inside).
+
+    Attributes:
+        model: the error layer, its ``T_reference`` holding the fitted instrument frame.
+        x: full parameter vector (base correction folded into ``model.T_reference``).
+        free: indices of estimated parameters (the base set).
+        covariance: ``(K, K)`` of the estimated parameters.
+        sigma_residual_m: residual standard deviation per coordinate.
+        identifiability: the analysis at the start.
+        solve: the solver's own result (iterations, history...).
+    """
+
+    model: ErrorModel
+    x: torch.Tensor
+    free: torch.Tensor
+    covariance: torch.Tensor
+    sigma_residual_m: float
+    identifiability: IdentifiabilityReport
+    solve: SolveResult
+    method: str = "lm"
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def free_names(self) -> list[str]:
+        names = self.model.layout.names
+        return [names[i] for i in self.free.tolist()]
+
+    def parameter_sigma(self) -> torch.Tensor:
+        return self.covariance.diagonal().clamp_min(0).sqrt()
+
+
+def register_instrument(robot: RobotModel, data: Measurements, model: ErrorModel | None = None, x: torch.Tensor | None = None) -> torch.Tensor:
+    """Closed-form ``T_instrument_base`` from predicted (``base``) to measured (``instrument``) TCP."""
+    if model is None or x is None:
+        predicted = robot.tcp_position(data.q)
+    else:
+        base_model = ErrorModel(model.robot, T_instrument_base=torch.eye(4, dtype=torch.float64))
+        x_base = x.clone()
+        x_base[model.layout.base_slice] = 0.0
+        predicted = base_model.tcp_position(data.q, x_base)
+    return rigid_registration(predicted, data.position)
+
+
+def calibrate(
+    robot: RobotModel,
+    data: Measurements,
+    *,
+    identifier: Identifier | None = None,
+    use_orientation: bool | None = None,
+    parallel_threshold_deg: float = DEFAULT_PARALLEL_THRESHOLD_DEG,
+    fixed: tuple[str, ...] = (),
+    register: bool = True,
+    device: str | torch.device = "cpu",
+) -> CalibrationResult:
+    """Identify the geometric parameters of ``robot`` from position (and orientation) data.
+
+    Args:
+        identifier: solver (default: Levenberg-Marquardt).
+        use_orientation: fit orientation too (default: when the data has it).
+        fixed: parameter names to keep at nominal in addition to the non-identifiable ones.
+        register: find the instrument frame by closed-form registration (otherwise the data
+            is taken to be in the ``base`` frame, and the base correction is still fitted).
+    """
+    from torchcal.identify.lm import LevenbergMarquardt
+
+    identifier = identifier or LevenbergMarquardt()
+    use_orientation = data.rotation is not None if use_orientation is None else use_orientation
+    if use_orientation and data.rotation is None:
+        raise DataError("orientation fit requested but the file has no rx, ry, rz columns", path=data.source)
+    data = data.to(device)
+    reference = register_instrument(robot, data) if register else torch.eye(4, dtype=torch.float64)
+    model = ErrorModel(
+        robot, with_orientation=use_orientation, parallel_threshold_deg=parallel_threshold_deg,
+        T_instrument_base=reference, device=device,
+    )
+    x0 = model.nominal_vector()
+    active = model.default_active()
+    for name in fixed:
+        if name not in model.layout.names:
+            raise DataError(f"cannot fix unknown parameter '{name}'; known: {', '.join(model.layout.names)}")
+        active[model.layout.index(name)] = False
+    candidates = torch.nonzero(active).squeeze(-1)
+    problem = CalibrationProblem(model, data, candidates, use_orientation=use_orientation)
+    rows = problem.rows_per_pose * len(data)
+    if rows <= len(candidates):
+        raise DataError(
+            f"{len(data)} poses give {rows} equations, fewer than the {len(candidates)} parameters to "
+            f"identify; measure at least {len(candidates) // problem.rows_per_pose + 1} poses (3-4x that is advisable)",
+            path=data.source,
+        )
+    _, jac0 = problem.jacobian(x0)
+    report = analyze(jac0, problem.names)
+    notes = []
+    if report.dependent:
+        msg = (
+            f"{len(report.dependent)} parameter(s) cannot be identified from these data and stay at nominal: "
+            + "; ".join(
+                f"{n} (confounded with {', '.join(p for p, _ in partners[:2]) or 'nothing'})"
+                for n, partners in report.dependent.items()
+            )
+        )
+        notes.append(msg)
+        warnings.warn(msg, IdentifiabilityWarning, stacklevel=2)
+    names = model.layout.names
+    free = torch.tensor(sorted(names.index(n) for n in report.base_set), dtype=torch.long)
+    if rows <= len(free):
+        raise DataError(f"{len(data)} poses are too few for the {len(free)} identifiable parameters", path=data.source)
+    result = identifier.solve(problem.with_free(free), x0)
+    final_free = torch.tensor(sorted(names.index(n) for n in result.selected), dtype=torch.long)
+    final_problem = problem.with_free(final_free)
+    r, jac = final_problem.jacobian(result.x)
+    cov, sigma = covariance(jac, r)
+    reference, x = model.recentered(result.x)
+    model.T_reference = reference
+    return CalibrationResult(
+        model=model, x=x, free=final_free, covariance=cov, sigma_residual_m=sigma,
+        identifiability=report, solve=result, method=identifier.name, notes=notes,
+    )

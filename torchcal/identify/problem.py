@@ -1,0 +1,76 @@
+"""The least-squares calibration problem: residuals and Jacobian of measured vs. predicted TCP.
+
+Residual ``r = measured - predicted`` stacked per pose as ``(x, y, z[, wx, wy, wz])`` in the
+``instrument`` frame (m; rotation rows in rad times ``orientation_weight_m_per_rad``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from torchcal.data.measurements import Measurements
+from torchcal.kinematics import transforms as tf
+from torchcal.kinematics.error_model import ErrorModel
+
+
+@dataclass
+class CalibrationProblem:
+    """Model, data and which parameters are free.
+
+    Attributes:
+        model: the error layer (its ``T_reference`` is the current instrument frame guess).
+        data: validated measurements (SI).
+        free: ``(K,)`` long indices of the free parameters in the model's layout.
+        use_orientation: include rotation residuals (needs ``data.rotation``).
+        orientation_weight_m_per_rad: how many metres of position one radian of orientation
+            error is worth in the cost.
+    """
+
+    model: ErrorModel
+    data: Measurements
+    free: torch.Tensor
+    use_orientation: bool = False
+    orientation_weight_m_per_rad: float = 1.0
+
+    @property
+    def rows_per_pose(self) -> int:
+        return 6 if self.use_orientation else 3
+
+    @property
+    def names(self) -> list[str]:
+        all_names = self.model.layout.names
+        return [all_names[i] for i in self.free.tolist()]
+
+    def residuals(self, x: torch.Tensor) -> torch.Tensor:
+        """``(n * rows_per_pose,)`` residual vector at full parameter vector ``x``."""
+        q = self.data.q.to(x)
+        if not self.use_orientation:
+            return (self.data.position.to(x) - self.model.tcp_position(q, x)).reshape(-1)
+        pose = self.model.tcp_pose(q, x)
+        dp = self.data.position.to(x) - pose[..., :3, 3]
+        dr = tf.so3_log(self.data.rotation.to(x) @ pose[..., :3, :3].transpose(-1, -2))
+        return torch.cat([dp, dr * self.orientation_weight_m_per_rad], -1).reshape(-1)
+
+    def jacobian(self, x: torch.Tensor, columns: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """Residuals ``(m,)`` and their Jacobian ``(m, K)`` with respect to ``x[columns]``.
+
+        Note the sign: ``d r / d x = - d predicted / d x``.
+        """
+        columns = self.free if columns is None else columns
+        q = self.data.q.to(x)
+        if not self.use_orientation:
+            pred, jac = self.model.position_jacobian(q, x, columns)
+            r = (self.data.position.to(x) - pred).reshape(-1)
+            return r, -jac.reshape(-1, jac.shape[-1])
+        pose, jac = self.model.pose_jacobian(q, x, columns)
+        dp = self.data.position.to(x) - pose[..., :3, 3]
+        dr = tf.so3_log(self.data.rotation.to(x) @ pose[..., :3, :3].transpose(-1, -2))
+        r = torch.cat([dp, dr * self.orientation_weight_m_per_rad], -1).reshape(-1)
+        jac = jac.clone()
+        jac[:, 3:] *= self.orientation_weight_m_per_rad
+        return r, -jac.reshape(-1, jac.shape[-1])
+
+    def with_free(self, free: torch.Tensor) -> "CalibrationProblem":
+        return CalibrationProblem(self.model, self.data, free, self.use_orientation, self.orientation_weight_m_per_rad)
