@@ -1,0 +1,206 @@
+"""The digital twin: a "true" robot with known errors, measured by a simulated laser tracker.
+
+Truth = nominal robot + random geometric errors of every kind the error layer has (MDH rows,
+Hayati beta on parallel axes, instrument frame, tool offset), optionally plus non-geometric
+errors the geometric model cannot express:
+
+* gravity-induced joint compliance: each joint deflects by ``tau_j / k_j`` where ``tau_j`` is
+  the gravity torque of point masses on the links about joint ``j``'s axis;
+* periodic gear (transmission) errors: ``A_j sin(n_j q_j + phi_j)`` per joint, two harmonics.
+
+Measurements add robot repeatability (isotropic Gaussian, per axis) and tracker noise (per axis).
+The noise floor of a 3-D position RMS is ``sqrt(3 (sigma_tracker^2 + sigma_repeat^2))``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import torch
+
+from torchcal.data.measurements import Measurements, write_measurements_csv
+from torchcal.io import atomic_write_json, atomic_write_text
+from torchcal.kinematics import transforms as tf
+from torchcal.kinematics.error_model import ErrorModel
+from torchcal.kinematics.joint_jacobian import joint_frames
+from torchcal.kinematics.robot import RobotModel, default_robot_path, load_robot, robot_to_yaml
+
+
+@dataclass
+class TwinConfig:
+    """Settings of a twin case (report units: mm, deg).
+
+    Attributes:
+        robot: robot file (default: the embedded twin-kr6).
+        seed: random seed of errors, poses and noise.
+        n_train / n_test: poses written to train.csv / test.csv.
+        length_error_mm / angle_error_deg: 1-sigma of MDH length and angle errors.
+        tool_error_mm: 1-sigma of the tool offset error per axis.
+        instrument_distance_mm: distance of the tracker from the robot base.
+        tracker_sigma_mm / repeatability_mm: per-axis Gaussian noise.
+        gravity: add gravity-induced joint compliance.
+        gear: add periodic gear errors.
+        gear_amplitude_deg: amplitude of the first gear harmonic.
+        joint_stiffness_nm_per_rad: per-joint stiffness for the gravity compliance.
+        link_masses_kg: point masses at the middle of links 2 and 3 and at the wrist.
+        margin_deg: distance kept from joint limits when sampling poses.
+    """
+
+    robot: str | None = None
+    seed: int = 0
+    n_train: int = 120
+    n_test: int = 400
+    length_error_mm: float = 0.3
+    angle_error_deg: float = 0.03
+    tool_error_mm: float = 0.5
+    instrument_distance_mm: float = 2500.0
+    tracker_sigma_mm: float = 0.012
+    repeatability_mm: float = 0.008
+    gravity: bool = False
+    gear: bool = False
+    gear_amplitude_deg: float = 0.01
+    joint_stiffness_nm_per_rad: list[float] = field(default_factory=lambda: [4e5, 3e5, 2e5, 5e4, 4e4, 3e4])
+    link_masses_kg: list[float] = field(default_factory=lambda: [25.0, 15.0, 10.0])
+    margin_deg: float = 5.0
+
+    @property
+    def noise_floor_rms_mm(self) -> float:
+        return math.sqrt(3.0 * (self.tracker_sigma_mm**2 + self.repeatability_mm**2))
+
+
+@dataclass
+class Twin:
+    """A true robot: nominal model, true parameters and non-geometric error settings."""
+
+    config: TwinConfig
+    robot: RobotModel
+    model: ErrorModel
+    x_true: torch.Tensor
+    gear_amplitude: torch.Tensor
+    gear_phase: torch.Tensor
+
+    @classmethod
+    def create(cls, config: TwinConfig) -> "Twin":
+        robot = load_robot(config.robot or default_robot_path())
+        gen = torch.Generator().manual_seed(config.seed)
+        model = ErrorModel(robot)
+        layout = model.layout
+        x = model.nominal_vector()
+        is_angle = layout.is_angle()
+        sigma = torch.where(is_angle, math.radians(config.angle_error_deg), config.length_error_mm * 1e-3)
+        noise = torch.randn(layout.size, generator=gen, dtype=torch.float64) * sigma
+        table = torch.zeros(layout.size, dtype=torch.bool)
+        table[layout.table_slice] = True
+        # Every MDH parameter is perturbed, beta only where the Hayati rule makes it meaningful.
+        for i in range(1, robot.dof + 1):
+            if i not in model.parallel_joints:
+                table[layout.index(f"beta{i}")] = False
+        x = x + noise * table
+        tool = x[layout.tool_slice]
+        tool[:3] = tool[:3] + torch.randn(3, generator=gen, dtype=torch.float64) * config.tool_error_mm * 1e-3
+        # Instrument: a tracker a few metres away, arbitrarily rotated.
+        direction = torch.randn(3, generator=gen, dtype=torch.float64)
+        direction[2] = direction[2].abs() * 0.2
+        direction = direction / direction.norm()
+        base = x[layout.base_slice]
+        base[:3] = direction * config.instrument_distance_mm * 1e-3
+        base[3:] = torch.randn(3, generator=gen, dtype=torch.float64) * 0.8
+        amplitude = torch.rand(robot.dof, 2, generator=gen, dtype=torch.float64) * math.radians(config.gear_amplitude_deg)
+        amplitude[:, 1] *= 0.5
+        phase = torch.rand(robot.dof, 2, generator=gen, dtype=torch.float64) * 2 * math.pi
+        return cls(config, robot, model, x, amplitude, phase)
+
+    def T_instrument_base(self) -> torch.Tensor:
+        return self.model.instrument_from_base(self.x_true)
+
+    def joint_deviation(self, q: torch.Tensor) -> torch.Tensor:
+        """Non-geometric joint deviations ``(B, N)`` rad: gear errors plus gravity compliance."""
+        dq = torch.zeros_like(q)
+        if self.config.gear:
+            harmonic = torch.tensor([1.0, 2.0], dtype=q.dtype)
+            dq = dq + (self.gear_amplitude * torch.sin(q.unsqueeze(-1) * harmonic + self.gear_phase)).sum(-1)
+        if self.config.gravity:
+            dq = dq + self.gravity_deflection(q)
+        return dq
+
+    def gravity_deflection(self, q: torch.Tensor) -> torch.Tensor:
+        """Joint deflection ``tau_j / k_j`` (rad) from gravity on point link masses, ``base`` z up."""
+        base_model = ErrorModel(self.robot)
+        x = self.x_true.clone()
+        x[self.model.layout.base_slice] = 0.0
+        axes, origins = joint_frames(base_model, q, x)
+        tcp = base_model.tcp_position(q, x)
+        n = self.robot.dof
+        # Masses: middle of link 2 (between joints 2 and 3), middle of link 3 (joints 3 to 5), wrist.
+        points = torch.stack(
+            [0.5 * (origins[:, 1] + origins[:, 2]), 0.5 * (origins[:, 2] + origins[:, min(4, n - 1)]), tcp], 1
+        )
+        masses = torch.tensor(self.config.link_masses_kg, dtype=q.dtype)
+        gravity = torch.tensor([0.0, 0.0, -9.81], dtype=q.dtype)
+        stiffness = torch.tensor(self.config.joint_stiffness_nm_per_rad[:n], dtype=q.dtype)
+        tau = torch.zeros_like(q)
+        for j in range(n):
+            lever = points - origins[:, j : j + 1]
+            # a mass loads joint j only if it sits beyond it: link 2 beyond joints 1-2,
+            # link 3 beyond joints 1-3, the wrist/payload beyond every joint
+            beyond = torch.tensor([j < last for last in (2, 3, n)], dtype=q.dtype)
+            force = ((masses * beyond).unsqueeze(-1) * gravity).expand_as(lever)
+            moment = torch.linalg.cross(lever, force, dim=-1).sum(1)
+            tau[:, j] = (moment * axes[:, j]).sum(-1)
+        return tau / stiffness
+
+    def true_positions(self, q: torch.Tensor) -> torch.Tensor:
+        """Noise-free TCP positions ``(B, 3)`` in the instrument frame, m."""
+        return self.model.tcp_position(q + self.joint_deviation(q), self.x_true)
+
+    def measure(self, q: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
+        """Noisy tracker measurement of the TCP at commanded joints ``q``."""
+        clean = self.true_positions(q)
+        c = self.config
+        noise = torch.randn(clean.shape, generator=generator, dtype=clean.dtype) * math.hypot(c.tracker_sigma_mm, c.repeatability_mm) * 1e-3
+        return clean + noise
+
+    def sample(self, n: int, generator: torch.Generator) -> Measurements:
+        q = self.robot.sample_joints(n, generator, margin=math.radians(self.config.margin_deg))
+        return Measurements(q=q, position=self.measure(q, generator))
+
+    def truth_dict(self) -> dict:
+        names = self.model.layout.names
+        scale = self.model.layout.unit_scale()
+        values = (self.x_true * scale).tolist()
+        t = self.T_instrument_base()
+        return {
+            "robot": self.robot.name,
+            "units": {"lengths": "mm", "angles": "deg"},
+            "parameters": {n: v for n, v in zip(names, values) if not n.startswith("base_")},
+            "T_instrument_base": {
+                "rotation": t[:3, :3].tolist(),
+                "translation_mm": (t[:3, 3] * 1e3).tolist(),
+            },
+            "tool_mm": (self.x_true[self.model.layout.tool_slice][:3] * 1e3).tolist(),
+            "noise_floor_rms_mm": self.config.noise_floor_rms_mm,
+            "non_geometric": {
+                "gravity": self.config.gravity,
+                "gear": self.config.gear,
+                "gear_amplitude_deg": (self.gear_amplitude * 180 / math.pi).tolist(),
+                "gear_phase_rad": self.gear_phase.tolist(),
+            },
+            "config": asdict(self.config),
+        }
+
+
+def write_twin_case(out: str | Path, config: TwinConfig) -> dict[str, Path]:
+    """Write ``robot.yaml``, ``train.csv``, ``test.csv`` and ``truth.json`` of a twin case."""
+    out = Path(out)
+    twin = Twin.create(config)
+    gen = torch.Generator().manual_seed(config.seed + 7919)
+    train = twin.sample(config.n_train, gen)
+    test = twin.sample(config.n_test, gen)
+    paths = {name: out / name for name in ("robot.yaml", "train.csv", "test.csv", "truth.json")}
+    atomic_write_text(paths["robot.yaml"], robot_to_yaml(twin.robot))
+    write_measurements_csv(paths["train.csv"], train.q, train.position)
+    write_measurements_csv(paths["test.csv"], test.q, test.position)
+    atomic_write_json(paths["truth.json"], twin.truth_dict())
+    return paths
