@@ -1,0 +1,161 @@
+"""Command line: ``torchcal run | simulate | fit | evaluate | export``.
+
+Options follow the command-line contract of the design; ``key=value`` overrides set fields of
+the command's configuration (dotted for nested ones, e.g. ``twin.n_train=120``). Heavy imports
+happen inside each command so that ``torchcal --help`` starts fast. Every
+:class:`~torchcal.errors.TorchcalError` becomes one line on stderr and exit status 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+
+def _apply_overrides(config, overrides: list[str]):
+    """Merge ``key=value`` strings into a dataclass config, rejecting unknown keys."""
+    from omegaconf import OmegaConf
+    from omegaconf.errors import OmegaConfBaseException
+
+    from torchcal.errors import TorchcalError
+
+    bad = [o for o in overrides if "=" not in o]
+    if bad:
+        raise TorchcalError(f"override '{bad[0]}' is not of the form key=value")
+    base = OmegaConf.structured(config)
+    try:
+        merged = OmegaConf.merge(base, OmegaConf.from_dotlist(overrides))
+    except OmegaConfBaseException as exc:
+        msg = str(exc).splitlines()[0]
+        raise TorchcalError(f"invalid override: {msg}") from None
+    return OmegaConf.to_object(merged)
+
+
+def _cmd_simulate(args) -> int:
+    from torchcal.pipeline import simulate
+    from torchcal.sim.twin import TwinConfig
+
+    config = _apply_overrides(TwinConfig(), args.overrides)
+    paths = simulate(args.out, config)
+    for name, path in paths.items():
+        print(f"{name}: {path}")
+    return 0
+
+
+def _cmd_fit(args) -> int:
+    from rich.console import Console
+
+    from torchcal.data.measurements import load_measurements
+    from torchcal.kinematics.robot import load_robot
+    from torchcal.pipeline import FitConfig, fit, nominal_errors, save_fit
+    from torchcal.metrics import position_metrics
+
+    config = _apply_overrides(FitConfig(), args.overrides)
+    console = Console(stderr=True)
+    robot = load_robot(args.robot, base_link=args.base_link, end_link=args.end_link)
+    data = load_measurements(args.data, robot, joint_unit=config.joint_unit, length_unit=config.length_unit)
+    with console.status(f"identifying {robot.name} from {len(data)} poses"):
+        result = fit(robot, data, config)
+    before = position_metrics(nominal_errors(robot, data))
+    after = position_metrics(data.position - result.model.tcp_position(data.q, result.x))
+    folder = save_fit(Path(args.out), robot, data, result, {"fit_metrics": {"nominal_registered": before, "geometric": after}})
+    if config.residual != "none":
+        from torchcal.residual_stage import fit_residual_stage
+
+        fit_residual_stage(folder, data, config, console=console)
+    console.print(result.identifiability.summary())
+    console.print(
+        f"training RMS {before['position_rms_mm']:.4f} mm (nominal, registered) -> {after['position_rms_mm']:.4f} mm (geometric)"
+    )
+    print(f"model: {folder}")
+    return 0
+
+
+def _cmd_evaluate(args) -> int:
+    from torchcal.io import atomic_write_json
+    from torchcal.pipeline import FitConfig, evaluate
+
+    metrics = evaluate(args.model, args.data, register=args.register, config=_apply_overrides(FitConfig(), args.overrides))
+    if args.json:
+        atomic_write_json(args.json, metrics)
+    print(json.dumps({k: v for k, v in metrics.items() if k.startswith(("n_", "position_"))}, indent=2))
+    return 0
+
+
+def _cmd_export(args) -> int:
+    from torchcal.compensate.export import export_model
+
+    manifest = export_model(args.model, args.out)
+    print(f"exported {manifest['files']['compensator']} (sha256 {manifest['sha256']['compensator'][:12]}...)")
+    return 0
+
+
+def _cmd_run(args) -> int:
+    from torchcal.pipeline import RunConfig, run
+
+    config = _apply_overrides(RunConfig(), args.overrides)
+    summary = run(config)
+    final = summary["test"][summary["final_stage"]]
+    print(f"{summary['name']}: held-out RMS {final['position_rms_mm']:.4f} mm ({summary['final_stage']}); "
+          f"report in {Path(config.out) / config.name / 'report.md'}")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="torchcal", description="Calibrate industrial robots: geometry, stiffness, learned residual, ONNX compensator.")
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    p = sub.add_parser("run", help="the main job: default twin end to end (report and ONNX export)")
+    p.add_argument("overrides", nargs="*", help="key=value, e.g. twin.n_train=120 fit.method=lasso")
+    p.set_defaults(func=_cmd_run)
+
+    p = sub.add_parser("simulate", help="write a twin case: robot.yaml, train.csv, test.csv, truth.json")
+    p.add_argument("--out", required=True)
+    p.add_argument("overrides", nargs="*", help="key=value of the twin, e.g. gravity=true n_train=200")
+    p.set_defaults(func=_cmd_simulate)
+
+    p = sub.add_parser("fit", help="identify a robot from a measurement file")
+    p.add_argument("--robot", required=True, help="robot YAML (MDH) or URDF")
+    p.add_argument("--data", required=True, help="measurement CSV")
+    p.add_argument("--out", required=True, help="model folder to write")
+    p.add_argument("--base-link", default=None, help="URDF link of the robot base (default: root)")
+    p.add_argument("--end-link", default=None, help="URDF link of the flange (default: last link)")
+    p.add_argument("overrides", nargs="*", help="key=value, e.g. method=lasso residual=none")
+    p.set_defaults(func=_cmd_fit)
+
+    p = sub.add_parser("evaluate", help="score a model on a measurement file")
+    p.add_argument("--model", required=True)
+    p.add_argument("--data", required=True)
+    p.add_argument("--json", default=None, help="write the metrics to this JSON file")
+    p.add_argument("--register", action="store_true", help="re-fit only the rigid instrument frame to the file first")
+    p.add_argument("overrides", nargs="*")
+    p.set_defaults(func=_cmd_evaluate)
+
+    p = sub.add_parser("export", help="export the compensator to ONNX with a manifest")
+    p.add_argument("--model", required=True)
+    p.add_argument("--out", required=True)
+    p.set_defaults(func=_cmd_export)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    from torchcal.errors import TorchcalError
+
+    import warnings
+
+    args = build_parser().parse_args(argv)
+    warnings.formatwarning = lambda message, category, *rest: f"torchcal: warning: {message}\n"
+    try:
+        return int(args.func(args) or 0)
+    except TorchcalError as exc:
+        print(f"torchcal: error: {exc}", file=sys.stderr)
+        return 2
+    except FileNotFoundError as exc:
+        print(f"torchcal: error: {exc.filename or exc}: file not found", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

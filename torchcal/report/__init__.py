@@ -1,0 +1,1 @@
+"""Accuracy report: plots (matplotlib, Agg) and a Markdown page."""
