@@ -108,9 +108,6 @@ def load_measurements(
             f"found {q_like or 'none'}",
             path=p, row=1,
         )
-    missing = [c for c in POSITION if c not in header]
-    if missing:
-        raise DataError(f"missing column(s) {missing}; a position file needs x, y, z", path=p, row=1, column=missing[0])
     allowed = set(expected_q) | set(POSITION) | set(ORIENTATION) | set(WRENCH) | set(TEMPERATURE)
     extra = [h for h in header if h not in allowed]
     if extra:
@@ -122,6 +119,9 @@ def load_measurements(
             f"unknown column '{extra[0]}'{hint}; allowed: q1..q{n}, x,y,z, rx,ry,rz, fx..tz, temp",
             path=p, row=1, column=extra[0],
         )
+    missing = [c for c in POSITION if c not in header]
+    if missing:
+        raise DataError(f"missing column(s) {missing}; a position file needs x, y, z", path=p, row=1, column=missing[0])
     present_or = [c for c in ORIENTATION if c in header]
     if present_or and len(present_or) != 3:
         raise DataError(f"orientation needs all of rx, ry, rz; found only {present_or}", path=p, row=1, column=present_or[0])

@@ -1,0 +1,49 @@
+"""Shared fixtures: the embedded twin robot and small simulated data sets."""
+
+from __future__ import annotations
+
+import math
+import warnings
+from pathlib import Path
+
+import pytest
+import torch
+
+from torchcal.kinematics.robot import default_robot_path, load_robot
+
+REAL_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real"
+
+
+@pytest.fixture(scope="session")
+def robot():
+    return load_robot(default_robot_path())
+
+
+@pytest.fixture
+def generator():
+    return torch.Generator().manual_seed(1234)
+
+
+@pytest.fixture(autouse=True)
+def _quiet_identifiability():
+    from torchcal.errors import IdentifiabilityWarning
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", IdentifiabilityWarning)
+        yield
+
+
+def pytest_collection_modifyitems(config, items):
+    if REAL_DATA.is_dir():
+        return
+    skip = pytest.mark.skip(reason=f"real-robot data folder {REAL_DATA} is absent")
+    for item in items:
+        if "real" in item.keywords:
+            item.add_marker(skip)
+
+
+def perturbed_vector(model, generator, length_mm=0.5, angle_deg=0.05):
+    """A true parameter vector: nominal plus random errors on every active parameter."""
+    x = model.nominal_vector()
+    sigma = torch.where(model.layout.is_angle(), math.radians(angle_deg), length_mm * 1e-3)
+    return x + torch.randn(x.shape, generator=generator, dtype=torch.float64) * sigma * model.default_active()

@@ -1,0 +1,61 @@
+"""Identifiability: known structural dependencies of a 6R arm measured by position only."""
+
+from __future__ import annotations
+
+import torch
+
+from torchcal.identify.identifiability import analyze
+from torchcal.identify.pose_selection import select_poses_d_optimal
+from torchcal.identify.problem import CalibrationProblem
+from torchcal.data.measurements import Measurements
+from torchcal.kinematics.error_model import ErrorModel
+
+
+def _jacobian(robot, q, model=None):
+    model = model or ErrorModel(robot)
+    x = model.nominal_vector()
+    free = torch.nonzero(model.default_active()).squeeze(-1)
+    problem = CalibrationProblem(model, Measurements(q=q, position=robot.tcp_position(q)), free)
+    _, jac = problem.jacobian(x)
+    return jac, problem.names
+
+
+def test_base_frame_absorbs_row_one_and_tool_absorbs_d6(robot, generator):
+    jac, names = _jacobian(robot, robot.sample_joints(100, generator))
+    report = analyze(jac, names)
+    assert {"alpha1", "a1", "theta1", "d1", "d6", "theta6"} <= set(report.dependent)
+    assert report.dependent["d1"][0][0] == "base_z"
+    assert report.dependent["d6"][0][0] == "tool_z"
+    assert report.rank == len(report.base_set)
+    # 4R + 6 - 3 (no tool orientation) = 27 minus the wrist's two position-only dependencies
+    assert len(report.base_set) == 25
+    assert report.condition_number < 100
+
+
+def test_too_little_excitation_is_reported(robot, generator):
+    """Moving joint 2 alone cannot tell most parameters apart: they must be named."""
+    q = torch.zeros(40, 6, dtype=torch.float64)
+    q[:, 1] = torch.linspace(-1.0, 0.5, 40, dtype=torch.float64)
+    jac, names = _jacobian(robot, q)
+    report = analyze(jac, names)
+    assert len(report.dependent) > 15
+    assert "theta4" in report.dependent
+
+
+def test_d_optimal_selection_beats_random(robot, generator):
+    candidates = robot.sample_joints(600, generator)
+    jac, names = _jacobian(robot, candidates)
+    report = analyze(jac, names)
+    keep = [names.index(n) for n in report.base_set]
+    per_pose = jac.reshape(600, 3, -1)[:, :, keep]
+    k = 15
+    chosen = select_poses_d_optimal(per_pose, k, generator=generator)
+    assert len(set(chosen.tolist())) == k
+
+    def logdet(idx):
+        j = per_pose[idx].reshape(-1, len(keep))
+        j = j / per_pose.reshape(-1, len(keep)).norm(dim=0)
+        return float(torch.logdet(j.T @ j))
+
+    random_scores = [logdet(torch.randperm(600, generator=generator)[:k]) for _ in range(20)]
+    assert logdet(chosen) > max(random_scores)

@@ -1,0 +1,86 @@
+"""Robot models: YAML and URDF routes agree; pytorch-kinematics gives the same structure."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from torchcal.errors import ModelError
+from torchcal.kinematics.robot import load_robot, mdh_to_urdf, robot_to_yaml
+
+
+def test_yaml_and_urdf_of_the_same_robot_agree_to_1e_9_m(robot, tmp_path, generator):
+    urdf = tmp_path / "twin.urdf"
+    urdf.write_text(mdh_to_urdf(robot))
+    from_urdf = load_robot(urdf)
+    q = robot.sample_joints(500, generator)
+    diff = (from_urdf.flange_pose(q) - robot.flange_pose(q))[..., :3, :].abs().max()
+    assert diff < 1e-9
+    assert from_urdf.joint_names == tuple(f"joint{i}" for i in range(1, 7))
+    assert torch.allclose(from_urdf.joint_limits, robot.joint_limits)
+
+
+def test_pytorch_kinematics_chain_matches_mdh_fk(robot, generator):
+    # pytorch-kinematics 0.10 parses URDF rpy in float32: agreement to ~1e-7 m, not better.
+    chain = robot.pk_chain()
+    q = robot.sample_joints(200, generator)
+    pk_pose = chain.forward_kinematics(q).get_matrix()
+    assert (pk_pose - robot.flange_pose(q)).abs().max() < 1e-6
+    assert len(chain.get_joint_parameter_names()) == robot.dof
+
+
+def test_yaml_round_trip(robot, tmp_path):
+    path = tmp_path / "r.yaml"
+    path.write_text(robot_to_yaml(robot))
+    again = load_robot(path)
+    assert torch.allclose(again.table, robot.table, atol=1e-12)
+    assert torch.allclose(again.tool, robot.tool)
+
+
+def test_urdf_with_non_z_axes_and_offsets_matches_its_own_fk(tmp_path, generator):
+    """A UR-like URDF with axes along y and rotated origins: the derived MDH model reproduces the URDF FK."""
+    urdf = """<?xml version="1.0"?><robot name="toy">
+    <link name="world"/><link name="l1"/><link name="l2"/><link name="l3"/><link name="tool0"/>
+    <joint name="j1" type="revolute"><parent link="world"/><child link="l1"/><origin xyz="0.1 0 0.2" rpy="0 0 0.3"/>
+      <axis xyz="0 0 1"/><limit lower="-3" upper="3" effort="1" velocity="1"/></joint>
+    <joint name="j2" type="revolute"><parent link="l1"/><child link="l2"/><origin xyz="0 0.13 0.05" rpy="0 1.5707963267948966 0"/>
+      <axis xyz="0 1 0"/><limit lower="-3" upper="3" effort="1" velocity="1"/></joint>
+    <joint name="j3" type="revolute"><parent link="l2"/><child link="l3"/><origin xyz="0 -0.1 0.4" rpy="0 0 0"/>
+      <axis xyz="0 1 0"/><limit lower="-3" upper="3" effort="1" velocity="1"/></joint>
+    <joint name="fix" type="fixed"><parent link="l3"/><child link="tool0"/><origin xyz="0.05 0.02 0.3" rpy="0.2 -0.1 0.4"/></joint>
+    </robot>"""
+    path = tmp_path / "toy.urdf"
+    path.write_text(urdf)
+    model = load_robot(path)
+    assert model.dof == 3
+    chain = model.pk_chain()
+    q = model.sample_joints(100, generator)
+    ref = chain.forward_kinematics(q).get_matrix()
+    assert (model.flange_pose(q) - ref).abs().max() < 1e-6  # float32 rpy inside pytorch-kinematics
+
+
+def test_yaml_convention_and_units_are_checked(tmp_path):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("name: x\nkinematics:\n  convention: dh\n  joints:\n    - {alpha: 0, a: 0, d: 1, theta: 0}\n")
+    with pytest.raises(ModelError, match="convention"):
+        load_robot(bad)
+    bad.write_text("name: x\nkinematics:\n  convention: mdh\n  length_unit: inch\n  joints:\n    - {alpha: 0, a: 0, d: 1, theta: 0}\n")
+    with pytest.raises(ModelError, match="length_unit"):
+        load_robot(bad)
+    bad.write_text("name: x\nkinematics:\n  convention: mdh\n  joints:\n    - {alpha: 0, a: 0, theta: 0}\n")
+    with pytest.raises(ModelError, match="lacks"):
+        load_robot(bad)
+
+
+def test_urdf_without_the_named_link(robot, tmp_path):
+    path = tmp_path / "r.urdf"
+    path.write_text(mdh_to_urdf(robot))
+    with pytest.raises(ModelError, match="end_link 'tool0' is not a link"):
+        load_robot(path, end_link="tool0")
+
+
+def test_sample_joints_within_limits(robot, generator):
+    q = robot.sample_joints(1000, generator, margin=math.radians(5))
+    assert bool(robot.within_limits(q).all())

@@ -1,0 +1,50 @@
+"""The twin and the end-to-end acceptance of geometric calibration against its truth."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import pytest
+
+from torchcal.pipeline import RunConfig, run
+from torchcal.sim.twin import Twin, TwinConfig, write_twin_case
+
+
+def test_twin_case_files(tmp_path):
+    paths = write_twin_case(tmp_path, TwinConfig(n_train=30, n_test=10, seed=3))
+    truth = json.loads(paths["truth.json"].read_text())
+    assert math.isclose(truth["noise_floor_rms_mm"], math.sqrt(3 * (0.012**2 + 0.008**2)))
+    assert paths["train.csv"].read_text().splitlines()[0] == "q1,q2,q3,q4,q5,q6,x,y,z"
+    assert len(paths["test.csv"].read_text().splitlines()) == 11
+
+
+def test_twin_noise_matches_its_floor(generator):
+    twin = Twin.create(TwinConfig(seed=1))
+    q = twin.robot.sample_joints(4000, generator)
+    noise = twin.measure(q, generator) - twin.true_positions(q)
+    rms = float(noise.norm(dim=-1).pow(2).mean().sqrt()) * 1e3
+    assert abs(rms / twin.config.noise_floor_rms_mm - 1) < 0.03
+
+
+def test_non_geometric_errors_are_present_when_asked(generator):
+    plain = Twin.create(TwinConfig(seed=2))
+    bent = Twin.create(TwinConfig(seed=2, gravity=True, gear=True))
+    q = plain.robot.sample_joints(50, generator)
+    shift = (bent.true_positions(q) - plain.true_positions(q)).norm(dim=-1)
+    assert float(shift.max()) > 1e-4  # > 0.1 mm somewhere
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_geometric_acceptance_on_the_twin(tmp_path, seed):
+    """120 training poses, 400 test poses, tracker 0.012 + repeatability 0.008 mm per axis."""
+    twin = TwinConfig(seed=seed, n_train=120, n_test=400, tracker_sigma_mm=0.012, repeatability_mm=0.008)
+    config = RunConfig(name=f"geo{seed}", out=str(tmp_path), twin=twin, export=False)
+    config.fit.residual = "none"
+    summary = run(config)
+    rms = summary["test"]["geometric"]["position_rms_mm"]
+    assert rms <= 1.10 * summary["noise_floor_rms_mm"]
+    assert summary["test"]["nominal (registered)"]["position_rms_mm"] > 20 * rms
+    assert summary["truth_check"]["fraction_within_3_sigma"] >= 0.95
+    assert (tmp_path / f"geo{seed}" / "report.md").is_file()
+    assert (tmp_path / f"geo{seed}" / "figures" / "error_histogram.png").is_file()

@@ -1,0 +1,54 @@
+"""The command-line contract: simulate, fit, evaluate (with and without --register)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from torchcal.cli import main
+
+
+def test_simulate_fit_evaluate(tmp_path, capsys):
+    case = tmp_path / "case"
+    assert main(["simulate", "--out", str(case), "n_train=150", "n_test=100", "seed=5"]) == 0
+    model = tmp_path / "model"
+    assert main(["fit", "--robot", str(case / "robot.yaml"), "--data", str(case / "train.csv"), "--out", str(model), "residual=none"]) == 0
+    for name in ("calibration.safetensors", "calibration.json", "calibrated_robot.yaml", "robot.yaml"):
+        assert (model / name).is_file()
+    out = tmp_path / "m.json"
+    assert main(["evaluate", "--model", str(model), "--data", str(case / "test.csv"), "--json", str(out)]) == 0
+    metrics = json.loads(out.read_text())
+    for key in ("n_poses", "position_rms_mm", "position_mean_mm", "position_max_mm", "position_p95_mm"):
+        assert key in metrics
+    truth = json.loads((case / "truth.json").read_text())
+    assert metrics["n_poses"] == 100
+    assert metrics["position_rms_mm"] < 1.2 * truth["noise_floor_rms_mm"]
+
+
+def test_evaluate_register_refits_only_the_frame(tmp_path):
+    case = tmp_path / "case"
+    main(["simulate", "--out", str(case), "n_train=150", "n_test=100", "seed=6"])
+    model = tmp_path / "model"
+    main(["fit", "--robot", str(case / "robot.yaml"), "--data", str(case / "train.csv"), "--out", str(model), "residual=none"])
+    # the tracker was moved: shift and rotate the test file's points
+    lines = (case / "test.csv").read_text().splitlines()
+    arr = np.array([[float(v) for v in l.split(",")] for l in lines[1:]])
+    c, s = np.cos(0.3), np.sin(0.3)
+    rot = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
+    arr[:, 6:9] = arr[:, 6:9] @ rot.T + np.array([120.0, -40.0, 15.0])
+    moved = tmp_path / "moved.csv"
+    moved.write_text("\n".join([lines[0]] + [",".join(f"{v:.10f}" for v in row) for row in arr]) + "\n")
+    plain, registered = tmp_path / "a.json", tmp_path / "b.json"
+    main(["evaluate", "--model", str(model), "--data", str(moved), "--json", str(plain)])
+    main(["evaluate", "--model", str(model), "--data", str(moved), "--json", str(registered), "--register"])
+    a, b = json.loads(plain.read_text()), json.loads(registered.read_text())
+    assert a["position_rms_mm"] > 50
+    assert b["position_rms_mm"] < 0.04
+
+
+def test_unknown_override_is_one_clear_line(tmp_path, capsys):
+    assert main(["simulate", "--out", str(tmp_path), "n_trian=3"]) == 2
+    err = capsys.readouterr().err
+    assert "n_trian" in err and "Traceback" not in err
