@@ -52,3 +52,19 @@ def test_unknown_override_is_one_clear_line(tmp_path, capsys):
     assert main(["simulate", "--out", str(tmp_path), "n_trian=3"]) == 2
     err = capsys.readouterr().err
     assert "n_trian" in err and "Traceback" not in err
+
+
+def test_yaml_and_urdf_variants_give_the_same_calibration(tmp_path):
+    from torchcal.kinematics.robot import load_robot, mdh_to_urdf
+
+    case = tmp_path / "case"
+    main(["simulate", "--out", str(case), "n_train=120", "n_test=80", "seed=8"])
+    (case / "robot.urdf").write_text(mdh_to_urdf(load_robot(case / "robot.yaml")))
+    results = []
+    for robot_file, extra in (("robot.yaml", []), ("robot.urdf", []), ("robot.urdf", ["tool_mm=[0,0,100]"])):
+        model = tmp_path / f"m{len(results)}"
+        assert main(["fit", "--robot", str(case / robot_file), "--data", str(case / "train.csv"), "--out", str(model), "residual=none", *extra]) == 0
+        out = tmp_path / f"e{len(results)}.json"
+        main(["evaluate", "--model", str(model), "--data", str(case / "test.csv"), "--json", str(out)])
+        results.append(json.loads(out.read_text())["position_rms_mm"])
+    assert max(results) - min(results) < 1e-6

@@ -49,12 +49,12 @@ def _cmd_fit(args) -> int:
 
     from torchcal.data.measurements import load_measurements
     from torchcal.kinematics.robot import load_robot
-    from torchcal.pipeline import FitConfig, fit, nominal_errors, save_fit
+    from torchcal.pipeline import FitConfig, fit, nominal_errors, save_fit, with_tool
     from torchcal.metrics import position_metrics
 
     config = _apply_overrides(FitConfig(), args.overrides)
     console = Console(stderr=True)
-    robot = load_robot(args.robot, base_link=args.base_link, end_link=args.end_link)
+    robot = with_tool(load_robot(args.robot, base_link=args.base_link, end_link=args.end_link), config)
     data = load_measurements(args.data, robot, joint_unit=config.joint_unit, length_unit=config.length_unit)
     with console.status(f"identifying {robot.name} from {len(data)} poses"):
         result = fit(robot, data, config)

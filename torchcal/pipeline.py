@@ -41,6 +41,7 @@ class FitConfig:
         validation_fraction: share of poses held out to select the residual head.
         device: ``cpu`` or a torch device string.
         seed: seed of the validation split and of stochastic heads.
+        tool_mm: nominal TCP in the flange frame (mm) replacing the robot file's (a URDF has none).
     """
 
     method: str = "lm"
@@ -51,6 +52,7 @@ class FitConfig:
     validation_fraction: float = 0.2
     device: str = "cpu"
     seed: int = 0
+    tool_mm: list[float] | None = None
 
 
 def registered_errors(predicted_base: torch.Tensor, measured: torch.Tensor) -> torch.Tensor:
@@ -63,6 +65,17 @@ def registered_errors(predicted_base: torch.Tensor, measured: torch.Tensor) -> t
 def nominal_errors(robot: RobotModel, data: Measurements) -> torch.Tensor:
     """Nominal model errors after registering the instrument frame (the fair 'before')."""
     return registered_errors(robot.tcp_position(data.q), data.position)
+
+
+def with_tool(robot: RobotModel, config: FitConfig) -> RobotModel:
+    """``robot`` with the configured nominal tool, if one is configured."""
+    if config.tool_mm is None:
+        return robot
+    if len(config.tool_mm) != 3:
+        raise DataError(f"tool_mm needs 3 values (x, y, z in mm), got {list(config.tool_mm)}")
+    from dataclasses import replace
+
+    return replace(robot, tool=torch.tensor(config.tool_mm, dtype=torch.float64) * 1e-3)
 
 
 def fit(robot: RobotModel, data: Measurements, config: FitConfig, *, progress=None) -> CalibrationResult:

@@ -30,7 +30,7 @@ class LevenbergMarquardt(Identifier):
     def __init__(
         self,
         max_iterations: int = 100,
-        ftol: float = 1e-12,
+        ftol: float = 1e-10,
         xtol: float = 1e-12,
         gtol: float = 1e-12,
         initial_damping: float = 1e-6,
@@ -68,6 +68,9 @@ class LevenbergMarquardt(Identifier):
                 relative = (cost - cost_new) / max(cost, 1e-300)
                 cost = cost_new
                 history.append(cost)
+                if relative < self.ftol:
+                    converged, message = True, "relative cost change below ftol"
+                    break
                 r, jac = problem.jacobian(x)
                 jtj = jac.T @ jac
                 diag = torch.maximum(diag, jtj.diagonal())
@@ -75,9 +78,6 @@ class LevenbergMarquardt(Identifier):
                 nu = 2.0
                 scaled_step = float((step * diag.sqrt()).norm())
                 scaled_x = float((x[free] * diag.sqrt()).norm())
-                if relative < self.ftol:
-                    converged, message = True, "relative cost change below ftol"
-                    break
                 if scaled_step <= self.xtol * (scaled_x + self.xtol):
                     converged, message = True, "step below xtol"
                     break
