@@ -59,3 +59,28 @@ def test_d_optimal_selection_beats_random(robot, generator):
 
     random_scores = [logdet(torch.randperm(600, generator=generator)[:k]) for _ in range(20)]
     assert logdet(chosen) > max(random_scores)
+
+
+def test_selected_poses_calibrate_better_than_random_ones(generator):
+    """On the twin, k D-optimal poses give a lower held-out error than k random poses."""
+    import statistics
+
+    from torchcal.identify.calibrate import calibrate
+    from torchcal.identify.pose_selection import select_poses_for_robot
+    from torchcal.sim.twin import Twin, TwinConfig
+
+    twin = Twin.create(TwinConfig(seed=11))
+    candidates = twin.robot.sample_joints(1500, generator, margin=0.08)
+    test_q = twin.robot.sample_joints(400, generator, margin=0.08)
+    truth = twin.true_positions(test_q)
+    k = 30
+
+    def held_out_rms(q):
+        data = Measurements(q=q, position=twin.measure(q, generator))
+        result = calibrate(twin.robot, data)
+        return float((result.model.tcp_position(test_q, result.x) - truth).norm(dim=-1).pow(2).mean().sqrt())
+
+    chosen = select_poses_for_robot(twin.robot, candidates, k, generator=generator)
+    selected = statistics.median(held_out_rms(candidates[chosen]) for _ in range(3))
+    random = statistics.median(held_out_rms(candidates[torch.randperm(1500, generator=generator)[:k]]) for _ in range(5))
+    assert selected < random

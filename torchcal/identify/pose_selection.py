@@ -41,3 +41,25 @@ def select_poses_d_optimal(
         available[best] = False
         info = info + js[best].T @ js[best]
     return torch.tensor(chosen, dtype=torch.long)
+
+
+def select_poses_for_robot(robot, candidates_q: torch.Tensor, k: int, *, generator: torch.Generator | None = None) -> torch.Tensor:
+    """Pick ``k`` of the candidate joint vectors ``(C, N)`` (rad) that best identify ``robot``.
+
+    The information matrix is that of the identifiable parameter set at the nominal model; it
+    does not depend on where the instrument stands (a rotation of the rows leaves ``J^T J`` alone).
+    """
+    from torchcal.data.measurements import Measurements
+    from torchcal.identify.identifiability import analyze
+    from torchcal.identify.problem import CalibrationProblem
+    from torchcal.kinematics.error_model import ErrorModel
+
+    model = ErrorModel(robot)
+    x = model.nominal_vector()
+    free = torch.nonzero(model.default_active()).squeeze(-1)
+    problem = CalibrationProblem(model, Measurements(q=candidates_q, position=robot.tcp_position(candidates_q)), free)
+    _, jac = problem.jacobian(x)
+    report = analyze(jac, problem.names)
+    keep = [problem.names.index(n) for n in report.base_set]
+    per_pose = jac.reshape(candidates_q.shape[0], 3, -1)[:, :, keep]
+    return select_poses_d_optimal(per_pose, k, generator=generator)
