@@ -48,3 +48,13 @@ def test_float32_chain_close_to_float64():
     p64 = _chain(robot, model, x)(q)[0][:, 0, :3, 3]
     p32 = _chain(robot, model, x, torch.float32)(q.float())[0][:, 0, :3, 3]
     assert (p32.double() - p64).norm(dim=-1).max() < 1e-6  # m
+
+
+def test_positions_path_matches_full_poses():
+    robot, model, x, q = _perturbed()
+    tables = torch.stack([robot.table, model.table(x)])
+    ends = torch.stack([robot.T_n_flange @ model.flange_from_tool(model.nominal_vector()), robot.T_n_flange @ model.flange_from_tool(x)])
+    chain = ChainGraph(tables, robot.T_base_0, ends)
+    full = chain(q)[0][..., :3, 3]
+    assert torch.allclose(chain.positions(q), full, atol=1e-14)
+    assert torch.allclose(chain.positions(q)[:, 0], robot.tcp_position(q), atol=1e-14)

@@ -65,6 +65,11 @@ class ChainGraph(nn.Module):
         self.register_buffer("k_sin", k[1].to(device, dtype))
         self.register_buffer("k_one", k[2].to(device, dtype))
         self.register_buffer("t_end", T_end.to(torch.float64).unsqueeze(1).to(device, dtype))  # (C, 1, 4, 4)
+        # the constant link transforms C_i themselves, for :meth:`positions`: rotation transposed
+        # (row-vector points) and translation, (C, N, 3, 3) and (C, N, 1, 3)
+        links = k[0] + k[2]  # C_i E_c + C_i E_0 = C_i
+        self.register_buffer("link_rot_t", links[..., :3, :3].transpose(-1, -2).contiguous().to(device, dtype))
+        self.register_buffer("link_trans", links[..., :3, 3].unsqueeze(-2).to(device, dtype))
         self.n_joints = int(tables.shape[-2])
 
     def forward(self, q: torch.Tensor, with_frames: bool = False) -> tuple[torch.Tensor, torch.Tensor | None]:
@@ -86,6 +91,26 @@ class ChainGraph(nn.Module):
             return tcp, None
         return tcp, torch.cat(frames, 2)
 
+    def positions(self, q: torch.Tensor) -> torch.Tensor:
+        """TCP positions ``(B, C, 3)`` in ``base``, m, for joints ``q`` ``(B, N)`` rad.
+
+        The tool point is carried from the last link back to the base, ``p <- C_i Rz(q_i) p``:
+        a 2-D rotation of ``(x, y)`` then a constant 3x4 affine map, on ``(C, B, 3)`` points. No
+        ``(B, C, N, 4, 4)`` link tensor is ever formed, so large batches stay in cache
+        (:meth:`forward` is memory-bound there).
+        """
+        angle = q.transpose(0, 1).unsqueeze(-1)  # (N, B, 1)
+        cos = torch.split(torch.cos(angle), 1, dim=0)  # N x (1, B, 1)
+        sin = torch.split(torch.sin(angle), 1, dim=0)
+        point = self.t_end[:, :, :3, 3]  # (C, 1, 3) in frame N
+        for i in reversed(range(self.n_joints)):
+            x, y, z = torch.split(point, 1, dim=-1)
+            c, s = cos[i], sin[i]
+            if i == self.n_joints - 1:
+                z = z + 0.0 * c  # the constant tool point gets its batch axis here
+            turned = torch.cat([c * x - s * y, s * x + c * y, z], -1)
+            point = turned @ self.link_rot_t[:, i] + self.link_trans[:, i]
+        return point.transpose(0, 1)
 
 def geometric_jacobian_t(tcp: torch.Tensor, frames: torch.Tensor) -> torch.Tensor:
     """Transposed geometric Jacobian ``(..., N, 6)`` from :meth:`ChainGraph.forward` outputs.
