@@ -1,0 +1,216 @@
+"""Latency and throughput of the exported compensator (onnxruntime) against torch eager.
+
+Usage: python scripts/bench_onnx.py [--model DIR] [--out docs/bench_onnx] [--quick]
+
+Without ``--model`` a twin is calibrated on the spot (geometry only). Measures, for the
+compensator and monitor graphs in float64 and float32:
+
+* single-sample latency (batch 1), median and p99 over many calls, onnxruntime with
+  ``intra_op_num_threads=1`` (one core, as on a controller) and torch eager with one thread;
+* batch throughput (poses/s) at a large batch, onnxruntime on one thread and on all cores,
+  torch eager on all cores;
+* convergence of the compensator against its iteration count (worst and 99th-percentile TCP
+  residual over random poses within the joint limits).
+
+Writes ``OUT.json`` and ``OUT.md`` (atomically).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+
+def _latency(fn, calls: int, warmup: int = 200) -> dict:
+    for _ in range(warmup):
+        fn()
+    times = np.empty(calls)
+    for i in range(calls):
+        t0 = time.perf_counter_ns()
+        fn()
+        times[i] = time.perf_counter_ns() - t0
+    us = times / 1e3
+    return {"median_us": float(np.median(us)), "p99_us": float(np.percentile(us, 99)), "calls": calls}
+
+
+def _throughput(fn, batch: int, repeats: int) -> dict:
+    fn()
+    rates = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        rates.append(batch / (time.perf_counter() - t0))
+    return {"median_poses_per_s": float(np.median(rates)), "batch": batch, "repeats": repeats}
+
+
+def _session(path: Path, threads: int | None):
+    import onnxruntime as ort
+
+    options = ort.SessionOptions()
+    options.log_severity_level = 3
+    options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    if threads is not None:
+        options.intra_op_num_threads = threads
+        options.inter_op_num_threads = 1
+        options.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+    return ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
+
+
+def _model_dir(tmp: Path) -> Path:
+    import torch
+
+    from torchcal.pipeline import FitConfig, fit, save_fit
+    from torchcal.sim.twin import Twin, TwinConfig
+
+    twin = Twin.create(TwinConfig(seed=0))
+    train = twin.sample(300, torch.Generator().manual_seed(1))
+    result = fit(twin.robot, train, FitConfig(residual="none"))
+    return save_fit(tmp / "model", twin.robot, train, result, {})
+
+
+def convergence(stored, n_poses: int, max_iterations: int = 5) -> list[dict]:
+    """TCP position / rotation residual of the float64 compensator against its iteration count."""
+    import torch
+
+    from torchcal.compensate.compensator import CompensatorGraph
+    from torchcal.kinematics.error_model import ErrorModel
+    from torchcal.kinematics.ik import pose_error
+
+    q = stored.robot.sample_joints(n_poses, torch.Generator().manual_seed(5))
+    target = stored.robot.flange_pose(q).clone()
+    target[..., :3, 3] = target[..., :3, :3] @ stored.robot.tool + target[..., :3, 3]
+    base_model = ErrorModel(stored.robot)
+    rows = []
+    for n in range(1, max_iterations + 1):
+        with torch.no_grad():
+            q_c = CompensatorGraph(stored.model, stored.x, iterations=n)(q)
+        e = pose_error(target, base_model.tcp_pose(q_c, stored.x))
+        p, r = e[:, :3].norm(dim=-1), e[:, 3:].norm(dim=-1)
+        rows.append({
+            "iterations": n,
+            "position_p50_m": float(p.median()), "position_p99_m": float(p.quantile(0.99)), "position_max_m": float(p.max()),
+            "fraction_below_1nm": float((p < 1e-9).double().mean()),
+            "rotation_p99_rad": float(r.quantile(0.99)),
+            "joint_step_max_rad": float((q_c - q).abs().max()),
+        })
+    return rows
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description="onnxruntime vs torch eager for the exported compensator")
+    parser.add_argument("--model", help="model folder (default: calibrate a twin)")
+    parser.add_argument("--out", default="docs/bench_onnx", help="output path without extension")
+    parser.add_argument("--quick", action="store_true", help="fewer calls (smoke run)")
+    args = parser.parse_args(argv)
+
+    import onnxruntime as ort
+    import torch
+    from rich.console import Console
+
+    from torchcal.compensate.export import GRAPHS, build_graphs, export_model
+    from torchcal.io import atomic_write_json, atomic_write_text
+    from torchcal.model_store import load_model
+
+    console = Console()
+    load_before = os.getloadavg()
+    calls = 500 if args.quick else 5000
+    repeats = 3 if args.quick else 5
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        with console.status("[bold]preparing model and export"):
+            model_dir = Path(args.model) if args.model else _model_dir(tmp)
+            export_model(model_dir, tmp / "export")
+            stored = load_model(model_dir)
+            graphs = build_graphs(stored)
+        rng = np.random.default_rng(0)
+        limits = stored.robot.joint_limits.numpy()
+        results = {}
+        for key, (name, dtype, input_name, _) in GRAPHS.items():
+            console.log(f"benchmarking {key}")
+            # the compensator is ~30x the work of the monitor: a smaller batch keeps the run short
+            batch = (20_000 if args.quick else 200_000) // (10 if key.startswith("compensator") else 1)
+            q_batch64 = limits[:, 0] + rng.random((batch, stored.robot.dof)) * (limits[:, 1] - limits[:, 0])
+            np_dtype = np.float64 if dtype == torch.float64 else np.float32
+            q1 = np.ascontiguousarray(q_batch64[:1].astype(np_dtype))
+            qb = np.ascontiguousarray(q_batch64.astype(np_dtype))
+            one = _session(tmp / "export" / name, threads=1)
+            many = _session(tmp / "export" / name, threads=None)
+            module = graphs[key]
+            t1, tb = torch.from_numpy(q1), torch.from_numpy(qb)
+            entry = {
+                "ort_single_1thread": _latency(lambda: one.run(None, {input_name: q1}), calls),
+                "ort_batch_1thread": _throughput(lambda: one.run(None, {input_name: qb}), batch, repeats),
+                "ort_batch_all_threads": _throughput(lambda: many.run(None, {input_name: qb}), batch, repeats),
+            }
+            torch_threads = torch.get_num_threads()
+            with torch.inference_mode():
+                torch.set_num_threads(1)
+                entry["torch_single_1thread"] = _latency(lambda: module(t1), max(200, calls // 5))
+                torch.set_num_threads(torch_threads)
+                entry["torch_batch_all_threads"] = _throughput(lambda: module(tb), batch, repeats)
+            results[key] = entry
+        with console.status("[bold]convergence against iteration count"):
+            conv = convergence(stored, 2000 if args.quick else 10_000)
+    report = {
+        "machine": {"cpu": platform.processor() or platform.machine(), "cores": os.cpu_count(), "python": platform.python_version(),
+                    "onnxruntime": ort.__version__, "torch": torch.__version__,
+                    "load_average_1min": {"before": load_before[0], "after": os.getloadavg()[0]}},
+        "targets": {"single_sample_p99_us": 30.0, "monitor_batch_poses_per_s": 1e6},
+        "graphs": results,
+        "convergence": conv,
+    }
+    atomic_write_json(Path(args.out).with_suffix(".json"), report)
+    atomic_write_text(Path(args.out).with_suffix(".md"), markdown(report))
+    console.print(markdown(report))
+    return 0
+
+
+def markdown(report: dict) -> str:
+    m = report["machine"]
+    lines = [
+        "# ONNX compensator benchmark",
+        "",
+        f"Machine: {m['cpu']}, {m['cores']} cores (1-min load average {m['load_average_1min']['before']:.1f} before, "
+        f"{m['load_average_1min']['after']:.1f} after: other work shared the cores); onnxruntime {m['onnxruntime']}, torch {m['torch']}. "
+        "Latency: one pose per call from Python (`InferenceSession.run`), median and p99. "
+        "Throughput: one large batch per call, median of repeats.",
+        "",
+        "| graph | ORT 1 thread median / p99 (us) | torch 1 thread median / p99 (us) | ORT 1 thread (poses/s) | ORT all threads (poses/s) | torch all threads (poses/s) |",
+        "| --- | --- | --- | --- | --- | --- |",
+    ]
+    for key, e in report["graphs"].items():
+        o, t = e["ort_single_1thread"], e["torch_single_1thread"]
+        lines.append(
+            f"| {key} | {o['median_us']:.1f} / {o['p99_us']:.1f} | {t['median_us']:.1f} / {t['p99_us']:.1f} | "
+            f"{e['ort_batch_1thread']['median_poses_per_s']:.3g} | {e['ort_batch_all_threads']['median_poses_per_s']:.3g} | "
+            f"{e['torch_batch_all_threads']['median_poses_per_s']:.3g} |"
+        )
+    lines += [
+        "",
+        f"Targets: single-sample p99 <= {report['targets']['single_sample_p99_us']:.0f} us on one core; monitor batch "
+        f">= {report['targets']['monitor_batch_poses_per_s']:.0e} poses/s.",
+        "",
+        "## Compensator convergence (float64, random poses within the joint limits)",
+        "",
+        "| iterations | TCP residual median (m) | p99 (m) | max (m) | share below 1 nm | rotation p99 (rad) | largest joint step (rad) |",
+        "| --- | --- | --- | --- | --- | --- | --- |",
+    ]
+    for r in report["convergence"]:
+        lines.append(
+            f"| {r['iterations']} | {r['position_p50_m']:.1e} | {r['position_p99_m']:.1e} | {r['position_max_m']:.1e} | "
+            f"{r['fraction_below_1nm']:.3f} | {r['rotation_p99_rad']:.1e} | {r['joint_step_max_rad']:.2f} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

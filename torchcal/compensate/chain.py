@@ -1,0 +1,131 @@
+"""Forward kinematics and geometric Jacobian of MDH+beta chains as a fixed tensor graph.
+
+The link transform of joint ``i`` is ``C_i Rz(q_i)`` with the constant
+``C_i = Rx(alpha) Tx(a) Ry(beta) Rz(theta_i) Tz(d_i)`` (``Rz`` and ``Tz`` commute), and
+``Rz(q) = cos(q) E_c + sin(q) E_s + E_0`` is linear in ``(cos q, sin q)``. So every link of a
+batch is ``cos(q) K_c + sin(q) K_s + K_0`` with three constant ``(N, 4, 4)`` tensors: a handful of
+ONNX nodes for all links at once, followed by ``N`` 4x4 products down the chain. The frames
+are those of :mod:`torchcal.kinematics.mdh`, ``base`` to ``tool``, so the results equal
+:meth:`ErrorModel.base_flange_pose` and :func:`torchcal.kinematics.joint_jacobian.geometric_jacobian`
+(with an identity instrument frame) to rounding.
+
+Several chains that share the joint vector (nominal and calibrated) are evaluated together on a
+``chain`` axis, which halves the node count of graphs that need both.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from torchcal.kinematics import transforms as tf
+from torchcal.kinematics.mdh import link_transform
+
+
+def link_constants(table: torch.Tensor, T_base_0: torch.Tensor) -> torch.Tensor:
+    """``K (3, N, 4, 4)``: ``[K_c, K_s, K_0]`` of the links of ``table`` ``(N, 5)`` (rad, m).
+
+    ``T_base_0`` is folded into the first link, so the chain starts in the ``base`` frame.
+    """
+    alpha, a, beta, theta, d = table.to(torch.float64).unbind(-1)
+    rot, pos = link_transform(alpha, a, beta, theta, d)
+    c = tf.homogeneous(rot, pos)
+    c = torch.cat([T_base_0.to(c) @ c[:1], c[1:]], 0)
+    e_c = torch.diag(torch.tensor([1.0, 1.0, 0.0, 0.0], dtype=torch.float64))
+    e_0 = torch.diag(torch.tensor([0.0, 0.0, 1.0, 1.0], dtype=torch.float64))
+    e_s = torch.zeros(4, 4, dtype=torch.float64)
+    e_s[0, 1], e_s[1, 0] = -1.0, 1.0
+    return torch.stack([c @ e_c, c @ e_s, c @ e_0])
+
+
+class ChainGraph(nn.Module):
+    """``C`` serial chains with a common joint vector, as an exportable module.
+
+    Args:
+        tables: ``(C, N, 5)`` MDH+beta rows ``[alpha, a, beta, theta_offset, d]`` (rad, m).
+        T_base_0: ``(4, 4)`` fixed ``base -> frame 0`` transform.
+        T_end: ``(C, 4, 4)`` fixed ``frame N -> tool`` transform of each chain
+            (``T_n_flange @ T_flange_tool``).
+        dtype: float64 or float32 (constants are computed in float64, then cast).
+        device: where the constants live.
+    """
+
+    def __init__(
+        self,
+        tables: torch.Tensor,
+        T_base_0: torch.Tensor,
+        T_end: torch.Tensor,
+        *,
+        dtype: torch.dtype = torch.float64,
+        device: str | torch.device = "cpu",
+    ) -> None:
+        super().__init__()
+        k = torch.stack([link_constants(t, T_base_0) for t in tables], 1)  # (3, C, N, 4, 4)
+        self.register_buffer("k_cos", k[0].to(device, dtype))
+        self.register_buffer("k_sin", k[1].to(device, dtype))
+        self.register_buffer("k_one", k[2].to(device, dtype))
+        self.register_buffer("t_end", T_end.to(torch.float64).unsqueeze(1).to(device, dtype))  # (C, 1, 4, 4)
+        # the constant link transforms C_i themselves, for :meth:`positions`: rotation transposed
+        # (row-vector points) and translation, (C, N, 3, 3) and (C, N, 1, 3)
+        links = k[0] + k[2]  # C_i E_c + C_i E_0 = C_i
+        self.register_buffer("link_rot_t", links[..., :3, :3].transpose(-1, -2).contiguous().to(device, dtype))
+        self.register_buffer("link_trans", links[..., :3, 3].unsqueeze(-2).to(device, dtype))
+        self.n_joints = int(tables.shape[-2])
+
+    def forward(self, q: torch.Tensor, with_frames: bool = False) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """TCP poses ``T_base_tool`` ``(B, C, 4, 4)`` for joints ``q`` ``(B, N)`` rad.
+
+        With ``with_frames``, also ``T_base_i`` ``(B, C, N, 4, 4)`` of every joint frame (joint
+        ``i`` turns about the z axis of frame ``i``, through its origin); else ``None``.
+        """
+        angle = q.unsqueeze(1).unsqueeze(-1).unsqueeze(-1)  # (B, 1, N, 1, 1)
+        links = torch.cos(angle) * self.k_cos + torch.sin(angle) * self.k_sin + self.k_one
+        parts = torch.split(links, 1, dim=2)  # N x (B, C, 1, 4, 4)
+        pose = parts[0]
+        frames = [pose]
+        for link in parts[1:]:
+            pose = pose @ link
+            frames.append(pose)
+        tcp = (pose @ self.t_end)[:, :, 0]
+        if not with_frames:
+            return tcp, None
+        return tcp, torch.cat(frames, 2)
+
+    def positions(self, q: torch.Tensor) -> torch.Tensor:
+        """TCP positions ``(B, C, 3)`` in ``base``, m, for joints ``q`` ``(B, N)`` rad.
+
+        The tool point is carried from the last link back to the base, ``p <- C_i Rz(q_i) p``:
+        a 2-D rotation of ``(x, y)`` then a constant 3x4 affine map, on ``(C, B, 3)`` points. No
+        ``(B, C, N, 4, 4)`` link tensor is ever formed, so large batches stay in cache
+        (:meth:`forward` is memory-bound there).
+        """
+        angle = q.transpose(0, 1).unsqueeze(-1)  # (N, B, 1)
+        cos = torch.split(torch.cos(angle), 1, dim=0)  # N x (1, B, 1)
+        sin = torch.split(torch.sin(angle), 1, dim=0)
+        point = self.t_end[:, :, :3, 3]  # (C, 1, 3) in frame N
+        for i in reversed(range(self.n_joints)):
+            x, y, z = torch.split(point, 1, dim=-1)
+            c, s = cos[i], sin[i]
+            if i == self.n_joints - 1:
+                z = z + 0.0 * c  # the constant tool point gets its batch axis here
+            turned = torch.cat([c * x - s * y, s * x + c * y, z], -1)
+            point = turned @ self.link_rot_t[:, i] + self.link_trans[:, i]
+        return point.transpose(0, 1)
+
+def geometric_jacobian_t(tcp: torch.Tensor, frames: torch.Tensor) -> torch.Tensor:
+    """Transposed geometric Jacobian ``(..., N, 6)`` from :meth:`ChainGraph.forward` outputs.
+
+    Args:
+        tcp: ``(..., 4, 4)`` TCP pose in ``base``.
+        frames: ``(..., N, 4, 4)`` joint frames in ``base``.
+
+    Returns:
+        Row ``i`` = ``[z_i x (p - o_i), z_i]``: TCP linear velocity (m/rad) and tool angular
+        velocity (rad/rad) in ``base`` per unit rate of joint ``i``.
+    """
+    axis = frames[..., :3, 2]
+    lever = tcp[..., None, :3, 3] - frames[..., :3, 3]
+    # cross product by index permutations (no ONNX operator for it)
+    i1, i2 = [1, 2, 0], [2, 0, 1]
+    linear = axis[..., i1] * lever[..., i2] - axis[..., i2] * lever[..., i1]
+    return torch.cat([linear, axis], -1)
