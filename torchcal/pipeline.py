@@ -218,6 +218,7 @@ def run(config: RunConfig, console=None) -> dict:
         "elapsed_s": None,
     }
     write_run_report(folder, robot, result, stages, summary, truth_x, console=console)
+    atomic_write_json(model_dir / "metrics.json", {"held_out_data": test.source, "stages": metrics, "final_stage": summary["final_stage"]})
     if config.export:
         from torchcal.compensate.export import export_and_check
 
