@@ -123,8 +123,8 @@ def limit_scale(
         room_lo = ((q - bounds[:, 0]) / dt).clamp_min(0.0)
         room = torch.where(qdot > 0, room_hi, room_lo)
         ratio_pos = torch.where(qdot != 0, room / qdot.abs().clamp_min(1e-300), big)
-    s_speed = ratio_speed.min(-1).values.clamp(max=1.0)
-    s_pos = ratio_pos.min(-1).values.clamp(max=1.0)
+    s_speed = ratio_speed.amin(-1).clamp(max=1.0)
+    s_pos = ratio_pos.amin(-1).clamp(max=1.0)
     return torch.minimum(s_speed, s_pos), s_pos < s_speed
 
 
