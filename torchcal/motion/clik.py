@@ -164,7 +164,7 @@ def follow(
         inv: DLSInverse = (
             dls_inverse(jac, config.damping_eps, config.damping_max, config.selective_damping) if config.method == "dls" else pseudo_inverse(jac)
         )
-        qdot = (inv.inverse @ (ff[k] + config.gain * err).unsqueeze(-1)).squeeze(-1)
+        qdot = (inv.inverse @ (ff[k] + config.feedback_gain * err).unsqueeze(-1)).squeeze(-1)
         if config.null_space_gain > 0.0:
             q_dot_0 = -config.null_space_gain * weight * (q - centre)
             qdot = qdot + ((eye - inv.inverse @ jac) @ q_dot_0.unsqueeze(-1)).squeeze(-1)

@@ -28,8 +28,9 @@ class MotionConfig:
     Attributes:
         rate_hz: control rate (250 Hz default; 1000 Hz for a 1 kHz interpolator).
         gain: pose-error feedback gain ``K`` (1/s), same for position and orientation; 0 gives
-            open-loop integration. ``gain / rate_hz`` must stay in ``[0, 1]`` (1 = the whole
-            error corrected in one cycle; above it the discrete loop overshoots).
+            open-loop integration; ``None`` (default) gives ``K = rate_hz``, i.e. ``K dt = 1``:
+            the error seen at a cycle is corrected within that cycle (the fastest setting the
+            discrete loop tolerates; ``K dt`` must stay in ``[0, 1]``, above 1 it overshoots).
         method: ``"dls"`` (adaptive damping) or ``"pinv"`` (undamped pseudo-inverse).
         damping_eps: ``sigma_min`` below which damping starts; the singular neighbourhood.
         damping_max: damping factor ``a_max`` at ``sigma_min = 0``.
@@ -49,7 +50,7 @@ class MotionConfig:
     """
 
     rate_hz: float = DEFAULT_RATE_HZ
-    gain: float = 250.0
+    gain: float | None = None
     method: str = "dls"
     damping_eps: float = DEFAULT_EPS
     damping_max: float = DEFAULT_A_MAX
@@ -67,11 +68,16 @@ class MotionConfig:
             raise ModelError(f"motion method {self.method!r} is not one of {', '.join(METHODS)}")
         if not self.rate_hz > 0.0:
             raise ModelError(f"motion rate_hz must be positive, got {self.rate_hz}")
-        if not 0.0 <= self.gain / self.rate_hz <= 1.0:
+        if not 0.0 <= self.feedback_gain / self.rate_hz <= 1.0 + 1e-12:
             raise ModelError(
-                f"motion gain {self.gain} 1/s at {self.rate_hz} Hz gives gain*dt={self.gain / self.rate_hz:.3g}; "
+                f"motion gain {self.gain} 1/s at {self.rate_hz} Hz gives gain*dt={self.feedback_gain / self.rate_hz:.3g}; "
                 "it must be within [0, 1]"
             )
+
+    @property
+    def feedback_gain(self) -> float:
+        """``K`` in 1/s (``rate_hz`` when ``gain`` is None)."""
+        return self.rate_hz if self.gain is None else float(self.gain)
 
     @property
     def dt(self) -> float:
