@@ -77,6 +77,7 @@ def plot_joint_speeds(
         peak = ratio.max()
         if peak > 5:
             ax.set_yscale("log")
+            ax.set_ylim(bottom=1e-3)
         ax.set(ylabel="|q_dot| / limit", title=f"{label}: peak {peak:.3g} x limit")
         ax.legend(fontsize=7, ncol=6)
     axes[-1, 0].set_xlabel("time [s]")
