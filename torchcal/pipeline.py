@@ -42,6 +42,10 @@ class FitConfig:
         device: ``cpu`` or a torch device string.
         seed: seed of the validation split and of stochastic heads.
         tool_mm: nominal TCP in the flange frame (mm) replacing the robot file's (a URDF has none).
+        residual_hidden: hidden units of ELM heads.
+        mayfly_population / mayfly_iterations: MMA search of the ELM hidden layer.
+        residual_margin: a head must lower the validation RMS by this fraction to be kept.
+        progress: show progress bars of long steps.
     """
 
     method: str = "lm"
@@ -53,6 +57,11 @@ class FitConfig:
     device: str = "cpu"
     seed: int = 0
     tool_mm: list[float] | None = None
+    residual_hidden: int = 80
+    mayfly_population: int = 20
+    mayfly_iterations: int = 50
+    residual_margin: float = 0.05
+    progress: bool = True
 
 
 def registered_errors(predicted_base: torch.Tensor, measured: torch.Tensor) -> torch.Tensor:

@@ -1,0 +1,31 @@
+"""Uniform random search: the baseline every metaheuristic must beat at equal evaluations."""
+
+from __future__ import annotations
+
+import torch
+
+from torchcal.optimize.base import Fitness, Metaheuristic, OptimizeResult
+
+
+class RandomSearch(Metaheuristic):
+    """Evaluate ``evaluations`` uniform samples in batches of ``batch``."""
+
+    name = "random"
+
+    def __init__(self, evaluations: int = 2000, batch: int = 40) -> None:
+        self.evaluations = evaluations
+        self.batch = batch
+
+    def minimize(self, fitness: Fitness, lower, upper, *, seed: int = 0, progress: bool = False) -> OptimizeResult:
+        gen = torch.Generator().manual_seed(seed)
+        best_x, best_f, history, used = None, float("inf"), [], 0
+        while used < self.evaluations:
+            n = min(self.batch, self.evaluations - used)
+            x = lower + torch.rand(n, lower.shape[0], generator=gen, dtype=lower.dtype) * (upper - lower)
+            f = fitness(x)
+            used += n
+            k = int(torch.argmin(f))
+            if float(f[k]) < best_f:
+                best_f, best_x = float(f[k]), x[k].clone()
+            history.append(best_f)
+        return OptimizeResult(best_x=best_x, best_f=best_f, history=history, n_evaluations=used)

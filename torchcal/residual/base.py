@@ -1,0 +1,43 @@
+"""The residual-head interface.
+
+A head maps features of the joint angles to the TCP position error the geometric model leaves,
+in the ``base`` frame, in mm (training targets are scaled to mm for conditioning; callers
+convert). Every head can export itself as a plain ``torch.nn.Module`` (for ONNX) and store its
+state as tensors (for safetensors) plus JSON-able settings.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+
+import torch
+
+
+class ResidualHead(ABC):
+    """A learned model of the geometric residual."""
+
+    name = "head"
+
+    @abstractmethod
+    def fit(self, x_train: torch.Tensor, y_train: torch.Tensor, x_val: torch.Tensor, y_val: torch.Tensor) -> "ResidualHead":
+        """Fit on features ``(n, F)`` and targets ``(n, K)``; the validation pair may steer early stopping."""
+
+    @abstractmethod
+    def module(self) -> torch.nn.Module:
+        """A plain module computing the prediction from features."""
+
+    @abstractmethod
+    def settings(self) -> dict:
+        """JSON-able hyperparameters needed to rebuild the module."""
+
+    def predict(self, features: torch.Tensor) -> torch.Tensor:
+        with torch.no_grad():
+            return self.module().to(features.dtype)(features)
+
+    def state(self) -> dict[str, torch.Tensor]:
+        return {k: v.detach().cpu().contiguous() for k, v in self.module().state_dict().items()}
+
+
+def rms(a: torch.Tensor) -> float:
+    """Root mean square of the per-sample vector norm."""
+    return float(a.norm(dim=-1).pow(2).mean().sqrt())

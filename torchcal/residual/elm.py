@@ -1,0 +1,79 @@
+"""Extreme Learning Machine, as the compensation patent defines it.
+
+One hidden layer ``H = sigmoid(X W^T + b)`` with input weights ``W`` uniform in ``[-1, 1]`` and
+biases ``b`` uniform in ``[0, 1]``; output weights ``V = pinv(H) T``.
+
+Solve: ``pinv`` (the patent's) or ridge ``V = (H^T H + lambda I)^-1 H^T T``. The default is ridge
+with a small ``lambda``: sigmoid columns of a few hundred units are nearly collinear, and the
+pseudo-inverse then fits noise with huge opposite weights (its cut-off is a numerical accident
+of the SVD tolerance); a small ridge is the same estimate where ``H`` is well conditioned and a
+stable one where it is not.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from torchcal.residual.base import ResidualHead
+
+
+class ELMModule(torch.nn.Module):
+    def __init__(self, weights: torch.Tensor, bias: torch.Tensor, output: torch.Tensor) -> None:
+        super().__init__()
+        self.register_buffer("weights", weights)
+        self.register_buffer("bias", bias)
+        self.register_buffer("output", output)
+
+    def forward(self, features: torch.Tensor) -> torch.Tensor:
+        return torch.sigmoid(features @ self.weights.T + self.bias) @ self.output
+
+
+def solve_output_weights(hidden: torch.Tensor, targets: torch.Tensor, ridge: float | None) -> torch.Tensor:
+    """``V`` for hidden activations ``(..., n, L)`` and targets ``(..., n, K)`` (batched over candidates)."""
+    if ridge is None:
+        return torch.linalg.pinv(hidden) @ targets
+    gram = hidden.transpose(-1, -2) @ hidden
+    eye = torch.eye(gram.shape[-1], dtype=gram.dtype, device=gram.device)
+    scale = gram.diagonal(dim1=-2, dim2=-1).mean(-1)[..., None, None]
+    chol = torch.linalg.cholesky(gram + ridge * scale * eye)
+    return torch.cholesky_solve(hidden.transpose(-1, -2) @ targets, chol)
+
+
+class ELM(ResidualHead):
+    """ELM with random ``W in [-1, 1]``, ``b in [0, 1]``.
+
+    Args:
+        hidden: hidden units ``L``.
+        ridge: relative ridge ``lambda`` (times the mean diagonal of ``H^T H``); ``None`` = pinv.
+        seed: seed of the random hidden layer.
+    """
+
+    name = "elm"
+
+    def __init__(self, hidden: int = 80, ridge: float | None = 1e-6, seed: int = 0) -> None:
+        self.hidden, self.ridge, self.seed = hidden, ridge, seed
+        self.weights = self.bias = self.output = None
+
+    def set_hidden_layer(self, weights: torch.Tensor, bias: torch.Tensor) -> None:
+        self.weights, self.bias = weights, bias
+
+    def fit(self, x_train, y_train, x_val=None, y_val=None) -> "ELM":
+        if self.weights is None:
+            gen = torch.Generator().manual_seed(self.seed)
+            self.weights = torch.rand(self.hidden, x_train.shape[1], generator=gen, dtype=x_train.dtype) * 2 - 1
+            self.bias = torch.rand(self.hidden, generator=gen, dtype=x_train.dtype)
+        hidden = torch.sigmoid(x_train @ self.weights.T + self.bias)
+        self.output = solve_output_weights(hidden, y_train, self.ridge)
+        return self
+
+    def module(self) -> torch.nn.Module:
+        return ELMModule(self.weights, self.bias, self.output)
+
+    def settings(self) -> dict:
+        return {"hidden": self.hidden, "ridge": self.ridge, "seed": self.seed}
+
+    @classmethod
+    def from_state(cls, settings: dict, state: dict[str, torch.Tensor]) -> "ELM":
+        head = cls(hidden=settings["hidden"], ridge=settings["ridge"], seed=settings["seed"])
+        head.weights, head.bias, head.output = state["weights"], state["bias"], state["output"]
+        return head

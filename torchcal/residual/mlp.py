@@ -1,0 +1,116 @@
+"""MLP residual head trained with Lightning (early stopping on validation loss, best checkpoint).
+
+Lightning is imported inside :meth:`MLPHead.fit` only: commands that do not train stay light.
+The best checkpoint is reloaded with ``torch.load(..., weights_only=True)``.
+"""
+
+from __future__ import annotations
+
+import tempfile
+from pathlib import Path
+
+import torch
+
+from torchcal.residual.base import ResidualHead
+
+
+def make_network(n_in: int, n_out: int, width: int, depth: int) -> torch.nn.Sequential:
+    layers: list[torch.nn.Module] = []
+    size = n_in
+    for _ in range(depth):
+        layers += [torch.nn.Linear(size, width), torch.nn.Tanh()]
+        size = width
+    layers.append(torch.nn.Linear(size, n_out))
+    return torch.nn.Sequential(*layers)
+
+
+class MLPHead(ResidualHead):
+    """Tanh MLP (smooth, like the errors it models) trained by Adam with MSE loss.
+
+    Args:
+        width, depth: hidden layer size and count.
+        max_epochs, patience: training budget and early-stopping patience (epochs).
+        learning_rate, batch_size, weight_decay: optimizer settings.
+        seed: initialization and shuffling seed.
+        progress: Lightning's progress bar.
+    """
+
+    name = "mlp"
+
+    def __init__(self, width: int = 64, depth: int = 2, max_epochs: int = 400, patience: int = 40,
+                 learning_rate: float = 3e-3, batch_size: int = 128, weight_decay: float = 0.0, seed: int = 0,
+                 progress: bool = False) -> None:
+        self.width, self.depth, self.max_epochs, self.patience = width, depth, max_epochs, patience
+        self.learning_rate, self.batch_size, self.weight_decay = learning_rate, batch_size, weight_decay
+        self.seed, self.progress = seed, progress
+        self.network: torch.nn.Sequential | None = None
+        self.epochs_trained = 0
+
+    def fit(self, x_train, y_train, x_val, y_val) -> "MLPHead":
+        import lightning as L
+        from lightning.pytorch.callbacks import EarlyStopping, ModelCheckpoint
+
+        L.seed_everything(self.seed, verbose=False)
+        network = make_network(x_train.shape[1], y_train.shape[1], self.width, self.depth).to(x_train.dtype)
+        head = self
+
+        class Module(L.LightningModule):
+            def __init__(self) -> None:
+                super().__init__()
+                self.net = network
+
+            def forward(self, x):
+                return self.net(x)
+
+            def training_step(self, batch, _):
+                x, y = batch
+                loss = torch.nn.functional.mse_loss(self.net(x), y)
+                self.log("train_loss", loss, prog_bar=True)
+                return loss
+
+            def validation_step(self, batch, _):
+                x, y = batch
+                self.log("val_loss", torch.nn.functional.mse_loss(self.net(x), y), prog_bar=True)
+
+            def configure_optimizers(self):
+                return torch.optim.Adam(self.parameters(), lr=head.learning_rate, weight_decay=head.weight_decay)
+
+        class Data(L.LightningDataModule):
+            def train_dataloader(self):
+                ds = torch.utils.data.TensorDataset(x_train, y_train)
+                gen = torch.Generator().manual_seed(head.seed)
+                return torch.utils.data.DataLoader(ds, batch_size=head.batch_size, shuffle=True, generator=gen)
+
+            def val_dataloader(self):
+                return torch.utils.data.DataLoader(torch.utils.data.TensorDataset(x_val, y_val), batch_size=len(x_val))
+
+        with tempfile.TemporaryDirectory() as tmp:
+            checkpoint = ModelCheckpoint(dirpath=tmp, monitor="val_loss", mode="min", save_top_k=1, save_weights_only=True)
+            trainer = L.Trainer(
+                max_epochs=self.max_epochs, callbacks=[EarlyStopping("val_loss", patience=self.patience), checkpoint],
+                enable_progress_bar=self.progress, enable_model_summary=False, logger=False, accelerator="cpu",
+                devices=1, deterministic=True, default_root_dir=tmp, num_sanity_val_steps=0,
+            )
+            module = Module()
+            trainer.fit(module, datamodule=Data())
+            self.epochs_trained = int(trainer.current_epoch)
+            best = torch.load(Path(checkpoint.best_model_path), weights_only=True, map_location="cpu")
+            state = {k.removeprefix("net."): v for k, v in best["state_dict"].items()}
+            network.load_state_dict(state)
+        self.network = network.eval()
+        return self
+
+    def module(self) -> torch.nn.Module:
+        return self.network
+
+    def settings(self) -> dict:
+        return {"width": self.width, "depth": self.depth, "n_in": self.network[0].in_features,
+                "n_out": self.network[-1].out_features, "seed": self.seed}
+
+    @classmethod
+    def from_state(cls, settings: dict, state: dict[str, torch.Tensor]) -> "MLPHead":
+        head = cls(width=settings["width"], depth=settings["depth"], seed=settings["seed"])
+        net = make_network(settings["n_in"], settings["n_out"], settings["width"], settings["depth"]).to(torch.float64)
+        net.load_state_dict(state)
+        head.network = net.eval()
+        return head

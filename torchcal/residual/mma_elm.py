@@ -1,0 +1,73 @@
+"""ELM whose hidden layer (W, b) is chosen by the improved Mayfly optimizer (MMA-ELM).
+
+A candidate is the flattened ``[W, b]`` inside the patent's box (``W in [-1, 1]``,
+``b in [0, 1]``); its fitness is the validation RMS of the ELM built from it (output weights
+solved on the training part). All candidates of a generation are evaluated in one batched
+solve.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from torchcal.optimize.mayfly import Mayfly
+from torchcal.residual.base import ResidualHead
+from torchcal.residual.elm import ELM, ELMModule, solve_output_weights
+
+
+class MayflyELM(ResidualHead):
+    """MMA-ELM.
+
+    Args:
+        hidden: hidden units.
+        population, iterations: Mayfly settings (males and females each; generations).
+        ridge: as :class:`~torchcal.residual.elm.ELM`.
+        seed: optimizer seed.
+        progress: show a progress bar.
+    """
+
+    name = "mma-elm"
+
+    def __init__(self, hidden: int = 80, population: int = 20, iterations: int = 50, ridge: float | None = 1e-6,
+                 seed: int = 0, progress: bool = False) -> None:
+        self.hidden, self.population, self.iterations = hidden, population, iterations
+        self.ridge, self.seed, self.progress = ridge, seed, progress
+        self.elm = ELM(hidden=hidden, ridge=ridge, seed=seed)
+        self.search = None
+
+    def fit(self, x_train, y_train, x_val, y_val) -> "MayflyELM":
+        n_in = x_train.shape[1]
+        dim = self.hidden * (n_in + 1)
+        lower = torch.cat([-torch.ones(self.hidden * n_in), torch.zeros(self.hidden)]).to(x_train.dtype)
+        upper = torch.ones(dim, dtype=x_train.dtype)
+
+        def unpack(c: torch.Tensor):
+            return c[:, : self.hidden * n_in].reshape(-1, self.hidden, n_in), c[:, self.hidden * n_in :]
+
+        def fitness(candidates: torch.Tensor) -> torch.Tensor:
+            w, b = unpack(candidates)
+            h_train = torch.sigmoid(x_train @ w.transpose(-1, -2) + b[:, None, :])
+            out = solve_output_weights(h_train, y_train.expand(len(candidates), -1, -1), self.ridge)
+            h_val = torch.sigmoid(x_val @ w.transpose(-1, -2) + b[:, None, :])
+            err = h_val @ out - y_val
+            return err.norm(dim=-1).pow(2).mean(-1).sqrt()
+
+        optimizer = Mayfly(population=self.population, iterations=self.iterations)
+        self.search = optimizer.minimize(fitness, lower, upper, seed=self.seed, progress=self.progress)
+        w, b = unpack(self.search.best_x.unsqueeze(0))
+        self.elm.set_hidden_layer(w[0], b[0])
+        self.elm.fit(x_train, y_train)
+        return self
+
+    def module(self) -> torch.nn.Module:
+        return self.elm.module()
+
+    def settings(self) -> dict:
+        return {"hidden": self.hidden, "population": self.population, "iterations": self.iterations,
+                "ridge": self.ridge, "seed": self.seed}
+
+    @classmethod
+    def from_state(cls, settings: dict, state: dict[str, torch.Tensor]) -> "MayflyELM":
+        head = cls(**settings)
+        head.elm = ELM.from_state({"hidden": settings["hidden"], "ridge": settings["ridge"], "seed": settings["seed"]}, state)
+        return head
