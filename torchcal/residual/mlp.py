@@ -14,13 +14,24 @@ import torch
 from torchcal.residual.base import ResidualHead
 
 
-def make_network(n_in: int, n_out: int, width: int, depth: int) -> torch.nn.Sequential:
+class Scale(torch.nn.Module):
+    """Multiply by a fixed factor: the network learns unit-scale targets, the head outputs mm."""
+
+    def __init__(self, factor: float) -> None:
+        super().__init__()
+        self.register_buffer("factor", torch.tensor(float(factor), dtype=torch.float64))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return x * self.factor
+
+
+def make_network(n_in: int, n_out: int, width: int, depth: int, output_scale: float = 1.0) -> torch.nn.Sequential:
     layers: list[torch.nn.Module] = []
     size = n_in
     for _ in range(depth):
         layers += [torch.nn.Linear(size, width), torch.nn.Tanh()]
         size = width
-    layers.append(torch.nn.Linear(size, n_out))
+    layers += [torch.nn.Linear(size, n_out), Scale(output_scale)]
     return torch.nn.Sequential(*layers)
 
 
@@ -37,7 +48,7 @@ class MLPHead(ResidualHead):
 
     name = "mlp"
 
-    def __init__(self, width: int = 64, depth: int = 2, max_epochs: int = 400, patience: int = 40,
+    def __init__(self, width: int = 64, depth: int = 2, max_epochs: int = 600, patience: int = 60,
                  learning_rate: float = 3e-3, batch_size: int = 128, weight_decay: float = 0.0, seed: int = 0,
                  progress: bool = False) -> None:
         self.width, self.depth, self.max_epochs, self.patience = width, depth, max_epochs, patience
@@ -51,7 +62,8 @@ class MLPHead(ResidualHead):
         from lightning.pytorch.callbacks import EarlyStopping, ModelCheckpoint
 
         L.seed_everything(self.seed, verbose=False)
-        network = make_network(x_train.shape[1], y_train.shape[1], self.width, self.depth).to(x_train.dtype)
+        self.output_scale = float(y_train.std().clamp_min(1e-12))
+        network = make_network(x_train.shape[1], y_train.shape[1], self.width, self.depth, self.output_scale).to(x_train.dtype)
         head = self
 
         class Module(L.LightningModule):
@@ -73,7 +85,10 @@ class MLPHead(ResidualHead):
                 self.log("val_loss", torch.nn.functional.mse_loss(self.net(x), y), prog_bar=True)
 
             def configure_optimizers(self):
-                return torch.optim.Adam(self.parameters(), lr=head.learning_rate, weight_decay=head.weight_decay)
+                optimizer = torch.optim.Adam(self.parameters(), lr=head.learning_rate, weight_decay=head.weight_decay)
+                # halve the step when validation stalls: Adam's noise floor, not the model, limits the fit
+                plateau = torch.optim.lr_scheduler.ReduceLROnPlateau(optimizer, factor=0.5, patience=max(2, head.patience // 4))
+                return {"optimizer": optimizer, "lr_scheduler": {"scheduler": plateau, "monitor": "val_loss"}}
 
         class Data(L.LightningDataModule):
             def train_dataloader(self):
@@ -105,12 +120,13 @@ class MLPHead(ResidualHead):
 
     def settings(self) -> dict:
         return {"width": self.width, "depth": self.depth, "n_in": self.network[0].in_features,
-                "n_out": self.network[-1].out_features, "seed": self.seed}
+                "n_out": self.network[-2].out_features, "seed": self.seed, "output_scale": self.output_scale}
 
     @classmethod
     def from_state(cls, settings: dict, state: dict[str, torch.Tensor]) -> "MLPHead":
         head = cls(width=settings["width"], depth=settings["depth"], seed=settings["seed"])
-        net = make_network(settings["n_in"], settings["n_out"], settings["width"], settings["depth"]).to(torch.float64)
+        net = make_network(settings["n_in"], settings["n_out"], settings["width"], settings["depth"],
+                           settings["output_scale"]).to(torch.float64)
         net.load_state_dict(state)
         head.network = net.eval()
         return head
