@@ -218,8 +218,8 @@ class ErrorModel:
             columns: indices of the parameters to differentiate (default: all).
             method: ``"autodiff"`` (reverse-mode autodiff through :meth:`tcp_position`, the
                 reference) or ``"analytic"`` (screw-form columns from one forward pass, see
-                :mod:`torchcal.kinematics.param_jacobian`; same values to rounding, about ten
-                times faster, the choice for identification loops).
+                :mod:`torchcal.kinematics.param_jacobian`; same values to rounding, 4x to 50x
+                faster in docs/bench_kinematics.md, the choice for identification loops).
 
         Returns:
             ``(p, J)``: ``p (B, 3)`` in m, ``J (B, 3, K)`` in m per parameter unit.

@@ -51,11 +51,11 @@ class ChainFrames:
     """Every frame of one forward pass through an MDH+beta chain, in the frame the chain starts in.
 
     Each field is a tuple with one entry per joint ``i = 1..N``; every entry is a vector stored
-    component-major, ``(3, ...)`` (component first, then the batch). Elementwise kernels then
-    broadcast per-pose scalars along contiguous memory (several times faster than ``(..., 3)``
-    rows times a ``(..., 1)`` scalar), and the parameter Jacobian
-    (:mod:`torchcal.kinematics.param_jacobian`) consumes the entries without restacking.
-    Entries may carry size-1 batch dims where they do not depend on the pose yet.
+    component-major, ``(3, ...)`` (component first, then the batch): elementwise kernels then
+    broadcast per-pose scalars along contiguous memory, several times faster than ``(..., 3)``
+    rows times a ``(..., 1)`` scalar. Entries may carry size-1 batch dims where they do not
+    depend on the pose yet. These are the axes and points of the screw-form parameter Jacobian
+    (:mod:`torchcal.kinematics.param_jacobian`, which runs the same recursion in place).
 
     Attributes:
         x_prev: axis ``x_{i-1}`` of frame ``i-1`` (the ``alpha`` axis, the ``a`` direction).
