@@ -28,8 +28,9 @@ from dataclasses import dataclass
 
 import torch
 
+from torchcal.errors import ModelError
 from torchcal.kinematics import transforms as tf
-from torchcal.kinematics.mdh import chain_transforms
+from torchcal.kinematics.mdh import chain_point, chain_transforms
 from torchcal.kinematics.robot import RobotModel
 
 JOINT_FIELDS = ("alpha", "a", "beta", "theta", "d")
@@ -179,36 +180,54 @@ class ErrorModel:
         """``T_instrument_tool`` ``(..., 4, 4)``: the TCP pose in the instrument frame."""
         return self.instrument_from_base(x) @ self.base_flange_pose(q, x) @ self.flange_from_tool(x)
 
+    def instrument_from_0(self, x: torch.Tensor) -> torch.Tensor:
+        """``T_instrument_0`` ``(..., 4, 4)``: MDH frame 0 in the instrument frame."""
+        return self.instrument_from_base(x) @ self.T_base_0.to(x)
+
+    def tool_in_n(self, x: torch.Tensor) -> torch.Tensor:
+        """TCP position ``(..., 3)`` in MDH frame ``N``, m (tool point through ``T_n_flange``)."""
+        tn = self.T_n_flange.to(x)
+        tool = x[..., self.layout.tool_slice.start : self.layout.tool_slice.start + 3]
+        return tool @ tn[:3, :3].T + tn[:3, 3]
+
     def tcp_position(self, q: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
         """TCP position ``(..., 3)`` in the instrument frame, m.
 
-        Computed with 3x3/3-vector algebra instead of full 4x4 products: this is the hot path of
-        identification.
+        The hot path of identification: the TCP point is carried from frame ``N`` down the chain
+        with scalar-array algebra (:func:`torchcal.kinematics.mdh.chain_point`); no 4x4 or 3x3
+        product per pose.
         """
-        rot, pos = chain_transforms(q, self.table(x))
-        t0 = self.T_base_0.to(q)
-        tn = self.T_n_flange.to(q)
-        tool = x[..., self.layout.tool_slice][..., :3]
-        p_n = tn[:3, :3] @ tool.unsqueeze(-1) if tool.dim() > 1 else (tn[:3, :3] @ tool).expand(*rot.shape[:-2], 3).unsqueeze(-1)
-        p_n = p_n.squeeze(-1) + tn[:3, 3]
-        p_base = (rot @ p_n.unsqueeze(-1)).squeeze(-1) + pos
-        p_base = (t0[:3, :3] @ p_base.unsqueeze(-1)).squeeze(-1) + t0[:3, 3]
-        base = self.instrument_from_base(x)
-        return (base[..., :3, :3] @ p_base.unsqueeze(-1)).squeeze(-1) + base[..., :3, 3]
+        world = self.instrument_from_0(x)
+        return chain_point(
+            q, self.table(x), self.tool_in_n(x), r_start=world[..., :3, :3], p_start=world[..., :3, 3]
+        )
 
     def position_jacobian(
-        self, q: torch.Tensor, x: torch.Tensor, columns: torch.Tensor | None = None
+        self,
+        q: torch.Tensor,
+        x: torch.Tensor,
+        columns: torch.Tensor | None = None,
+        *,
+        method: str = "autodiff",
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        """TCP positions and their Jacobian with respect to ``x``, by reverse-mode autodiff.
+        """TCP positions and their Jacobian with respect to ``x``.
 
         Args:
             q: ``(B, N)`` joint angles, rad.
             x: ``(P,)`` parameter vector.
             columns: indices of the parameters to differentiate (default: all).
+            method: ``"autodiff"`` (reverse-mode autodiff through :meth:`tcp_position`, the
+                reference) or ``"analytic"`` (screw-form columns from one forward pass, see
+                :mod:`torchcal.kinematics.param_jacobian`; same values to rounding, 4x to 50x
+                faster in docs/bench_kinematics.md, the choice for identification loops).
 
         Returns:
             ``(p, J)``: ``p (B, 3)`` in m, ``J (B, 3, K)`` in m per parameter unit.
         """
+        if method == "analytic":
+            return self.position_jacobian_analytic(q, x, columns)
+        if method != "autodiff":
+            raise ModelError(f"position_jacobian method must be 'autodiff' or 'analytic', got {method!r}")
         columns = torch.arange(x.shape[-1], device=x.device) if columns is None else columns
         batch = q.shape[0]
         # One parameter copy per pose makes every pose's gradient its own row: three
@@ -221,6 +240,14 @@ class ErrorModel:
                 for k in range(3)
             ]
         return p.detach(), torch.stack(rows, 1)
+
+    def position_jacobian_analytic(
+        self, q: torch.Tensor, x: torch.Tensor, columns: torch.Tensor | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """As :meth:`position_jacobian` with ``method="analytic"``: ``(p (B, 3), J (B, 3, K))``, m."""
+        from torchcal.kinematics.param_jacobian import tcp_position_jacobian
+
+        return tcp_position_jacobian(self, q, x, columns)
 
     def pose_jacobian(
         self, q: torch.Tensor, x: torch.Tensor, columns: torch.Tensor | None = None
