@@ -1,0 +1,1 @@
+"""Loading and validation of measurement files: CSV in, typed SI tensors out."""
