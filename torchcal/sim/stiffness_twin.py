@@ -23,6 +23,7 @@ import torch
 from torchcal.data.stiffness import StiffnessData
 from torchcal.kinematics import transforms as tf
 from torchcal.kinematics.error_model import ErrorModel
+from torchcal.kinematics.joint_jacobian import geometric_jacobian
 from torchcal.kinematics.robot import RobotModel, default_robot_path, load_robot
 from torchcal.stiffness.deformed import loaded_tcp_pose
 from torchcal.stiffness.vjm import classic_compliance
@@ -44,6 +45,9 @@ class StiffnessTwinConfig:
         with_unloaded: write the unloaded ``x, y, z`` (the instrument frame is then not ``base``).
         instrument_distance_mm: distance of the tracker from the base (0: instrument = base).
         margin_deg: stay this far inside the joint limits.
+        min_singular_value: poses whose TCP Jacobian (m and rad rows) has a smallest singular
+            value below this are not used, as a loading plan avoids singular poses (there the
+            compensating IK is ill-posed).
         equilibrium_iterations: fixed-point iterations of the spring equilibrium.
     """
 
@@ -56,6 +60,7 @@ class StiffnessTwinConfig:
     with_unloaded: bool = True
     instrument_distance_mm: float = 3000.0
     margin_deg: float = 5.0
+    min_singular_value: float = 0.02
     equilibrium_iterations: int = 4
 
 
@@ -167,9 +172,23 @@ class StiffnessTwin:
             unloaded=p0 if c.with_unloaded else None,
         )
 
+    def sample_poses(self, n: int, generator: torch.Generator) -> torch.Tensor:
+        """``n`` random joint vectors ``(n, N)`` rad within the limits, away from singularities."""
+        kept: list[torch.Tensor] = []
+        count = 0
+        for _ in range(100):  # batches of candidates, not a loop over poses
+            q = self.robot.sample_joints(2 * n, generator, margin=math.radians(self.config.margin_deg)).to(self.device)
+            _, jac = geometric_jacobian(self.model, q, self.x_true)
+            q = q[torch.linalg.svdvals(jac)[:, -1] >= self.config.min_singular_value]
+            kept.append(q)
+            count += q.shape[0]
+            if count >= n:
+                return torch.cat(kept)[:n]
+        raise ValueError(f"fewer than {n} regular poses found; lower min_singular_value")
+
     def sample(self, n: int, generator: torch.Generator) -> StiffnessData:
-        """``n`` random loaded poses within the joint limits (minus the margin)."""
-        q = self.robot.sample_joints(n, generator, margin=math.radians(self.config.margin_deg)).to(self.device)
+        """``n`` random loaded poses (see :meth:`sample_poses`) with random wrenches."""
+        q = self.sample_poses(n, generator)
         return self.measure(q, self.sample_wrenches(n, generator), generator)
 
     def noise_floor_mm(self) -> float:

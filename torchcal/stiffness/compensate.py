@@ -38,7 +38,8 @@ class DeflectionCompensation:
         position_error: ``(...,)`` predicted loaded TCP position error left, m.
         rotation_error: ``(...,)`` predicted loaded TCP rotation error left, rad (0 if position only).
         iterations: offset updates performed.
-        converged: ``(...,)`` both errors below tolerance.
+        converged: ``(...,)`` both errors below tolerance and the last rigid IK converged (near a
+            singularity it may not: check this before sending ``q``).
     """
 
     q: torch.Tensor
@@ -84,7 +85,8 @@ def compensate_deflection(
     iterations = 0
     for iterations in range(1, max_iterations + 1):
         ik_target = offset[..., :3, 3] if position_only else offset
-        q = solve_ik(model, x, ik_target, q, position_only=position_only).q
+        ik = solve_ik(model, x, ik_target, q, position_only=position_only)
+        q = ik.q
         loaded, _ = loaded_tcp_pose(
             model, q, x, compliance, wrench, wrench_frame=wrench_frame, iterations=equilibrium_iterations
         )
@@ -92,7 +94,7 @@ def compensate_deflection(
         dr = tf.so3_log(r_d @ loaded[..., :3, :3].transpose(-1, -2))
         perr = dp.norm(dim=-1)
         rerr = torch.zeros_like(perr) if position_only else dr.norm(dim=-1)
-        done = (perr < position_tol_m) & (rerr < rotation_tol_rad)
+        done = (perr < position_tol_m) & (rerr < rotation_tol_rad) & ik.converged
         if bool(done.all()):
             break
         step = (~done).to(dp.dtype).unsqueeze(-1)
