@@ -111,7 +111,8 @@ class StiffnessTwin:
             direction = _random_directions(1, gen)[0]
             direction[2] = 0.2 * direction[2].abs()
             direction = direction / direction.norm()
-            axis = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64) + 0.1 * torch.randn(3, generator=gen, dtype=torch.float64)
+            tilt = 0.1 * torch.randn(3, generator=gen, dtype=torch.float64)
+            axis = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64) + tilt
             angle = float(torch.rand(1, generator=gen, dtype=torch.float64)) * 2 * math.pi
             T = tf.homogeneous(tf.so3_exp(axis / axis.norm() * angle), direction * config.instrument_distance_mm * 1e-3)
         self.T_instrument_base = T.to(self.device)

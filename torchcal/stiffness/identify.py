@@ -247,7 +247,8 @@ class StiffnessEstimate:
 
     def predict(self, q: torch.Tensor, wrench: torch.Tensor) -> torch.Tensor:
         """Predicted deflection ``(..., 6)`` ``[dp (m); dphi (rad)]``, ``instrument`` frame."""
-        return deflection(self.model, q, self.x, self.compliance, wrench, wrench_frame=self.wrench_frame)  # type: ignore[arg-type]
+        frame = self.wrench_frame
+        return deflection(self.model, q, self.x, self.compliance, wrench, wrench_frame=frame)  # type: ignore[arg-type]
 
     def as_dict(self) -> dict:
         """JSON-ready summary (SI units)."""
@@ -374,7 +375,8 @@ def identify_stiffness(
     q, wrench = data.q.to(device), data.wrench.to(device)
     g = stiffness_regressor(model, q, x, wrench, candidates, with_rotation=with_rotation, wrench_frame=wrench_frame)
     rows = 6 if with_rotation else 3
-    weights = torch.tensor([1.0 / sigma_position_m] * 3 + [1.0 / sigma_rotation_rad] * 3, dtype=torch.float64, device=device)[:rows]
+    inverse_sigma = [1.0 / sigma_position_m] * 3 + [1.0 / sigma_rotation_rad] * 3
+    weights = torch.tensor(inverse_sigma, dtype=torch.float64, device=device)[:rows]
     y = data.deflection.to(device)
     if with_rotation:
         y = torch.cat([y, data.rotation.to(device)], -1)  # type: ignore[union-attr]
@@ -416,7 +418,8 @@ def identify_stiffness(
     pos_res = (r.reshape(-1, rows)[:, :3] / weights[:3]).norm(dim=-1)
     if warn and ident.unobservable:
         details = "; ".join(
-            f"{nm}" + (f" (confounded with {', '.join(ident.confounded[nm])})" if ident.confounded.get(nm) else " (no effect)")
+            nm
+            + (f" (confounded with {', '.join(ident.confounded[nm])})" if ident.confounded.get(nm) else " (no effect)")
             for nm in ident.unobservable
         )
         warnings.warn(
