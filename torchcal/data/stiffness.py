@@ -1,0 +1,211 @@
+"""Loader of the stiffness measurement file (data contract) -> validated SI tensors.
+
+Columns (header row, one loaded pose per row):
+
+=====================  ==========================================================  =========
+``q1..qN``             commanded joints                                            deg (rad)
+``fx, fy, fz``         force applied at the TCP, ``tool`` frame                   N
+``tx, ty, tz``         moment about the TCP, ``tool`` frame                       N m
+``dx, dy, dz``         loaded minus unloaded TCP position, ``instrument`` frame   mm
+``drx, dry, drz``      optional: loaded-from-unloaded rotation vector, instrument  deg
+``x, y, z``            optional: unloaded TCP position, ``instrument`` frame       mm
+=====================  ==========================================================  =========
+
+Without ``x, y, z`` the instrument frame is the robot ``base`` frame. Every problem raises a
+:class:`~torchcal.errors.DataError` naming the file, the line (the header is line 1) and the
+column.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+
+from torchcal.errors import DataError
+
+WRENCH_COLUMNS = ("fx", "fy", "fz", "tx", "ty", "tz")
+DEFLECTION_COLUMNS = ("dx", "dy", "dz")
+ROTATION_COLUMNS = ("drx", "dry", "drz")
+POSITION_COLUMNS = ("x", "y", "z")
+
+
+@dataclass(frozen=True)
+class StiffnessData:
+    """One stiffness experiment, SI units, float64.
+
+    Attributes:
+        q: ``(B, N)`` joints, rad.
+        wrench: ``(B, 6)`` ``[f (N); m (N m)]`` at the TCP, ``tool`` frame.
+        deflection: ``(B, 3)`` loaded minus unloaded TCP position, ``instrument`` frame, m.
+        rotation: ``(B, 3)`` rotation vector of ``R_loaded R_unloaded^T``, instrument frame, rad,
+            or ``None``.
+        unloaded: ``(B, 3)`` unloaded TCP position, ``instrument`` frame, m, or ``None`` (then
+            the instrument frame is ``base``).
+        path: source file, if any.
+    """
+
+    q: torch.Tensor
+    wrench: torch.Tensor
+    deflection: torch.Tensor
+    rotation: torch.Tensor | None = None
+    unloaded: torch.Tensor | None = None
+    path: str | None = None
+
+    def __len__(self) -> int:
+        return int(self.q.shape[0])
+
+    @property
+    def n_joints(self) -> int:
+        return int(self.q.shape[1])
+
+    def subset(self, index: torch.Tensor | slice) -> "StiffnessData":
+        """Rows ``index`` of every table (same path)."""
+
+        def pick(t: torch.Tensor | None) -> torch.Tensor | None:
+            return None if t is None else t[index]
+
+        return StiffnessData(
+            q=self.q[index],
+            wrench=self.wrench[index],
+            deflection=self.deflection[index],
+            rotation=pick(self.rotation),
+            unloaded=pick(self.unloaded),
+            path=self.path,
+        )
+
+
+def _joint_columns(header: tuple[str, ...], path: str) -> list[str]:
+    names = [h for h in header if len(h) > 1 and h[0] == "q" and h[1:].isdigit()]
+    numbers = sorted(int(h[1:]) for h in names)
+    if not numbers:
+        raise DataError("no joint columns q1..qN", path=path, row=1)
+    if numbers != list(range(1, len(numbers) + 1)):
+        raise DataError(f"joint columns must be q1..qN without gaps, found {names}", path=path, row=1)
+    return [f"q{i}" for i in numbers]
+
+
+def _read(path: Path) -> tuple[tuple[str, ...], list[list[str]], list[int]]:
+    if not path.is_file():
+        raise DataError("file not found", path=str(path))
+    try:
+        text = path.read_text(encoding="utf-8-sig")
+    except UnicodeDecodeError:
+        raise DataError("not a UTF-8 text file", path=str(path)) from None
+    header: tuple[str, ...] | None = None
+    rows: list[list[str]] = []
+    lines: list[int] = []
+    for line_no, row in enumerate(csv.reader(text.splitlines()), start=1):
+        if not row or all(not c.strip() for c in row):
+            continue
+        if header is None:
+            header = tuple(c.strip() for c in row)
+            if any(not h for h in header):
+                raise DataError("header has an empty column name", path=str(path), row=line_no)
+            dupes = sorted({h for h in header if header.count(h) > 1})
+            if dupes:
+                raise DataError(f"header repeats column(s) {dupes}", path=str(path), row=line_no, column=dupes[0])
+            continue
+        if len(row) != len(header):
+            raise DataError(f"has {len(row)} cells but the header has {len(header)}", path=str(path), row=line_no)
+        rows.append(row)
+        lines.append(line_no)
+    if header is None:
+        raise DataError("file is empty (no header row)", path=str(path))
+    if not rows:
+        raise DataError("has a header but no data rows", path=str(path))
+    return header, rows, lines
+
+
+def _group(header: tuple[str, ...], names: tuple[str, ...], path: str, what: str, required: bool) -> bool:
+    present = [c for c in names if c in header]
+    missing = [c for c in names if c not in header]
+    if required and missing:
+        raise DataError(f"missing column(s) {missing}; a stiffness file needs {what}", path=path, row=1, column=missing[0])
+    if present and missing:
+        raise DataError(f"{what} needs all of {list(names)}; found only {present}", path=path, row=1, column=missing[0])
+    return not missing
+
+
+def load_stiffness(
+    path: str | Path,
+    *,
+    n_joints: int | None = None,
+    joint_unit: str = "deg",
+    length_unit: str = "mm",
+    device: str | torch.device = "cpu",
+) -> StiffnessData:
+    """Read and validate a stiffness file of the data contract.
+
+    Args:
+        path: CSV file.
+        n_joints: expected number of joints (the robot's); ``None`` accepts any.
+        joint_unit: ``"deg"`` (contract default) or ``"rad"`` for ``q*``.
+        length_unit: ``"mm"`` (contract default) or ``"m"`` for ``d*`` and ``x, y, z``.
+        device: where the tensors are created.
+
+    Raises:
+        DataError: file, line and column of the first problem found.
+    """
+    path = Path(path)
+    p = str(path)
+    if joint_unit not in ("deg", "rad"):
+        raise DataError(f"joint_unit must be 'deg' or 'rad', got {joint_unit!r}", path=p)
+    if length_unit not in ("mm", "m"):
+        raise DataError(f"length_unit must be 'mm' or 'm', got {length_unit!r}", path=p)
+    header, rows, lines = _read(path)
+    joints = _joint_columns(header, p)
+    if n_joints is not None and len(joints) != n_joints:
+        raise DataError(
+            f"has {len(joints)} joint columns but the robot has {n_joints} joints", path=p, row=1
+        )
+    _group(header, WRENCH_COLUMNS, p, "a wrench", required=True)
+    _group(header, DEFLECTION_COLUMNS, p, "a deflection", required=True)
+    has_rot = _group(header, ROTATION_COLUMNS, p, "a rotation", required=False)
+    has_pos = _group(header, POSITION_COLUMNS, p, "an unloaded position", required=False)
+    allowed = set(joints) | set(WRENCH_COLUMNS) | set(DEFLECTION_COLUMNS) | set(ROTATION_COLUMNS) | set(POSITION_COLUMNS)
+    extra = [h for h in header if h not in allowed]
+    if extra:
+        raise DataError(
+            f"unknown column '{extra[0]}'; allowed: q1..qN, fx,fy,fz,tx,ty,tz, dx,dy,dz, drx,dry,drz, x,y,z",
+            path=p,
+            row=1,
+            column=extra[0],
+        )
+
+    def column(name: str) -> torch.Tensor:
+        idx = header.index(name)
+        values = []
+        for row, line in zip(rows, lines):
+            cell = row[idx].strip()
+            if cell == "":
+                raise DataError("empty cell", path=p, row=line, column=name)
+            try:
+                value = float(cell)
+            except ValueError:
+                raise DataError(f"'{cell}' is not a number", path=p, row=line, column=name) from None
+            if not math.isfinite(value):
+                raise DataError(f"'{cell}' is not a finite number", path=p, row=line, column=name)
+            values.append(value)
+        return torch.tensor(values, dtype=torch.float64, device=device)
+
+    def block(names) -> torch.Tensor:
+        return torch.stack([column(c) for c in names], -1)
+
+    angle = math.pi / 180.0 if joint_unit == "deg" else 1.0
+    length = 1e-3 if length_unit == "mm" else 1.0
+    wrench = block(WRENCH_COLUMNS)
+    zero = (wrench == 0).all(-1).nonzero()
+    if zero.numel():
+        raise DataError("wrench is zero: a stiffness row needs a load", path=p, row=lines[int(zero[0])], column="fx")
+    return StiffnessData(
+        q=block(joints) * angle,
+        wrench=wrench,
+        deflection=block(DEFLECTION_COLUMNS) * length,
+        rotation=block(ROTATION_COLUMNS) * (math.pi / 180.0) if has_rot else None,
+        unloaded=block(POSITION_COLUMNS) * length if has_pos else None,
+        path=p,
+    )
