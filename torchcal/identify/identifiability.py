@@ -78,8 +78,11 @@ def analyze(
     basis = torch.zeros(jacobian.shape[0], 0, dtype=jacobian.dtype)
     dependent: dict[str, list[tuple[str, float]]] = {}
     weak: dict[str, float] = {}
+    # A column at rounding level has no effect on the TCP; normalized it would look like a
+    # random, independent direction, so it is judged on its raw size relative to the others.
+    negligible = norms < 1e-10 * norms.max()
     for i in preference_order(names):
-        if float(norms[i]) < 1e-15:
+        if bool(negligible[i]):
             dependent[names[i]] = []
             continue
         col = scaled[:, i]
@@ -98,7 +101,7 @@ def analyze(
         kept.append(i)
         basis = torch.cat([basis, (resid / size).unsqueeze(-1)], 1)
     kept_sorted = sorted(kept)
-    full_sv = torch.linalg.svdvals(scaled)
+    full_sv = torch.linalg.svdvals(scaled[:, ~negligible])
     rank = int((full_sv > tolerance * full_sv[0]).sum())
     sv = torch.linalg.svdvals(scaled[:, kept_sorted])
     m = jacobian.shape[0]
