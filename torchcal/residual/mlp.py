@@ -58,8 +58,17 @@ class MLPHead(ResidualHead):
         self.epochs_trained = 0
 
     def fit(self, x_train, y_train, x_val, y_val) -> "MLPHead":
+        import logging
+        import warnings
+
         import lightning as L
         from lightning.pytorch.callbacks import EarlyStopping, ModelCheckpoint
+
+        # Lightning's informational banners (devices, tips) say nothing about this fit
+        for name in ("lightning", "lightning.pytorch", "lightning.fabric"):
+            logging.getLogger(name).setLevel(logging.WARNING)
+        warnings.filterwarnings("ignore", message=".*treespec.*")
+        warnings.filterwarnings("ignore", message=".*does not have many workers.*")
 
         L.seed_everything(self.seed, verbose=False)
         self.output_scale = float(y_train.std().clamp_min(1e-12))

@@ -1,0 +1,113 @@
+"""Residual heads: ELM closed form, MMA-ELM vs random ELM, MLP, contract, storage, gating."""
+
+from __future__ import annotations
+
+import math
+import statistics
+
+import pytest
+import torch
+
+from torchcal.residual import ELM, HEADS, MayflyELM, MLPHead, rms
+from torchcal.residual.elm import solve_output_weights
+from torchcal.residual.features import JointFeatures
+from torchcal.residual.selection import select_head
+
+
+def _smooth_problem(n=600, seed=0):
+    gen = torch.Generator().manual_seed(seed)
+    limits = torch.tensor([[-math.pi, math.pi]] * 6, dtype=torch.float64)
+    q = (torch.rand(n, 6, generator=gen, dtype=torch.float64) * 2 - 1) * math.pi
+    y = torch.stack(
+        [
+            0.3 * torch.sin(2 * q[:, 0]) + 0.2 * torch.cos(q[:, 1]) * torch.sin(q[:, 2]),
+            0.25 * torch.sin(q[:, 1] + q[:, 2]) + 0.1 * torch.cos(3 * q[:, 4]),
+            0.2 * torch.cos(q[:, 1]) * torch.cos(q[:, 3]) - 0.15 * torch.sin(2 * q[:, 5]),
+        ],
+        -1,
+    )
+    feats = JointFeatures(limits)(q)
+    return feats, y
+
+
+def test_elm_output_weights_are_the_least_squares_solution():
+    x, y = _smooth_problem(300)
+    head = ELM(hidden=40, ridge=None).fit(x, y)
+    hidden = torch.sigmoid(x @ head.weights.T + head.bias)
+    assert torch.allclose(head.output, torch.linalg.lstsq(hidden, y).solution, atol=1e-8)
+    assert float(head.weights.min()) >= -1 and float(head.weights.max()) <= 1
+    assert float(head.bias.min()) >= 0 and float(head.bias.max()) <= 1
+
+
+def test_elm_recovers_a_target_made_by_a_known_elm():
+    x, _ = _smooth_problem(400)
+    teacher = ELM(hidden=30, seed=5)
+    teacher.weights = torch.rand(30, x.shape[1], generator=torch.Generator().manual_seed(1), dtype=torch.float64) * 2 - 1
+    teacher.bias = torch.rand(30, generator=torch.Generator().manual_seed(2), dtype=torch.float64)
+    teacher.output = torch.randn(30, 3, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
+    y = teacher.predict(x)
+    student = ELM(hidden=30, ridge=None)
+    student.set_hidden_layer(teacher.weights, teacher.bias)
+    student.fit(x, y)
+    assert rms(student.predict(x) - y) < 1e-8
+
+
+def test_ridge_solve_matches_normal_equations():
+    x, y = _smooth_problem(200)
+    h = torch.sigmoid(x @ (torch.rand(20, x.shape[1], dtype=torch.float64) * 2 - 1).T)
+    v = solve_output_weights(h, y, 1e-3)
+    gram = h.T @ h
+    lam = 1e-3 * gram.diagonal().mean()
+    assert torch.allclose(v, torch.linalg.solve(gram + lam * torch.eye(20, dtype=torch.float64), h.T @ y), atol=1e-10)
+
+
+def test_mma_elm_beats_random_elm_of_the_same_size():
+    x, y = _smooth_problem(900, seed=1)
+    xt, yt = _smooth_problem(400, seed=2)
+    tr, va = slice(0, 700), slice(700, 900)
+    scores_mma, scores_rand = [], []
+    for seed in range(3):
+        mma = MayflyELM(hidden=30, population=8, iterations=15, seed=seed).fit(x[tr], y[tr], x[va], y[va])
+        rnd = ELM(hidden=30, seed=seed).fit(x[tr], y[tr])
+        scores_mma.append(rms(mma.predict(xt) - yt))
+        scores_rand.append(rms(rnd.predict(xt) - yt))
+    assert statistics.median(scores_mma) < statistics.median(scores_rand)
+
+
+@pytest.mark.slow
+def test_mlp_fits_the_smooth_function():
+    x, y = _smooth_problem(900, seed=1)
+    xt, yt = _smooth_problem(300, seed=2)
+    head = MLPHead(max_epochs=150, patience=30, seed=0).fit(x[:700], y[:700], x[700:], y[700:])
+    assert rms(head.predict(xt) - yt) < 0.35 * rms(yt)
+
+
+@pytest.mark.parametrize("name", sorted(HEADS))
+def test_head_contract_and_state_round_trip(name, tmp_path):
+    from torchcal.residual_store import StoredResidual, load_residual, save_residual
+
+    x, y = _smooth_problem(300)
+    options = {"mlp": {"max_epochs": 5}, "mma-elm": {"hidden": 10, "population": 4, "iterations": 2}, "elm": {"hidden": 10}}[name]
+    head = HEADS[name](**options).fit(x[:240], y[:240], x[240:], y[240:])
+    pred = head.predict(x)
+    assert pred.shape == y.shape and bool(torch.isfinite(pred).all())
+    limits = torch.tensor([[-math.pi, math.pi]] * 6, dtype=torch.float64)
+    features = JointFeatures(limits)
+    save_residual(tmp_path, StoredResidual(head, features, {"decision": "test"}))
+    loaded = load_residual(tmp_path)
+    q = torch.rand(7, 6, dtype=torch.float64)
+    expected = head.predict(features(q)) * 1e-3
+    assert torch.allclose(loaded.predict_base_error(q), expected, atol=1e-12)
+    module = loaded.to_torch_module()
+    assert torch.allclose(module(q), expected, atol=1e-12)
+
+
+def test_gate_rejects_heads_on_pure_noise():
+    gen = torch.Generator().manual_seed(0)
+    x, _ = _smooth_problem(600)
+    noise = 0.01 * torch.randn(600, 3, generator=gen, dtype=torch.float64)
+    selection = select_head([ELM(hidden=40), MayflyELM(hidden=20, population=4, iterations=3)], x[:480], noise[:480], x[480:], noise[480:])
+    assert selection.head is None and "no residual head kept" in selection.decision
+    x, y = _smooth_problem(600)
+    selection = select_head([ELM(hidden=200)], x[:480], y[:480], x[480:], y[480:])
+    assert selection.head is not None
