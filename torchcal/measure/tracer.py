@@ -124,8 +124,10 @@ class MultilaterationResult:
 
     @property
     def point_rms_sigma(self) -> float:
-        """Predicted RMS 3-D point error ``sqrt(trace(C_PP) / n)``, m (gauge dependent)."""
-        return math.sqrt(float(self.point_covariances.diagonal(dim1=-2, dim2=-1).sum()) / self.n_points)
+        """Predicted RMS 3-D point error ``sqrt(trace(C_PP) / n)`` over the solved points, m (gauge dependent)."""
+        var = self.point_covariances.diagonal(dim1=-2, dim2=-1).sum(-1)
+        solved = torch.isfinite(var)
+        return math.sqrt(float(var[solved].sum()) / max(int(solved.sum()), 1))
 
 
 # ----------------------------------------------------------------------------- normal equations
@@ -346,7 +348,7 @@ def _covariance_station_gauge(problem, p, q, free):
 # ----------------------------------------------------------------------------------- checks
 
 
-def _check_lengths(lengths_m: torch.Tensor, need_redundancy: bool) -> torch.Tensor:
+def _check_lengths(lengths_m: torch.Tensor, need_redundancy: bool, row_ids: list[int] | None = None) -> torch.Tensor:
     if lengths_m.ndim != 2:
         raise DataError(f"lengths must be a (points, stations) table, got shape {tuple(lengths_m.shape)}")
     n, m = lengths_m.shape
@@ -367,10 +369,11 @@ def _check_lengths(lengths_m: torch.Tensor, need_redundancy: bool) -> torch.Tens
     per_point = seen.sum(1)
     for i in range(n):
         if int(per_point[i]) < 3:
+            r = i if row_ids is None else row_ids[i]
             raise DataError(
-                f"point {i} was seen by only {int(per_point[i])} stations; a point needs at least 3 "
+                f"point {r} was seen by only {int(per_point[i])} stations; a point needs at least 3 "
                 "(remove the pose)",
-                row=i,
+                row=r,
             )
     unknowns = 3 * n + 4 * m - 6
     observed = int(seen.sum())
@@ -379,7 +382,8 @@ def _check_lengths(lengths_m: torch.Tensor, need_redundancy: bool) -> torch.Tens
             f"{observed} lengths cannot determine {unknowns} unknowns (3 per point + 4 per station - 6 "
             f"for the frame) with n={n} points and m={m} stations"
             + ("; and the residual variance needs at least one more" if need_redundancy else "")
-            + f": use more points (4 stations need at least {10 + int(need_redundancy)})"
+            + f": use more points (4 stations need at least {10 + int(need_redundancy)}; a point seen by "
+            "only 3 stations adds no redundancy)"
         )
     return seen
 
@@ -511,35 +515,58 @@ def multilaterate(
         p, q, _, _, _, abc = out
 
     rejected: list[tuple[int, int]] = []
+    rows = torch.arange(n, device=dev)  # points still in the solve (a point can be rejected whole)
     while True:
         # Re-weight with the absolute distances of the current solution, then polish.
-        problem = problem_of(mask, q[:, 3])
+        problem = _sub(problem_of(mask, q[:, 3]), rows)
         p, q, cost, its, ok = _levenberg_marquardt(problem, p, q, free_of(abc))
         cov, hat, e = _covariance_station_gauge(problem, p, q, free_of(abc))
-        dof = int(mask.sum()) - (3 * n + 4 * m - 6)
+        dof = int(problem.mask.sum()) - (3 * rows.numel() + 4 * m - 6)
         if dof < 2:
             break
+        # Data snooping: externally studentized residuals (the suspect's own share removed from the
+        # variance estimate), so one gross error stands out whatever the sigma model says.
         redundancy = (1.0 - hat).clamp_min(1e-12)
         s2_ext = ((cost - e**2 / redundancy) / (dof - 1)).clamp_min(1e-300)
-        t = (e / (s2_ext * redundancy).sqrt()).abs() * mask
+        t = (e / (s2_ext * redundancy).sqrt()).abs() * problem.mask
         t = torch.where(redundancy > 1e-6, t, torch.zeros_like(t))
         worst = int(t.argmax())
         i, j = divmod(worst, m)
-        if float(t[i, j]) <= outlier_threshold:
+        t_max = float(t[i, j])
+        if t_max <= outlier_threshold:
             break
+        # A point seen by 4 stations has one redundant length: its residuals are then equal after
+        # standardization and the data cannot tell which of its lengths is wrong, only the point.
+        suspects = (t[i] >= 0.98 * t_max).nonzero().flatten().tolist()
+        row = int(rows[i])
         res_um = float(e[i, j] / problem.inv_sigma[i, j]) * 1e6
         if outliers == "raise":
+            if len(suspects) == 1:
+                raise DataError(
+                    f"gross error in the length of point {row}, {_station_names(j)}: residual "
+                    f"{res_um:.1f} um, {t_max:.0f} times its standard deviation (blocked beam, lost "
+                    "count, wrong station?); remove it or use outliers='reject'",
+                    row=row,
+                    column=f"l{j + 1}",
+                )
+            names = ", ".join(f"l{k + 1}" for k in suspects)
             raise DataError(
-                f"gross error in the length of point {i}, {_station_names(j)}: residual "
-                f"{res_um:.1f} um, {float(t[i, j]):.0f} times its standard deviation (blocked beam, "
-                "lost count, wrong station?); remove it or use outliers='reject'",
-                row=i,
-                column=f"l{j + 1}",
+                f"gross error at point {row}: one of its lengths {names} is off by about "
+                f"{t_max:.0f} standard deviations, and with this few stations seeing it the data "
+                "cannot tell which; remove the pose or use outliers='reject'",
+                row=row,
             )
-        rejected.append((i, j))
-        mask[i, j] = False
-        reduced = torch.where(mask, lengths_m, torch.full_like(lengths_m, torch.nan))
-        _check_lengths(reduced, need_redundancy=sigma is None)
+        if len(suspects) == 1:
+            rejected.append((row, j))
+            mask[row, j] = False
+        else:  # drop the whole point
+            rejected.extend((row, k) for k in range(m) if bool(mask[row, k]))
+            mask[row] = False
+            keep = torch.ones(rows.numel(), dtype=torch.bool, device=dev)
+            keep[i] = False
+            rows, p = rows[keep], p[keep]
+        reduced = torch.where(mask[rows], lengths_m[rows], torch.full_like(lengths_m[rows], torch.nan))
+        _check_lengths(reduced, need_redundancy=sigma is None, row_ids=rows.tolist())
 
     variance_factor = cost / dof if dof > 0 else float("nan")
     if dof > 0 and math.sqrt(variance_factor) > consistency_factor:
@@ -564,22 +591,31 @@ def multilaterate(
     )
     if reference_points is not None:
         ref = torch.as_tensor(reference_points).to(p)
-        if ref.shape != p.shape:
-            raise DataError(f"reference_points must have shape {tuple(p.shape)}, got {tuple(ref.shape)}")
-        rot, trans = _procrustes(p, ref)
+        if ref.shape != (n, 3):
+            raise DataError(f"reference_points must have shape ({n}, 3), got {tuple(ref.shape)}")
+        rot, trans = _procrustes(p, ref[rows])
         p, s = p @ rot.T + trans, s @ rot.T + trans
-        blocks = torch.block_diag(*([rot] * (n + m)), torch.eye(m, dtype=p.dtype, device=dev))
+        blocks = torch.block_diag(*([rot] * (rows.numel() + m)), torch.eye(m, dtype=p.dtype, device=dev))
         cov = blocks @ cov @ blocks.T
         frame = "rigid (mirror allowed) least-squares fit of the points to reference_points"
 
-    e_m = torch.where(mask, e / problem.inv_sigma.clamp_min(1e-300), torch.full_like(e, torch.nan))
+    e_m = torch.full_like(lengths_m, torch.nan)
+    e_m[rows] = torch.where(problem.mask > 0, e / problem.inv_sigma.clamp_min(1e-300), torch.nan)
+    if rows.numel() < n:  # rejected points: NaN coordinates and covariance
+        p_all = torch.full((n, 3), torch.nan, dtype=p.dtype, device=dev)
+        p_all[rows] = p
+        idx = torch.cat([(3 * rows.unsqueeze(-1) + torch.arange(3, device=dev)).flatten(),
+                         3 * n + torch.arange(4 * m, device=dev)])
+        cov_all = torch.full((3 * n + 4 * m,) * 2, torch.nan, dtype=p.dtype, device=dev)
+        cov_all[idx.unsqueeze(-1), idx] = cov
+        p, cov = p_all, cov_all
     return MultilaterationResult(
         points=p,
         stations=s,
         dead_paths=q[:, 3],
         covariance=cov,
         residuals=e_m,
-        residual_rms=float(e_m[mask].pow(2).mean().sqrt()),
+        residual_rms=float(e_m[torch.isfinite(e_m)].pow(2).mean().sqrt()),
         variance_factor=variance_factor,
         dof=dof,
         sigma_model=model,
