@@ -9,8 +9,16 @@ import torch
 
 from torchcal.errors import DataError, TorchcalError
 from torchcal.measure import LengthSigma, multilaterate, plan_tracer_setup, predict_covariance
-from torchcal.measure.lengths import station_distances, stations_from_points, tracer_lengths
-from torchcal.measure.tracer import _normal_equations, _Problem, _residuals
+from torchcal.measure.lengths import points_from_stations, station_distances, stations_from_points, tracer_lengths
+from torchcal.measure.tracer import (
+    _covariance_station_gauge,
+    _free_mask,
+    _inner_constraint_transform,
+    _normal_equations,
+    _Problem,
+    _residuals,
+    _station_frame,
+)
 from torchcal.sim.tracer_twin import simulate_tracer_lengths
 
 SIGMA = LengthSigma()
@@ -80,6 +88,7 @@ def test_closed_form_stations_from_exact_points():
     s, d = stations_from_points(plan.points, exact)
     torch.testing.assert_close(s, plan.stations, atol=1e-9, rtol=0)
     torch.testing.assert_close(d, dead, atol=1e-9, rtol=0)
+    torch.testing.assert_close(points_from_stations(plan.stations, dead, exact), plan.points, atol=1e-9, rtol=0)
 
 
 def test_recovers_geometry_within_predicted_uncertainty():
@@ -109,12 +118,23 @@ def test_points_gauge_has_no_rigid_motion_and_is_datum_independent():
     a, b, c = stations_gauge.datum_stations
     s = stations_gauge.station_sigmas
     assert float(s[a].abs().max()) == 0.0 and float(s[b, 1:].abs().max()) == 0.0 and float(s[c, 2]) == 0.0
-    # the same geometry with the stations in another order fixes another datum, same points gauge
-    perm = [3, 2, 0, 1]
-    cov1, abc1 = predict_covariance(plan.points, plan.stations, SIGMA)
-    cov2, abc2 = predict_covariance(plan.points, plan.stations[perm], SIGMA)
-    assert sorted(perm[k] for k in abc2) != sorted(abc1) or abc2 != abc1
-    torch.testing.assert_close(cov2[: 3 * n, : 3 * n], cov1[: 3 * n, : 3 * n], rtol=1e-6, atol=1e-20)
+    # two different station datums: different covariances, the same points-gauge covariance
+    covs = []
+    for abc in [(0, 1, 2), (1, 3, 2)]:
+        p, st = _station_frame(plan.points, plan.stations, abc)
+        dist = (p.unsqueeze(1) - st).norm(dim=-1)
+        ones = torch.ones_like(dist)
+        problem = _Problem(dist, ones, 1.0 / SIGMA(dist))
+        q = torch.cat([st, torch.zeros(4, 1, dtype=torch.float64)], -1)
+        cov, _, _ = _covariance_station_gauge(problem, p, q, _free_mask(4, abc, "cpu"))
+        rot, _ = _align(p, plan.points)  # back to one common frame
+        blocks = torch.block_diag(*([rot] * 64), torch.eye(4, dtype=torch.float64))
+        tr = _inner_constraint_transform(p, st)
+        covs.append((blocks @ cov @ blocks.T, blocks @ tr @ cov @ tr.T @ blocks.T))
+    assert (covs[0][0] - covs[1][0]).abs().max() > 0.1 * covs[0][0].diagonal().max()
+    torch.testing.assert_close(covs[1][1], covs[0][1], rtol=0, atol=1e-9 * float(covs[0][1].diagonal().max()))
+    predicted, _ = predict_covariance(plan.points, plan.stations, SIGMA)
+    torch.testing.assert_close(predicted, covs[0][1], rtol=0, atol=1e-9 * float(covs[0][1].diagonal().max()))
 
 
 def test_missing_lengths():

@@ -408,7 +408,8 @@ def _start(problem: _Problem, lengths_m: torch.Tensor, seen: torch.Tensor, free_
         q = torch.cat([s, dead.unsqueeze(-1)], -1)
         if not bool(complete.all()):
             p[~complete] = _refine_points(_sub(problem, ~complete), p[~complete], q)
-        cand = _solve_from(problem, p, q, free_of)
+        # a right start converges in tens of iterations; a wrong one is not worth 200
+        cand = _solve_from(problem, p, q, free_of, max_iter=80)
         if cand is not None and (best is None or cand[2] < best[2]):
             best = cand
         # A wrong basin leaves residuals of mm, thousands of sigmas; one within a few sigmas of the
@@ -424,14 +425,14 @@ def _sub(problem: _Problem, rows: torch.Tensor) -> _Problem:
     return _Problem(problem.lengths[rows], problem.mask[rows], problem.inv_sigma[rows])
 
 
-def _solve_from(problem, p, q, free_of):
+def _solve_from(problem, p, q, free_of, max_iter: int = 200):
     """Move a start into the station frame and run LM; ``(p, q, cost, iters, converged, abc)``."""
     if not (torch.isfinite(p).all() and torch.isfinite(q).all()):
         return None
     abc = _datum_triangle(q[:, :3])
     p, s = _station_frame(p, q[:, :3], abc)
     q = torch.cat([s, q[:, 3:]], -1)
-    p, q, cost, its, ok = _levenberg_marquardt(problem, p, q, free_of(abc))
+    p, q, cost, its, ok = _levenberg_marquardt(problem, p, q, free_of(abc), max_iter=max_iter)
     if not math.isfinite(cost):
         return None
     return p, q, cost, its, ok, abc
