@@ -3,7 +3,7 @@
 Same model (the twin-kr6 error layer, the same 25 identifiable parameters), same data, same
 start (closed-form registration, nominal table). scipy is run as a user would (2-point finite
 difference Jacobian, MINPACK 'lm' and 'trf') and with torchcal's autodiff Jacobian handed to it,
-so the comparison separates the optimizer from the derivatives. Median of repeats; results in
+so the comparison separates the optimizer from the derivatives. scipy's default method is trf. Median of repeats; results in
 docs/bench_lm.json and docs/bench_lm.md.
 
     python scripts/bench_lm.py [--repeats 3] [--poses 1500]
@@ -83,7 +83,7 @@ def main() -> None:
     z0 = x0[free].numpy()
     rows = []
     t, res = _time(lambda: LevenbergMarquardt().solve(problem, x0), args.repeats)
-    rows.append({"method": "torchcal LM (autodiff Jacobian)", "time_s": t, "cost": res.cost, "iterations": res.iterations})
+    rows.append({"method": "torchcal LM (analytic Jacobian)", "time_s": t, "cost": res.cost, "iterations": res.iterations})
     for label, kwargs in (
         ("scipy least_squares lm, 2-point FD Jacobian", {"method": "lm"}),
         ("scipy least_squares trf, 2-point FD Jacobian", {"method": "trf", "x_scale": "jac"}),
