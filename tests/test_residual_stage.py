@@ -41,7 +41,7 @@ def test_residual_kept_and_compensation_moves_the_real_tcp(tmp_path):
     combined = (predict_positions(stored, test.q) - truth).norm(dim=-1).pow(2).mean().sqrt()
     assert combined < 0.7 * geometric  # >= 30 % better than geometry alone
     # compensation: targets are the nominal poses, in the tracker frame through the fitted frame
-    target = test.q.new_tensor(stored.robot.tcp_position(test.q)) @ stored.model.T_reference[:3, :3].T + stored.model.T_reference[:3, 3]
+    target = stored.robot.tcp_position(test.q) @ stored.model.T_reference[:3, :3].T + stored.model.T_reference[:3, 3]
     with torch.no_grad():
         q_c = CompensatorGraph.from_stored(stored)(test.q)
     before = (twin.true_positions(test.q) - target).norm(dim=-1)
