@@ -13,13 +13,12 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import tempfile
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import torch
 
+from torchcal.io import atomic_write_text
 from torchcal.data.stiffness import StiffnessData
 from torchcal.kinematics import transforms as tf
 from torchcal.kinematics.error_model import ErrorModel
@@ -216,20 +215,6 @@ class StiffnessTwin:
 # ------------------------------------------------------------------------------------ files
 
 
-def _atomic_write_text(path: Path, text: str) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8", newline="") as fh:
-            fh.write(text)
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-
-
 def stiffness_csv_text(data: StiffnessData) -> str:
     """The contract CSV of ``data``: deg, N, N m, mm (and deg for rotations)."""
     n = data.n_joints
@@ -249,7 +234,7 @@ def stiffness_csv_text(data: StiffnessData) -> str:
 def write_stiffness_csv(path: str | Path, data: StiffnessData) -> Path:
     """Write ``data`` as a contract stiffness CSV, atomically."""
     path = Path(path)
-    _atomic_write_text(path, stiffness_csv_text(data))
+    atomic_write_text(path, stiffness_csv_text(data))
     return path
 
 
@@ -263,5 +248,5 @@ def write_stiffness_case(
     paths = {name: out / name for name in ("stiffness_train.csv", "stiffness_test.csv", "stiffness_truth.json")}
     write_stiffness_csv(paths["stiffness_train.csv"], twin.sample(n_train, gen))
     write_stiffness_csv(paths["stiffness_test.csv"], twin.sample(n_test, gen))
-    _atomic_write_text(paths["stiffness_truth.json"], json.dumps(twin.truth_dict(), indent=2) + "\n")
+    atomic_write_text(paths["stiffness_truth.json"], json.dumps(twin.truth_dict(), indent=2) + "\n")
     return paths
