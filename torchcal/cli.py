@@ -34,17 +34,29 @@ def _apply_overrides(config, overrides: list[str]):
 
 
 def _cmd_simulate(args) -> int:
-    from torchcal.pipeline import simulate
-    from torchcal.sim.twin import TwinConfig
+    from torchcal.sim.instruments import split_instrument, twin_writer
 
-    config = _apply_overrides(TwinConfig(), args.overrides)
-    paths = simulate(args.out, config)
+    instrument, overrides = split_instrument(args.overrides)
+    writer = twin_writer(instrument)
+    config = _apply_overrides(writer.config_factory(), overrides)
+    paths = writer.write(Path(args.out), config)
     for name, path in paths.items():
         print(f"{name}: {path}")
     return 0
 
 
 def _cmd_fit(args) -> int:
+    from torchcal.data.kinds import measurement_kind
+
+    kind = measurement_kind(args.data)
+    if kind != "tracker":
+        from torchcal.commands_by_kind import handlers_for
+
+        folder = handlers_for(kind, "fit").fit(
+            args.robot, args.data, args.out, args.overrides, base_link=args.base_link, end_link=args.end_link
+        )
+        print(f"model: {folder}")
+        return 0
     from rich.console import Console
 
     from torchcal.data.measurements import load_measurements
@@ -74,9 +86,19 @@ def _cmd_fit(args) -> int:
 
 
 def _cmd_evaluate(args) -> int:
+    from torchcal.data.kinds import measurement_kind
     from torchcal.io import atomic_write_json
     from torchcal.pipeline import FitConfig, evaluate
 
+    kind = measurement_kind(args.data)
+    if kind != "tracker":
+        from torchcal.commands_by_kind import handlers_for
+
+        metrics = handlers_for(kind, "evaluate").evaluate(args.model, args.data, args.overrides, register=args.register)
+        if args.json:
+            atomic_write_json(args.json, metrics)
+        print(json.dumps(metrics, indent=2, default=str))
+        return 0
     metrics = evaluate(args.model, args.data, register=args.register, config=_apply_overrides(FitConfig(), args.overrides))
     if args.json:
         atomic_write_json(args.json, metrics)
@@ -111,7 +133,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("overrides", nargs="*", help="key=value, e.g. twin.n_train=120 fit.method=lasso")
     p.set_defaults(func=_cmd_run)
 
-    p = sub.add_parser("simulate", help="write a twin case: robot.yaml, train.csv, test.csv, truth.json")
+    p = sub.add_parser("simulate", help="write a twin case (instrument=tracker|...): robot.yaml, data files, truth.json")
     p.add_argument("--out", required=True)
     p.add_argument("overrides", nargs="*", help="key=value of the twin, e.g. gravity=true n_train=200")
     p.set_defaults(func=_cmd_simulate)

@@ -1,0 +1,36 @@
+"""``fit`` and ``evaluate`` for measurement kinds other than tracker points.
+
+The tracker pipeline lives in :mod:`torchcal.pipeline`. Every other kind registers here a
+``fit(robot_path, data_path, out_dir, overrides, *, base_link, end_link) -> Path`` and an
+``evaluate(model_dir, data_path, overrides, *, register) -> dict`` handler, loaded lazily so
+that a command imports only what its file needs.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+from torchcal.errors import TorchcalError
+
+
+@dataclass(frozen=True)
+class KindHandlers:
+    """What ``fit`` and ``evaluate`` do with one measurement kind (``None``: not supported)."""
+
+    fit: Callable[..., Path] | None = None
+    evaluate: Callable[..., dict] | None = None
+
+
+# kind -> loader of its handlers; the tracker kind is handled by torchcal.pipeline directly.
+KIND_HANDLERS: dict[str, Callable[[], KindHandlers]] = {}
+
+
+def handlers_for(kind: str, command: str) -> KindHandlers:
+    """Handlers of ``kind``; a clear error where ``command`` does not support that kind."""
+    loader = KIND_HANDLERS.get(kind)
+    handlers = loader() if loader else None
+    if handlers is None or getattr(handlers, command) is None:
+        raise TorchcalError(f"'{command}' does not support {kind} files yet")
+    return handlers

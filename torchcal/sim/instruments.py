@@ -1,0 +1,55 @@
+"""Which twin ``torchcal simulate instrument=<name>`` writes.
+
+Each instrument registers a configuration dataclass (its ``key=value`` overrides) and a writer
+``write(out_dir, config) -> {name: path}``. The default, ``tracker``, is the geometric twin of
+:mod:`torchcal.sim.twin`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+from torchcal.errors import TorchcalError
+
+
+@dataclass(frozen=True)
+class TwinWriter:
+    """A twin kind: its config class and the function that writes a case."""
+
+    config_factory: Callable[[], Any]
+    write: Callable[[Path, Any], dict[str, Path]]
+    description: str
+
+
+def _tracker() -> TwinWriter:
+    from torchcal.sim.twin import TwinConfig, write_twin_case
+
+    return TwinWriter(TwinConfig, write_twin_case, "laser-tracker points (train.csv, test.csv)")
+
+
+# Loaders are lazy so that ``simulate`` imports only the instrument it writes.
+TWIN_WRITERS: dict[str, Callable[[], TwinWriter]] = {
+    "tracker": _tracker,
+}
+
+
+def twin_writer(instrument: str) -> TwinWriter:
+    """The writer registered for ``instrument``; a clear error for an unknown name."""
+    if instrument not in TWIN_WRITERS:
+        raise TorchcalError(f"unknown instrument '{instrument}'; choose one of {sorted(TWIN_WRITERS)}")
+    return TWIN_WRITERS[instrument]()
+
+
+def split_instrument(overrides: list[str], default: str = "tracker") -> tuple[str, list[str]]:
+    """Take ``instrument=<name>`` out of a list of ``key=value`` overrides."""
+    instrument = default
+    rest = []
+    for item in overrides:
+        key, _, value = item.partition("=")
+        if key.strip() == "instrument":
+            instrument = value.strip()
+        else:
+            rest.append(item)
+    return instrument, rest
