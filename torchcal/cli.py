@@ -1,4 +1,4 @@
-"""Command line: ``torchcal run | simulate | fit | evaluate | export``.
+"""Command line: ``torchcal run | simulate | fit | evaluate | export | study``.
 
 Options follow the command-line contract of the design; ``key=value`` overrides set fields of
 the command's configuration (dotted for nested ones, e.g. ``twin.n_train=120``). Heavy imports
@@ -73,6 +73,9 @@ def _cmd_fit(args) -> int:
     before = position_metrics(nominal_errors(robot, data))
     after = position_metrics(data.position - result.model.tcp_position(data.q, result.x))
     folder = save_fit(Path(args.out), robot, data, result, {"fit_metrics": {"nominal_registered": before, "geometric": after}})
+    from torchcal.config import save_resolved_config
+
+    save_resolved_config(folder / "config.yaml", config)
     if config.residual != "none":
         from torchcal.residual_stage import fit_residual_stage
 
@@ -115,13 +118,35 @@ def _cmd_export(args) -> int:
 
 
 def _cmd_run(args) -> int:
-    from torchcal.pipeline import RunConfig, run
+    from torchcal.config import compose_run_config
+    from torchcal.pipeline import run
 
-    config = _apply_overrides(RunConfig(), args.overrides)
+    config, _ = compose_run_config(args.overrides)
     summary = run(config)
     final = summary["test"][summary["final_stage"]]
     print(f"{summary['name']}: held-out RMS {final['position_rms_mm']:.4f} mm ({summary['final_stage']}); "
           f"report in {Path(config.out) / config.name / 'report.md'}")
+    return 0
+
+
+def _cmd_study(args) -> int:
+    from rich.console import Console
+
+    from torchcal.config import compose_run_config
+    from torchcal.config.compose import merge_section
+    from torchcal.studies.runner import run_study
+    from torchcal.studies.spec import StudyConfig
+
+    base, sections = compose_run_config(args.overrides, config_name="study", extra_sections=("study",))
+    study = merge_section(StudyConfig(), sections["study"])
+    if args.storage:
+        study.storage = args.storage
+    if args.n_trials:
+        study.n_trials = args.n_trials
+    outcome = run_study(base, study, workers=args.workers, console=Console(stderr=True))
+    c = outcome.counts
+    print(f"study {study.name}: {c['COMPLETE']} complete, {c['PRUNED']} pruned, {c['FAIL']} failed; "
+          f"best trial {outcome.best_trial}; report {outcome.report}")
     return 0
 
 
@@ -130,7 +155,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("run", help="the main job: default twin end to end (report and ONNX export)")
-    p.add_argument("overrides", nargs="*", help="key=value, e.g. twin.n_train=120 fit.method=lasso")
+    p.add_argument("overrides", nargs="*", help="config groups and key=value, e.g. model=mlp twin.n_train=120 fit.method=lasso")
     p.set_defaults(func=_cmd_run)
 
     p = sub.add_parser("simulate", help="write a twin case (instrument=tracker|...): robot.yaml, data files, truth.json")
@@ -154,6 +179,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--register", action="store_true", help="re-fit only the rigid instrument frame to the file first")
     p.add_argument("overrides", nargs="*")
     p.set_defaults(func=_cmd_evaluate)
+
+    p = sub.add_parser("study", help="Optuna study over a search space from configs/study/ (resumable)")
+    p.add_argument("--workers", type=int, default=1, help="local worker processes (default 1)")
+    p.add_argument("--storage", default=None, help="RDB URL shared by workers on several machines (default: SQLite in the study folder)")
+    p.add_argument("--n-trials", type=int, default=None, help="finished trials to reach (overrides study.n_trials)")
+    p.add_argument("overrides", nargs="*", help="study=<name>, config groups (model=mlp) and key=value, e.g. study.n_trials=40")
+    p.set_defaults(func=_cmd_study)
 
     p = sub.add_parser("export", help="export the compensator to ONNX with a manifest")
     p.add_argument("--model", required=True)

@@ -176,8 +176,11 @@ def run(config: RunConfig, console=None) -> dict:
     from torchcal.report.runreport import write_run_report
 
     console = console or Console()
+    from torchcal.config import save_resolved_config
+
     folder = Path(config.out) / config.name
     started = time.perf_counter()
+    save_resolved_config(folder / "config.yaml", config)
     with console.status("[bold]simulating the twin") as status:
         case = write_twin_case(folder / "case", config.twin)
         robot = load_robot(case["robot.yaml"])

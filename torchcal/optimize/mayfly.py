@@ -20,6 +20,8 @@ union is kept. Every improvement can be switched off for ablation.
 
 from __future__ import annotations
 
+from typing import Callable
+
 import torch
 
 from torchcal.optimize.base import Fitness, Metaheuristic, OptimizeResult, progress_bar
@@ -94,7 +96,13 @@ class Mayfly(Metaheuristic):
 
     # ------------------------------------------------------------------------- search
 
-    def minimize(self, fitness: Fitness, lower, upper, *, seed: int = 0, progress: bool = False) -> OptimizeResult:
+    def minimize(self, fitness: Fitness, lower, upper, *, seed: int = 0, progress: bool = False,
+                 on_iteration: Callable[[int, float], None] | None = None) -> OptimizeResult:
+        """Minimize ``fitness`` over ``[lower, upper]``.
+
+        ``on_iteration(k, best_f)`` is called after iteration ``k`` (1-based) with the best
+        fitness so far; it may raise to stop the search (a study pruning a poor trial does).
+        """
         gen = torch.Generator().manual_seed(seed)
         width = upper - lower
         vmax = self.vmax_fraction * width
@@ -176,6 +184,8 @@ class Mayfly(Metaheuristic):
                 flight *= self.flight_damping
                 history.append(f_gbest)
                 bar.advance()
+                if on_iteration is not None:
+                    on_iteration(len(history) - 1, f_gbest)
         return OptimizeResult(best_x=gbest, best_f=f_gbest, history=history, n_evaluations=evaluations)
 
     def evaluations_per_run(self) -> int:

@@ -8,6 +8,8 @@ solve.
 
 from __future__ import annotations
 
+from typing import Callable
+
 import torch
 
 from torchcal.optimize.mayfly import Mayfly
@@ -32,6 +34,8 @@ class MayflyELM(ResidualHead):
                  seed: int = 0, progress: bool = False) -> None:
         self.hidden, self.population, self.iterations = hidden, population, iterations
         self.ridge, self.seed, self.progress = ridge, seed, progress
+        # Optional observer of the search, (iteration, best validation RMS mm); a study prunes with it.
+        self.on_iteration: Callable[[int, float], None] | None = None
         self.elm = ELM(hidden=hidden, ridge=ridge, seed=seed)
         self.search = None
 
@@ -53,7 +57,8 @@ class MayflyELM(ResidualHead):
             return err.norm(dim=-1).pow(2).mean(-1).sqrt()
 
         optimizer = Mayfly(population=self.population, iterations=self.iterations)
-        self.search = optimizer.minimize(fitness, lower, upper, seed=self.seed, progress=self.progress)
+        self.search = optimizer.minimize(fitness, lower, upper, seed=self.seed, progress=self.progress,
+                                         on_iteration=self.on_iteration)
         w, b = unpack(self.search.best_x.unsqueeze(0))
         self.elm.set_hidden_layer(w[0], b[0])
         self.elm.fit(x_train, y_train)

@@ -1,0 +1,75 @@
+"""Helpers to run ``torchcal study`` as separate processes, as users and cluster workers do."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import optuna
+import pytest
+
+REPO = Path(__file__).resolve().parents[2]
+
+# A study small enough for CI: a 300-pose twin, Mayfly with 30 iterations, trials of about a second.
+SMALL = [
+    "study=elm_mayfly",
+    "measurement=twin_small",
+    "experiment=quick",
+    "twin.n_train=300",
+    "twin.n_test=100",
+    "fit.mayfly_iterations=30",
+    "study.search_space={fit.residual_hidden: {type: int, low: 20, high: 60, step: 10}, fit.mayfly_population: {type: int, low: 6, high: 12, step: 2}}",
+    "fit.residual_hidden=40",
+    "fit.mayfly_population=8",
+    "study.heartbeat_interval_s=1",
+    "study.grace_period_s=3",
+    "study.refit_best=false",
+]
+
+
+def study_command(name: str, n_trials: int, storage: str | None = None, workers: int = 1) -> list[str]:
+    cmd = [sys.executable, "-m", "torchcal.cli", "study", *SMALL, f"study.name={name}", f"study.n_trials={n_trials}",
+           "--workers", str(workers)]
+    if storage:
+        cmd += ["--storage", storage]
+    return cmd
+
+
+def start(cmd: list[str], cwd: Path) -> subprocess.Popen:
+    env = {**os.environ, "TORCHCAL_CONFIG_DIR": str(REPO / "configs"), "OMP_NUM_THREADS": "1"}
+    return subprocess.Popen(cmd, cwd=cwd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                            start_new_session=True)
+
+
+def finish(proc: subprocess.Popen, timeout: float = 400) -> str:
+    out, _ = proc.communicate(timeout=timeout)
+    assert proc.returncode == 0, out
+    return out
+
+
+def load(name: str, storage: str) -> optuna.Study:
+    return optuna.load_study(study_name=name, storage=storage)
+
+
+def kill_during_second_trial(proc: subprocess.Popen, name: str, storage: str, timeout: float = 300) -> int:
+    """SIGKILL the study's process group once a trial has finished and another is running."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if proc.poll() is not None:
+            pytest.fail("the study finished before it could be killed:\n" + proc.stdout.read())
+        try:
+            trials = load(name, storage).get_trials(deepcopy=False)
+        except Exception:  # not created yet
+            trials = []
+        done = [t for t in trials if t.state.is_finished()]
+        running = [t for t in trials if t.state == optuna.trial.TrialState.RUNNING]
+        if done and running:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+            return running[0].number
+        time.sleep(0.05)
+    pytest.fail("no trial was seen running")

@@ -1,0 +1,51 @@
+"""A study survives SIGKILL: finished trials kept, the killed one failed and retried; both storages."""
+
+from __future__ import annotations
+
+import time
+import uuid
+
+import optuna
+import pytest
+from optuna.storages import RetryHeartbeatStaleTrialCallback
+from optuna.trial import TrialState
+
+from study_procs import finish, kill_during_second_trial, load, start, study_command
+
+N_TRIALS = 5
+
+
+def _kill_and_resume(tmp_path, name: str, storage: str) -> None:
+    first = start(study_command(name, N_TRIALS, storage), tmp_path)
+    killed = kill_during_second_trial(first, name, storage)
+    before = {t.number: (t.state, t.values, t.params) for t in load(name, storage).trials if t.state.is_finished()}
+    time.sleep(4)  # past the grace period: the killed trial's heartbeat is stale
+    finish(start(study_command(name, N_TRIALS, storage), tmp_path))
+
+    trials = load(name, storage).trials
+    by_number = {t.number: t for t in trials}
+    # nothing finished before the kill is lost or changed
+    for number, (state, values, params) in before.items():
+        t = by_number[number]
+        assert (t.state, t.values, t.params) == (state, values, params)
+    # the killed trial is failed, and retried once with the same parameters
+    assert by_number[killed].state == TrialState.FAIL
+    retries = [t for t in trials if RetryHeartbeatStaleTrialCallback.retried_trial_number(t) == killed]
+    assert len(retries) == 1
+    assert retries[0].params == by_number[killed].params and retries[0].state.is_finished()
+    finished = [t for t in trials if t.state in (TrialState.COMPLETE, TrialState.PRUNED)]
+    assert len(finished) == N_TRIALS
+    assert not [t for t in trials if t.state in (TrialState.RUNNING, TrialState.WAITING)]
+
+
+@pytest.mark.slow
+def test_kill_and_resume_sqlite(tmp_path):
+    name = "resume"
+    storage = f"sqlite:///{tmp_path / 'runs' / 'studies' / name / 'study.db'}"
+    _kill_and_resume(tmp_path, name, storage)
+
+
+@pytest.mark.slow
+@pytest.mark.postgres
+def test_kill_and_resume_postgres(tmp_path, postgres_url):
+    _kill_and_resume(tmp_path, f"resume-{uuid.uuid4().hex[:8]}", postgres_url)

@@ -1,0 +1,135 @@
+"""Compose ``configs/`` (Hydra config groups) with ``key=value`` overrides onto typed dataclasses.
+
+Overrides are of two kinds. A bare group name selects an option of a config group
+(``model=mlp``, ``study=elm_mayfly``): Hydra composes those from ``configs/``. A dotted or plain
+field (``twin.n_train=120``, ``name=trial``) sets one field: OmegaConf merges it onto the
+dataclass schema, so a misspelt key or a wrong type is an error naming the key rather than a
+silently ignored setting. Without a ``configs/`` folder (a wheel installed elsewhere) the
+dataclass defaults stand in for it and group selections are refused with a clear message.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any
+
+from torchcal.errors import TorchcalError
+
+GROUPS = ("robot", "measurement", "model", "experiment", "study")
+CONFIG_DIR_ENV = "TORCHCAL_CONFIG_DIR"
+
+
+def config_dir() -> Path | None:
+    """The ``configs/`` folder: ``$TORCHCAL_CONFIG_DIR``, ``./configs``, or the source tree's."""
+    candidates = []
+    if os.environ.get(CONFIG_DIR_ENV):
+        candidates.append(Path(os.environ[CONFIG_DIR_ENV]))
+    candidates += [Path.cwd() / "configs", Path(__file__).resolve().parents[2] / "configs"]
+    for candidate in candidates:
+        if (candidate / "config.yaml").is_file():
+            return candidate.resolve()
+    return None
+
+
+def split_overrides(overrides: list[str]) -> tuple[list[str], list[str]]:
+    """Separate group selections (``model=mlp``) from field overrides (``fit.seed=3``)."""
+    bad = [o for o in overrides if "=" not in o]
+    if bad:
+        raise TorchcalError(f"override '{bad[0]}' is not of the form key=value")
+    groups = [o for o in overrides if o.split("=", 1)[0].strip() in GROUPS]
+    fields = [o for o in overrides if o.split("=", 1)[0].strip() not in GROUPS]
+    return groups, fields
+
+
+def _compose_yaml(config_name: str, group_overrides: list[str]):
+    """The Hydra composition of ``config_name`` with group selections (an OmegaConf node)."""
+    from omegaconf import OmegaConf
+
+    folder = config_dir()
+    if folder is None:
+        if group_overrides:
+            raise TorchcalError(
+                f"'{group_overrides[0]}' selects a config group, but no configs/ folder was found "
+                f"(set {CONFIG_DIR_ENV} or run from the project folder)"
+            )
+        return OmegaConf.create({})
+    from hydra import compose, initialize_config_dir
+    from hydra.errors import HydraException
+    from omegaconf.errors import OmegaConfBaseException
+
+    try:
+        with initialize_config_dir(config_dir=str(folder), version_base="1.3", job_name="torchcal"):
+            node = compose(config_name=config_name, overrides=group_overrides)
+    except (HydraException, OmegaConfBaseException) as exc:
+        raise TorchcalError(f"configs: {str(exc).splitlines()[0]}") from None
+    return node
+
+
+def _merge(schema: Any, *nodes) -> Any:
+    from omegaconf import OmegaConf
+    from omegaconf.errors import OmegaConfBaseException
+
+    try:
+        merged = OmegaConf.merge(OmegaConf.structured(schema), *nodes)
+        return OmegaConf.to_object(merged)
+    except OmegaConfBaseException as exc:
+        key = getattr(exc, "full_key", None)
+        where = f" (key '{key}')" if key else ""
+        raise TorchcalError(f"invalid configuration{where}: {str(exc).splitlines()[0]}") from None
+
+
+def compose_run_config(overrides: list[str], config_name: str = "config", extra_sections: tuple[str, ...] = ()):
+    """A :class:`~torchcal.pipeline.RunConfig` from ``configs/`` plus overrides.
+
+    Returns ``(run_config, sections)`` where ``sections`` maps each name in ``extra_sections``
+    (e.g. ``study``) to its composed OmegaConf node, taken out before the run schema is applied.
+    """
+    from omegaconf import OmegaConf
+
+    from torchcal.pipeline import RunConfig
+
+    group_overrides, field_overrides = split_overrides(overrides)
+    composed = _compose_yaml(config_name, group_overrides)
+    OmegaConf.set_struct(composed, False)
+    sections = {}
+    field_by_section: dict[str, list[str]] = {name: [] for name in extra_sections}
+    run_fields = []
+    for item in field_overrides:
+        head = item.split("=", 1)[0].split(".", 1)[0].strip()
+        (field_by_section[head] if head in field_by_section else run_fields).append(item)
+    for name in extra_sections:
+        node = composed.pop(name, None) if name in composed else None
+        sections[name] = (node, field_by_section[name])
+    try:
+        dotlist = OmegaConf.from_dotlist(run_fields)
+    except Exception as exc:  # omegaconf grammar errors
+        raise TorchcalError(f"invalid override: {str(exc).splitlines()[0]}") from None
+    config = _merge(RunConfig(), composed, dotlist)
+    return config, sections
+
+
+def merge_section(schema: Any, section: tuple[Any, list[str]]):
+    """A composed section plus its ``section.key=value`` overrides, merged onto ``schema``."""
+    from omegaconf import OmegaConf
+
+    node, fields = section
+    stripped = [item.split(".", 1)[1] for item in fields if "." in item.split("=", 1)[0]]
+    nodes = [node] if node is not None else []
+    return _merge(schema, *nodes, OmegaConf.from_dotlist(stripped))
+
+
+def save_resolved_config(path: str | Path, config: Any, **sections: Any) -> Path:
+    """Write the fully resolved configuration (dataclasses) as YAML, atomically."""
+    from omegaconf import OmegaConf
+
+    from torchcal.io import atomic_write_text
+
+    tree = OmegaConf.structured(config)
+    if sections:
+        tree = OmegaConf.merge(OmegaConf.create({}), tree)
+        OmegaConf.set_struct(tree, False)
+        for key, value in sections.items():
+            tree[key] = OmegaConf.structured(value) if not isinstance(value, dict) else OmegaConf.create(value)
+    atomic_write_text(Path(path), OmegaConf.to_yaml(tree, resolve=True))
+    return Path(path)

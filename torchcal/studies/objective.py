@@ -1,0 +1,146 @@
+"""One trial of a study: the run configuration with the trial's values, scored on validation.
+
+The objective is the validation RMS (mm) of the residual head on the validation split of the
+*training* poses, the same split the residual gate uses; the twin's test poses are scored too but
+only recorded (``test_rms_mm``), so a study never selects on data it is judged by. Data and the
+geometric fit depend only on the twin and geometric settings, so they are computed once per
+worker process and reused by every trial that shares them.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from torchcal.errors import TorchcalError
+from torchcal.studies.spec import StudyConfig, search_space
+
+# Fit settings that change the geometric stage; the others only change the residual head.
+GEOMETRIC_KEYS = ("method", "parallel_threshold_deg", "joint_unit", "length_unit", "device", "tool_mm")
+
+
+def apply_values(config, values: dict[str, Any]):
+    """``config`` (a RunConfig) with dotted ``values`` set, type-checked by its schema."""
+    from omegaconf import OmegaConf
+    from omegaconf.errors import OmegaConfBaseException
+
+    try:
+        merged = OmegaConf.merge(OmegaConf.structured(config), OmegaConf.from_dotlist([f"{k}={v}" for k, v in values.items()]))
+        return OmegaConf.to_object(merged)
+    except OmegaConfBaseException as exc:
+        raise TorchcalError(f"study.search_space: {str(exc).splitlines()[0]}") from None
+
+
+def _digest(obj: Any) -> str:
+    return hashlib.sha256(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()[:12]
+
+
+@dataclass
+class PreparedData:
+    """A twin case loaded and geometrically fitted, plus the residual features and split."""
+
+    robot: Any
+    result: Any
+    features: Any
+    x: torch.Tensor
+    y: torch.Tensor
+    train: torch.Tensor
+    val: torch.Tensor
+    x_test: torch.Tensor
+    y_test: torch.Tensor
+
+
+class StudyObjective:
+    """Callable Optuna objective over ``base`` (a RunConfig) and ``study``'s search space."""
+
+    def __init__(self, base, study: StudyConfig, study_dir: Path) -> None:
+        self.base, self.study, self.study_dir = base, study, Path(study_dir)
+        self.space = search_space(study)
+        self._prepared: dict[str, PreparedData] = {}
+
+    # -------------------------------------------------------------------- data
+    def _case(self, twin_config) -> dict[str, Path]:
+        from torchcal.sim.twin import write_twin_case
+
+        folder = self.study_dir / "cases" / _digest(asdict(twin_config))
+        paths = {n: folder / n for n in ("robot.yaml", "train.csv", "test.csv", "truth.json")}
+        if not all(p.is_file() for p in paths.values()):
+            # Deterministic for a given config, and written atomically: concurrent workers agree.
+            write_twin_case(folder, twin_config)
+        return paths
+
+    def prepare(self, config) -> PreparedData:
+        """Twin data and geometric fit for ``config``, computed once per distinct setting."""
+        from torchcal.data.measurements import load_measurements
+        from torchcal.kinematics.robot import load_robot
+        from torchcal.pipeline import fit, with_tool
+        from torchcal.residual.features import JointFeatures
+        from torchcal.residual_stage import residual_targets_mm, split
+
+        fit_geometry = {k: getattr(config.fit, k) for k in GEOMETRIC_KEYS}
+        key = _digest([asdict(config.twin), fit_geometry, config.fit.validation_fraction, config.fit.seed])
+        if key not in self._prepared:
+            case = self._case(config.twin)
+            robot = with_tool(load_robot(case["robot.yaml"]), config.fit)
+            train = load_measurements(case["train.csv"], robot)
+            test = load_measurements(case["test.csv"], robot)
+            result = fit(robot, train, config.fit)
+            features = JointFeatures(robot.joint_limits.to(torch.float64), None)
+            idx_train, idx_val = split(len(train), config.fit.validation_fraction, config.fit.seed)
+            self._prepared[key] = PreparedData(
+                robot, result, features,
+                features(train.q, None), residual_targets_mm(result.model, result.x, train), idx_train, idx_val,
+                features(test.q, None), residual_targets_mm(result.model, result.x, test),
+            )
+        return self._prepared[key]
+
+    # ------------------------------------------------------------------- trial
+    def __call__(self, trial) -> float | tuple[float, ...]:
+        import optuna
+
+        from torchcal.config import save_resolved_config
+        from torchcal.residual.base import rms
+        from torchcal.residual_stage import _candidates
+
+        values = {d.key: d.suggest(trial) for d in self.space}
+        config = apply_values(self.base, values)
+        config.fit.progress = False
+        trial.set_user_attr("worker_pid", os.getpid())
+        trial_dir = self.study_dir / "trials" / f"{trial.number:04d}"
+        save_resolved_config(trial_dir / "config.yaml", config)
+        started = time.perf_counter()
+        data = self.prepare(config)
+        single_objective = len(self.study.objectives) == 1
+        scores: dict[str, float] = {}
+        best_head, best_score = None, float("inf")
+        for head in _candidates(config.fit):
+            if single_objective and hasattr(head, "on_iteration"):
+                def report(step: int, value: float) -> None:
+                    trial.report(value, step)
+                    if trial.should_prune():
+                        raise optuna.TrialPruned(f"validation RMS {value:.4f} mm at iteration {step}")
+
+                head.on_iteration = report
+            head.fit(data.x[data.train], data.y[data.train], data.x[data.val], data.y[data.val])
+            scores[head.name] = rms(head.predict(data.x[data.val]) - data.y[data.val])
+            if scores[head.name] < best_score:
+                best_head, best_score = head, scores[head.name]
+        seconds = time.perf_counter() - started
+        size = sum(t.numel() for t in best_head.module().state_dict().values()) if best_head is not None else 0
+        test_rms = rms(best_head.predict(data.x_test) - data.y_test) if best_head is not None else rms(data.y_test)
+        trial.set_user_attr("head", best_head.name if best_head is not None else None)
+        trial.set_user_attr("validation_rms_by_head_mm", scores)
+        trial.set_user_attr("geometric_validation_rms_mm", rms(data.y[data.val]))
+        trial.set_user_attr("test_rms_mm", test_rms)
+        trial.set_user_attr("model_size", size)
+        trial.set_user_attr("fit_seconds", seconds)
+        measured = {"validation_rms_mm": best_score, "model_size": float(size), "fit_seconds": seconds}
+        out = tuple(measured[o] for o in self.study.objectives)
+        return out[0] if single_objective else out

@@ -1,0 +1,114 @@
+"""What a study is: its search space, objectives, sampler, pruner and storage (``configs/study/``)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+from torchcal.errors import TorchcalError
+
+OBJECTIVES = {"validation_rms_mm": "minimize", "model_size": "minimize", "fit_seconds": "minimize"}
+SAMPLERS = ("tpe", "random")
+PRUNERS = ("median", "none")
+
+
+@dataclass
+class StudyConfig:
+    """Settings of an Optuna study.
+
+    Attributes:
+        name: study name (also its folder under ``<out>/studies/``).
+        n_trials: finished trials (complete or pruned) the study aims at, over all workers and
+            restarts together.
+        objectives: ``validation_rms_mm`` (residual head on the validation split of the training
+            poses, mm), optionally ``model_size`` (parameters of the head) and ``fit_seconds``.
+        sampler: ``tpe`` or ``random``; seeded with ``seed``.
+        pruner: ``median`` (stop a trial whose intermediate validation RMS is worse than the
+            median of earlier trials at the same step) or ``none``.
+        pruner_warmup_steps: optimizer iterations before a trial may be pruned.
+        storage: ``None`` for SQLite in the study folder, or any SQLAlchemy URL
+            (``postgresql://user@host/db``) shared by workers on several machines.
+        heartbeat_interval_s / grace_period_s: a running trial whose heartbeat is older than the
+            grace period is marked failed (its worker was killed) and retried once.
+        max_retry: times a failed trial is retried with the same parameters.
+        search_space: dotted run-config key -> ``{type: int|float|categorical, low, high, step,
+            log, choices}``.
+        refit_best: refit the best trial as a full run (report, export) at the end.
+    """
+
+    name: str = "study"
+    n_trials: int = 20
+    objectives: list[str] = field(default_factory=lambda: ["validation_rms_mm"])
+    sampler: str = "tpe"
+    seed: int = 0
+    pruner: str = "median"
+    pruner_warmup_steps: int = 10
+    storage: str | None = None
+    heartbeat_interval_s: int = 5
+    grace_period_s: int = 20
+    max_retry: int = 1
+    search_space: dict[str, Any] = field(default_factory=dict)
+    refit_best: bool = True
+
+    def validate(self) -> None:
+        unknown = [o for o in self.objectives if o not in OBJECTIVES]
+        if not self.objectives or unknown:
+            raise TorchcalError(f"study.objectives: unknown {unknown or 'empty list'}; choose from {sorted(OBJECTIVES)}")
+        if self.sampler not in SAMPLERS:
+            raise TorchcalError(f"study.sampler '{self.sampler}' unknown; choose one of {SAMPLERS}")
+        if self.pruner not in PRUNERS:
+            raise TorchcalError(f"study.pruner '{self.pruner}' unknown; choose one of {PRUNERS}")
+        if self.n_trials < 1:
+            raise TorchcalError("study.n_trials must be at least 1")
+        if not self.search_space:
+            raise TorchcalError("study.search_space is empty: declare at least one parameter")
+        for key, spec in self.search_space.items():
+            Distribution.parse(key, spec)
+
+    @property
+    def directions(self) -> list[str]:
+        return [OBJECTIVES[o] for o in self.objectives]
+
+
+@dataclass(frozen=True)
+class Distribution:
+    """One searched parameter: a dotted run-config key and its range."""
+
+    key: str
+    kind: str
+    low: float | None = None
+    high: float | None = None
+    step: float | None = None
+    log: bool = False
+    choices: tuple | None = None
+
+    @classmethod
+    def parse(cls, key: str, spec: Any) -> "Distribution":
+        if not isinstance(spec, dict) or "type" not in spec:
+            raise TorchcalError(f"study.search_space['{key}'] needs a mapping with 'type' (int, float or categorical)")
+        kind = spec["type"]
+        extra = set(spec) - {"type", "low", "high", "step", "log", "choices"}
+        if extra:
+            raise TorchcalError(f"study.search_space['{key}']: unknown fields {sorted(extra)}")
+        if kind == "categorical":
+            choices = spec.get("choices")
+            if not choices:
+                raise TorchcalError(f"study.search_space['{key}']: categorical needs a non-empty 'choices' list")
+            return cls(key, kind, choices=tuple(choices))
+        if kind not in ("int", "float"):
+            raise TorchcalError(f"study.search_space['{key}']: type '{kind}' unknown; use int, float or categorical")
+        if "low" not in spec or "high" not in spec or not spec["low"] < spec["high"]:
+            raise TorchcalError(f"study.search_space['{key}']: needs low < high")
+        return cls(key, kind, spec["low"], spec["high"], spec.get("step"), bool(spec.get("log", False)))
+
+    def suggest(self, trial) -> Any:
+        """The value an Optuna trial suggests for this parameter."""
+        if self.kind == "categorical":
+            return trial.suggest_categorical(self.key, list(self.choices))
+        if self.kind == "int":
+            return trial.suggest_int(self.key, int(self.low), int(self.high), step=int(self.step or 1), log=self.log)
+        return trial.suggest_float(self.key, float(self.low), float(self.high), step=self.step, log=self.log)
+
+
+def search_space(config: StudyConfig) -> list[Distribution]:
+    return [Distribution.parse(k, v) for k, v in config.search_space.items()]
