@@ -13,6 +13,7 @@ from optuna.trial import TrialState
 from study_procs import finish, kill_during_second_trial, load, start, study_command
 
 N_TRIALS = 5
+pytestmark = pytest.mark.filterwarnings("ignore::optuna.exceptions.ExperimentalWarning")
 
 
 def _kill_and_resume(tmp_path, name: str, storage: str) -> None:
