@@ -64,7 +64,9 @@ def _cmd_fit(args) -> int:
     from torchcal.pipeline import FitConfig, fit, nominal_errors, save_fit, with_tool
     from torchcal.metrics import position_metrics
 
-    config = _apply_overrides(FitConfig(), args.overrides)
+    from torchcal.config.compose import compose_fit_config
+
+    config = compose_fit_config(args.overrides)
     console = Console(stderr=True)
     robot = with_tool(load_robot(args.robot, base_link=args.base_link, end_link=args.end_link), config)
     data = load_measurements(args.data, robot, joint_unit=config.joint_unit, length_unit=config.length_unit)
@@ -169,7 +171,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="model folder to write")
     p.add_argument("--base-link", default=None, help="URDF link of the robot base (default: root)")
     p.add_argument("--end-link", default=None, help="URDF link of the flange (default: last link)")
-    p.add_argument("overrides", nargs="*", help="key=value, e.g. method=lasso residual=none")
+    p.add_argument("overrides", nargs="*", help="model=<configs/model file> and key=value, e.g. method=lasso residual=none")
     p.set_defaults(func=_cmd_fit)
 
     p = sub.add_parser("evaluate", help="score a model on a measurement file")

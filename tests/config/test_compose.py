@@ -62,3 +62,13 @@ def test_instantiate_only_torchcal_classes():
     for target in ("os.system", "subprocess.Popen", "torchcalx.evil"):
         with pytest.raises(TorchcalError, match="not a torchcal class"):
             instantiate({"inner": [{"_target_": target, "command": "true"}]})
+
+
+def test_fit_config_takes_the_model_group():
+    from torchcal.config.compose import compose_fit_config
+
+    config = compose_fit_config(["model=lasso", "seed=5"])
+    assert (config.method, config.residual, config.seed) == ("lasso", "none", 5)
+    assert compose_fit_config([]) == FitConfig()
+    with pytest.raises(TorchcalError, match="only the model group"):
+        compose_fit_config(["study=elm_mayfly"])

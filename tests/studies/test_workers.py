@@ -47,5 +47,9 @@ def test_local_workers_sqlite(tmp_path):
     _check_shared(trials, 2)
     assert (tmp_path / "runs" / "studies" / name / "report.md").is_file()
     assert "best trial" in out
+    # the run configuration's own values are trial 0, so the study reports how the best compares with them
+    first = min(trials, key=lambda t: t.number)
+    assert first.user_attrs.get("default_configuration") is True
+    assert first.params == {"fit.residual_hidden": 40, "fit.mayfly_population": 8}
     for t in trials:
         assert (tmp_path / "runs" / "studies" / name / "trials" / f"{t.number:04d}" / "config.yaml").is_file()

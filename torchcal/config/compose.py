@@ -133,3 +133,25 @@ def save_resolved_config(path: str | Path, config: Any, **sections: Any) -> Path
             tree[key] = OmegaConf.structured(value) if not isinstance(value, dict) else OmegaConf.create(value)
     atomic_write_text(Path(path), OmegaConf.to_yaml(tree, resolve=True))
     return Path(path)
+
+
+def compose_fit_config(overrides: list[str]):
+    """A :class:`~torchcal.pipeline.FitConfig` for ``torchcal fit``: ``model=<name>`` picks a file
+    of ``configs/model/``, other ``key=value`` set fields (``method=lasso``, ``seed=3``)."""
+    from omegaconf import OmegaConf
+
+    from torchcal.pipeline import FitConfig
+
+    group_overrides, field_overrides = split_overrides(overrides)
+    other = [g for g in group_overrides if not g.startswith("model=")]
+    if other:
+        raise TorchcalError(f"'{other[0]}': only the model group applies to this command")
+    nodes = []
+    if group_overrides:
+        composed = _compose_yaml("config", group_overrides)
+        nodes.append(composed.get("fit", OmegaConf.create({})))
+    try:
+        nodes.append(OmegaConf.from_dotlist(field_overrides))
+    except Exception as exc:  # omegaconf grammar errors
+        raise TorchcalError(f"invalid override: {str(exc).splitlines()[0]}") from None
+    return _merge(FitConfig(), *nodes)
