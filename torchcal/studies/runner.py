@@ -38,7 +38,8 @@ def _budget_used(study) -> int:
 
 
 def _enqueue_default(study, base, config: StudyConfig) -> None:
-    """Queue the run configuration's own values as the first trial, so the study compares with it."""
+    """Queue the run configuration's own values as the first trial, so the study compares with it
+    (only when they lie inside the search space)."""
     from torchcal.studies.spec import search_space
 
     if study.get_trials(deepcopy=False):
@@ -48,6 +49,8 @@ def _enqueue_default(study, base, config: StudyConfig) -> None:
         node = base
         for part in dist.key.split("."):
             node = getattr(node, part, None)
+        if not dist.contains(node):
+            return
         params[dist.key] = node
     study.enqueue_trial(params, user_attrs={"default_configuration": True}, skip_if_exists=True)
 

@@ -101,6 +101,19 @@ class Distribution:
             raise TorchcalError(f"study.search_space['{key}']: needs low < high")
         return cls(key, kind, spec["low"], spec["high"], spec.get("step"), bool(spec.get("log", False)))
 
+    def contains(self, value: Any) -> bool:
+        """Whether ``value`` is a point of this distribution (e.g. the default configuration's)."""
+        if self.kind == "categorical":
+            return value in self.choices
+        if not isinstance(value, (int, float)) or isinstance(value, bool) or not self.low <= value <= self.high:
+            return False
+        if self.kind == "int" and int(value) != value:
+            return False
+        if self.step:
+            k = (value - self.low) / self.step
+            return abs(k - round(k)) < 1e-9
+        return True
+
     def suggest(self, trial) -> Any:
         """The value an Optuna trial suggests for this parameter."""
         if self.kind == "categorical":
