@@ -28,7 +28,7 @@ from torchcal.residual_stage import residual_targets_mm, split
 from torchcal.sim.twin import Twin, TwinConfig
 
 
-def one_seed(seed: int) -> dict[str, dict]:
+def one_seed(seed: int, with_mlp: bool = True) -> dict[str, dict]:
     twin = Twin.create(TwinConfig(seed=seed, gravity=True, gear=True))
     gen = torch.Generator().manual_seed(seed + 100)
     train, test = twin.sample(1500, gen), twin.sample(600, gen)
@@ -44,9 +44,11 @@ def one_seed(seed: int) -> dict[str, dict]:
     x, y = feats(train.q), residual_targets_mm(result.model, result.x, train)
     a, b = split(len(train), 0.2, seed)
     rotation = result.model.T_reference[:3, :3]
-    for label, head in (("geometric + ELM (random init)", ELM(hidden=80, seed=seed)),
-                        ("geometric + MMA-ELM", MayflyELM(hidden=80, seed=seed)),
-                        ("geometric + MLP", MLPHead(seed=seed))):
+    heads = [("geometric + ELM (random init)", ELM(hidden=80, seed=seed)),
+             ("geometric + MMA-ELM", MayflyELM(hidden=80, seed=seed))]
+    if with_mlp:
+        heads.append(("geometric + MLP", MLPHead(seed=seed)))
+    for label, head in heads:
         start = time.perf_counter()
         head.fit(x[a], y[a], x[b], y[b])
         elapsed = time.perf_counter() - start
@@ -58,21 +60,26 @@ def one_seed(seed: int) -> dict[str, dict]:
 def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("--seeds", type=int, default=3)
+    parser.add_argument("--no-mlp", action="store_true", help="ELM heads only (the 10-seed ELM vs MMA-ELM check)")
     parser.add_argument("--out", default=str(Path(__file__).resolve().parents[1] / "docs"))
     args = parser.parse_args()
     console = Console()
     per_seed = []
     for seed in range(args.seeds):
         with console.status(f"seed {seed}"):
-            per_seed.append(one_seed(seed))
+            per_seed.append(one_seed(seed, with_mlp=not args.no_mlp))
         console.log(f"seed {seed}: " + ", ".join(f"{k} {v['position_rms_mm']:.4f}" for k, v in per_seed[-1].items()))
     stages = list(per_seed[0])
     table = {s: {k: statistics.median(r[s][k] for r in per_seed) for k in ("position_rms_mm", "position_mean_mm", "position_max_mm", "fit_s")} for s in stages}
-    atomic_write_json(Path(args.out) / "residual_comparison.json", {"seeds": args.seeds, "median": table, "per_seed": per_seed})
+    elm, mma = "geometric + ELM (random init)", "geometric + MMA-ELM"
+    wins = sum(r[mma]["position_rms_mm"] < r[elm]["position_rms_mm"] for r in per_seed)
+    stem = "residual_comparison" + ("_elm" if args.no_mlp else "")
+    atomic_write_json(Path(args.out) / f"{stem}.json", {"seeds": args.seeds, "median": table, "mma_elm_wins": wins, "per_seed": per_seed})
     lines = [f"Twin with gravity compliance and gear errors, 1500 training / 600 test poses, median over {args.seeds} seeds.", "",
              "| stage | test RMS [mm] | mean [mm] | max [mm] | fit time [s] |", "|---|---|---|---|---|"]
     lines += [f"| {s} | {m['position_rms_mm']:.4f} | {m['position_mean_mm']:.4f} | {m['position_max_mm']:.4f} | {m['fit_s']:.1f} |" for s, m in table.items()]
-    atomic_write_text(Path(args.out) / "residual_comparison.md", "\n".join(lines) + "\n")
+    lines += ["", f"MMA-ELM has a lower test RMS than the random-init ELM of the same size (80 hidden) in {wins} of {args.seeds} seeds."]
+    atomic_write_text(Path(args.out) / f"{stem}.md", "\n".join(lines) + "\n")
     console.print("\n".join(lines))
 
 
