@@ -83,8 +83,9 @@ class DeflectionGraph(nn.Module):
         torque = torch.cat([f.unsqueeze(1) @ rot, moment.unsqueeze(-2) @ rot], -1)  # (B, N, 1, 6) = (J_i^T W)^T
         theta = torque @ self.compliance_t  # (B, N, 1, 6)
         rot_t = rot.transpose(-1, -2)
-        t_base = (theta[..., 0:3] @ rot_t).squeeze(-2)  # (R_i t_i)^T
-        r_base = (theta[..., 3:6] @ rot_t).squeeze(-2)
+        # indexing, not squeeze: squeeze of a dynamic shape exports as an ONNX If
+        t_base = (theta[..., 0:3] @ rot_t)[..., 0, :]  # (R_i t_i)^T
+        r_base = (theta[..., 3:6] @ rot_t)[..., 0, :]
         dp = (t_base + cross(r_base, lever)).sum(1)
         return dp, r_base.sum(1)
 

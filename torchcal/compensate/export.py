@@ -41,6 +41,11 @@ BUDGET_POSES = 10_000
 WRENCH_INPUT = "wrench"
 """Name of the second input of graphs with a stiffness stage."""
 DEFAULT_BUDGET_WRENCH = {"max_force_n": 300.0, "max_torque_nm": 30.0}
+FLOAT32_DAMPING_FLOOR = 1e-3
+"""``lambda_0`` of float32 graphs with a stiffness stage. The float64 floor (1e-5, squared 1e-10)
+is below float32 rounding of ``J^T J`` (~1e-7): at a singular pose (wrist, ``|q5| < 1e-3`` rad)
+the unpivoted elimination then divides by a rounded-away pivot. ``1e-3`` keeps the pivots
+positive and changes the float32 commands on regular poses by < 1e-4 mm (measured)."""
 
 
 def onnx_bytes(
@@ -98,9 +103,13 @@ def build_graphs(
             cls = CompensatorGraph if key.startswith("compensator") else MonitorGraph
             graphs[key] = cls(stored.model, stored.x, residual, dtype=dtype).eval()
         else:
-            cls = LoadedCompensatorGraph if key.startswith("compensator") else LoadedMonitorGraph
             compliance = stiffness.compliance.cpu()
-            graphs[key] = cls(stored.model, stored.x, compliance, residual, wrench_frame=wrench_frame, dtype=dtype).eval()
+            if key.startswith("compensator"):
+                floor = {"damping_floor": FLOAT32_DAMPING_FLOOR} if dtype == torch.float32 else {}
+                graph = LoadedCompensatorGraph(stored.model, stored.x, compliance, residual, wrench_frame=wrench_frame, dtype=dtype, **floor)
+            else:
+                graph = LoadedMonitorGraph(stored.model, stored.x, compliance, residual, wrench_frame=wrench_frame, dtype=dtype)
+            graphs[key] = graph.eval()
     return graphs
 
 
@@ -303,6 +312,7 @@ def _describe_stiffness(manifest: dict, stored, wrench_frame: str) -> None:
         "fit_metrics": meta.get("fit_metrics"),
     }
     manifest["sign_convention"] += "; with stiffness, T_real is the loaded TCP under the wrench input"
+    manifest["solver"]["damping_floor_float32"] = FLOAT32_DAMPING_FLOOR
 
 
 def readme_text(manifest: dict) -> str:
