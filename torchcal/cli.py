@@ -201,7 +201,13 @@ def main(argv: list[str] | None = None) -> int:
 
     import warnings
 
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args, extra = parser.parse_known_args(argv)
+    # key=value overrides may come before and after the options (`simulate instrument=x --out D n=3`)
+    if extra and hasattr(args, "overrides") and all("=" in e and not e.startswith("-") for e in extra):
+        args.overrides = list(args.overrides) + extra
+    elif extra:
+        parser.error(f"unrecognized arguments: {' '.join(extra)}")
     warnings.formatwarning = lambda message, category, *rest: f"torchcal: warning: {message}\n"
     try:
         return int(args.func(args) or 0)

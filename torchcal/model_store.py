@@ -7,7 +7,9 @@ A model folder holds:
   (instrument-from-base, 4x4), ``free`` (estimated parameter indices), ``covariance``;
 * ``calibration.json``: metadata (parameter names, units, identifiability, data hash, metrics);
 * ``calibrated_robot.yaml``: the calibrated MDH table in the contract's units, for people;
-* optionally ``residual.safetensors`` + ``residual.json``: a learned residual head.
+* optionally ``residual.safetensors`` + ``residual.json``: a learned residual head;
+* optionally ``stiffness.safetensors`` + ``stiffness.json``: joint stiffness
+  (:mod:`torchcal.stiffness_store`).
 """
 
 from __future__ import annotations
@@ -38,6 +40,7 @@ class StoredModel:
     metadata: dict
     folder: Path
     residual: object | None = None
+    stiffness: object | None = None
     extras: dict = field(default_factory=dict)
 
     @property
@@ -128,6 +131,9 @@ def load_model(folder: str | Path, device: str | torch.device = "cpu") -> Stored
         from torchcal.residual_store import load_residual
 
         stored.residual = load_residual(folder)
+    from torchcal.stiffness_store import load_stiffness_stage
+
+    stored.stiffness = load_stiffness_stage(folder, device=device)
     return stored
 
 

@@ -116,11 +116,22 @@ def save_fit(folder: Path, robot: RobotModel, data: Measurements, result: Calibr
     return save_model(folder, robot, result.model, result.x, result.free, result.covariance, meta)
 
 
-def predict_positions(stored: StoredModel, q: torch.Tensor, temperature: torch.Tensor | None = None) -> torch.Tensor:
-    """Model prediction of TCP positions (instrument frame, m), residual head included."""
+def predict_positions(
+    stored: StoredModel, q: torch.Tensor, temperature: torch.Tensor | None = None, wrench: torch.Tensor | None = None
+) -> torch.Tensor:
+    """Model prediction of TCP positions (instrument frame, m), residual head included.
+
+    With a ``wrench`` ``(n, 6)`` (N, N m at the TCP, tool frame) and a stiffness stage in the
+    model, the deflection it predicts is added (the loaded TCP).
+    """
     p = stored.model.tcp_position(q, stored.x)
     if stored.residual is not None:
         p = p + stored.residual.predict_base_error(q, temperature) @ stored.model.T_reference[:3, :3].T.to(p)
+    if wrench is not None and stored.stiffness is not None:
+        from torchcal.stiffness.vjm import deflection
+
+        compliance = stored.stiffness.compliance.to(p)  # type: ignore[attr-defined]
+        p = p + deflection(stored.model, q, stored.x, compliance, wrench.to(p), wrench_frame="tool")[..., :3]
     return p
 
 
@@ -129,7 +140,7 @@ def evaluate(model_dir: str | Path, data_path: str | Path, *, register: bool = F
     config = config or FitConfig()
     stored = load_model(model_dir)
     data = load_measurements(data_path, stored.robot, joint_unit=config.joint_unit, length_unit=config.length_unit)
-    predicted = predict_positions(stored, data.q, data.temperature)
+    predicted = predict_positions(stored, data.q, data.temperature, data.wrench)
     if register:
         # Only the rigid instrument frame is re-fitted: Kabsch is its exact least-squares optimum.
         errors = registered_errors(predicted, data.position)

@@ -51,6 +51,7 @@ import torch
 from torch import nn
 
 from torchcal.compensate.chain import ChainGraph, geometric_jacobian_t
+from torchcal.compensate.deflection import DeflectionGraph
 from torchcal.compensate.linalg import gauss_jordan
 from torchcal.kinematics.error_model import ErrorModel
 from torchcal.kinematics.robot import RobotModel
@@ -159,6 +160,10 @@ class CompensatorGraph(nn.Module):
         """One damped Newton step ``(B, N)`` rad: ``J^T (J J^T + lambda^2 I)^-1 e``."""
         jac_t = geometric_jacobian_t(pose, joint_frames)  # (B, N, 6)
         error = self.pose_error(target, pose, q).unsqueeze(-1)  # (B, 6, 1)
+        return self.damped_step(jac_t, error)
+
+    def damped_step(self, jac_t: torch.Tensor, error: torch.Tensor) -> torch.Tensor:
+        """``J^T (J J^T + lambda^2 I)^-1 e`` ``(B, N)`` for ``J^T`` ``(B, N, 6)`` and ``e`` ``(B, 6, 1)``."""
         lam2 = self.damping_gain * (error * error).sum(-2, keepdim=True) + self.damping_floor_sq  # (B, 1, 1)
         normal = jac_t.transpose(-1, -2) @ jac_t + lam2 * self.eye6
         return (jac_t @ gauss_jordan(normal, error, self.eye6)).squeeze(-1)
@@ -169,6 +174,7 @@ class CompensatorGraph(nn.Module):
         e = target[:, :3, :3] @ pose[:, :3, :3].transpose(-1, -2)
         skew = (e - e.transpose(-1, -2)).reshape(-1, 9)
         return torch.cat([dp, 0.5 * skew[:, [7, 2, 3]]], -1)
+
 
 class MonitorGraph(nn.Module):
     """``q (B, N)`` rad -> predicted TCP error ``(B, 3)`` in ``base``, m.
@@ -197,3 +203,94 @@ class MonitorGraph(nn.Module):
     def forward(self, q: torch.Tensor) -> torch.Tensor:
         p = self.models.both.positions(q)
         return self.models.add_residual(p[:, 1] - p[:, 0], q)
+
+
+class LoadedCompensatorGraph(CompensatorGraph):
+    """``(q_nominal (B, N) rad, wrench (B, 6)) -> q_corrected (B, N) rad``: geometry, residual and stiffness.
+
+    The corrected command puts the *loaded* calibrated TCP on the nominal target: with the
+    first-order deflection ``(dp, dphi)`` of :class:`~torchcal.compensate.deflection.DeflectionGraph`
+    at the current iterate, ``p_cal + r + dp = p_t`` and ``exp([dphi]x) R_cal = R_t``. The wrench
+    is ``[fx, fy, fz]`` N at the TCP and ``[tx, ty, tz]`` N m about it, along the tool axes (or the
+    base axes with ``wrench_frame="base"``). The Newton steps keep the rigid Jacobian: the
+    deflection changes with ``q`` by ~1e-3 of the arm's own motion, so it slows the contraction
+    by that factor only (as the residual head does).
+
+    Args:
+        compliance: ``(N, 6, 6)`` joint compliance, SI (the model folder's stiffness stage).
+        Other arguments: those of :class:`CompensatorGraph`.
+    """
+
+    def __init__(
+        self,
+        model: ErrorModel,
+        x: torch.Tensor,
+        compliance: torch.Tensor,
+        residual: nn.Module | None = None,
+        *,
+        wrench_frame: str = "tool",
+        dtype: torch.dtype = torch.float64,
+        device: str | torch.device = "cpu",
+        **options,
+    ) -> None:
+        super().__init__(model, x, residual, dtype=dtype, device=device, **options)
+        self.deflection = DeflectionGraph(compliance, wrench_frame=wrench_frame, dtype=dtype, device=device)
+
+    @classmethod
+    def from_stored(cls, stored, **options) -> "LoadedCompensatorGraph":
+        """Build from a :class:`torchcal.model_store.StoredModel` with a stiffness stage."""
+        residual = stored.residual.to_torch_module() if stored.residual is not None else None
+        return cls(stored.model, stored.x, stored.stiffness.compliance, residual, **options)
+
+    def forward(self, q_nominal: torch.Tensor, wrench: torch.Tensor) -> torch.Tensor:  # type: ignore[override]
+        poses, frames = self.models.both(q_nominal, with_frames=True)
+        target = poses[:, 0]
+        pose, joint_frames = poses[:, 1], frames[:, 1]
+        q = q_nominal
+        for step in range(self.iterations):
+            if step > 0:
+                pose_c, frames_c = self.models.calibrated(q, with_frames=True)
+                pose, joint_frames = pose_c[:, 0], frames_c[:, 0]
+            position, rotation = self.deflection.loaded_pose(pose, joint_frames, wrench)
+            error = self.loaded_error(target, position, rotation, q).unsqueeze(-1)
+            q = q + self.damped_step(geometric_jacobian_t(pose, joint_frames), error)
+        return q
+
+    def loaded_error(self, target: torch.Tensor, position: torch.Tensor, rotation: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
+        """``[p_t - p_loaded - r(q), vee(R_t R_loaded^T)]`` ``(B, 6)`` (m, rad), ``base`` frame."""
+        dp = self.models.add_residual(target[:, :3, 3] - position, q, -1.0)
+        e = target[:, :3, :3] @ rotation.transpose(-1, -2)
+        skew = (e - e.transpose(-1, -2)).reshape(-1, 9)
+        return torch.cat([dp, 0.5 * skew[:, [7, 2, 3]]], -1)
+
+
+class LoadedMonitorGraph(MonitorGraph):
+    """``(q (B, N) rad, wrench (B, 6)) -> `` predicted loaded TCP error ``(B, 3)`` in ``base``, m.
+
+    ``p_cal(q) + r(q) + dp(q, W) - p_nom(q)``: where the loaded real TCP lies relative to the
+    nominal, unloaded one (the wrench as for :class:`LoadedCompensatorGraph`).
+    """
+
+    def __init__(
+        self,
+        model: ErrorModel,
+        x: torch.Tensor,
+        compliance: torch.Tensor,
+        residual: nn.Module | None = None,
+        *,
+        wrench_frame: str = "tool",
+        dtype: torch.dtype = torch.float64,
+        device: str | torch.device = "cpu",
+    ) -> None:
+        super().__init__(model, x, residual, dtype=dtype, device=device)
+        self.deflection = DeflectionGraph(compliance, wrench_frame=wrench_frame, dtype=dtype, device=device)
+
+    @classmethod
+    def from_stored(cls, stored, **options) -> "LoadedMonitorGraph":
+        residual = stored.residual.to_torch_module() if stored.residual is not None else None
+        return cls(stored.model, stored.x, stored.stiffness.compliance, residual, **options)
+
+    def forward(self, q: torch.Tensor, wrench: torch.Tensor) -> torch.Tensor:  # type: ignore[override]
+        poses, frames = self.models.both(q, with_frames=True)
+        dp, _ = self.deflection(poses[:, 1], frames[:, 1], wrench)
+        return self.models.add_residual(poses[:, 1, :3, 3] - poses[:, 0, :3, 3] + dp, q)

@@ -6,6 +6,10 @@ Files written to ``out_dir`` (each atomically, single-file ONNX without external
   ``q_corrected (batch, N)`` rad, float64 / float32;
 * ``monitor.onnx`` / ``monitor_f32.onnx``: ``q (batch, N)`` rad -> ``tcp_error_m (batch, 3)``,
   the predicted TCP position error in the robot ``base`` frame, m;
+* with a stiffness stage in the model folder, both graphs take a second input ``wrench``
+  ``(batch, 6)``: ``[fx, fy, fz]`` N applied at the TCP and ``[tx, ty, tz]`` N m about the TCP,
+  along the tool axes (``wrench_frame="base"``: along the robot base axes), the expected load
+  of the command (:data:`WRENCH_INPUT`);
 * ``manifest.json``: what the files are, where they come from, their SHA-256 and their accuracy;
 * ``README.md``: for the controller integrator.
 """
@@ -22,7 +26,7 @@ from pathlib import Path
 
 import torch
 
-from torchcal.compensate.compensator import CompensatorGraph, MonitorGraph
+from torchcal.compensate.compensator import CompensatorGraph, LoadedCompensatorGraph, LoadedMonitorGraph, MonitorGraph
 from torchcal.io import atomic_write_bytes, atomic_write_json, atomic_write_text
 
 OPSET = 17
@@ -34,41 +38,107 @@ GRAPHS = {
     "monitor_f32": ("monitor_f32.onnx", torch.float32, "q", "tcp_error_m"),
 }
 BUDGET_POSES = 10_000
+WRENCH_INPUT = "wrench"
+"""Name of the second input of graphs with a stiffness stage."""
+DEFAULT_BUDGET_WRENCH = {"max_force_n": 300.0, "max_torque_nm": 30.0}
+FLOAT32_DAMPING_FLOOR = 1e-3
+"""``lambda_0`` of float32 graphs with a stiffness stage. The float64 floor (1e-5, squared 1e-10)
+is below float32 rounding of ``J^T J`` (~1e-7): at a singular pose (wrist, ``|q5| < 1e-3`` rad)
+the unpivoted elimination then divides by a rounded-away pivot. ``1e-3`` keeps the pivots
+positive and changes the float32 commands on regular poses by < 1e-4 mm (measured)."""
 
 
-def onnx_bytes(module: torch.nn.Module, n_joints: int, dtype: torch.dtype, input_name: str, output_name: str) -> bytes:
+def onnx_bytes(
+    module: torch.nn.Module,
+    n_joints: int,
+    dtype: torch.dtype,
+    input_name: str,
+    output_name: str,
+    *,
+    wrench_input: str | None = None,
+) -> bytes:
     """Serialize ``module`` to ONNX (opset :data:`OPSET`, dynamic batch axis) in memory.
+
+    ``wrench_input`` names a second ``(batch, 6)`` input (graphs with a stiffness stage).
 
     The TorchScript exporter (``dynamo=False``) is used: the dynamo exporter needs onnxscript,
     which a calibration PC may not have, and the graphs hold no data-dependent control flow.
     """
     buffer = io.BytesIO()
     example = torch.zeros(2, n_joints, dtype=dtype)
+    args, names, axes = (example,), [input_name], {input_name: {0: "batch"}, output_name: {0: "batch"}}
+    if wrench_input is not None:
+        args, names = (example, torch.zeros(2, 6, dtype=dtype)), [input_name, wrench_input]
+        axes[wrench_input] = {0: "batch"}
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the exporter's deprecation notices, not about this graph
         torch.onnx.export(
             module.eval(),
-            (example,),
+            args,
             buffer,
             dynamo=False,
             opset_version=OPSET,
-            input_names=[input_name],
+            input_names=names,
             output_names=[output_name],
-            dynamic_axes={input_name: {0: "batch"}, output_name: {0: "batch"}},
+            dynamic_axes=axes,
             do_constant_folding=True,
         )
     return buffer.getvalue()
 
 
-def build_graphs(stored, residual: torch.nn.Module | None = None, *, use_stored_residual: bool = True) -> dict[str, torch.nn.Module]:
-    """The four torch modules of :data:`GRAPHS` for a :class:`StoredModel`."""
+def build_graphs(
+    stored, residual: torch.nn.Module | None = None, *, use_stored_residual: bool = True, wrench_frame: str = "tool"
+) -> dict[str, torch.nn.Module]:
+    """The four torch modules of :data:`GRAPHS` for a :class:`StoredModel`.
+
+    With a stiffness stage (``stored.stiffness``) they are the loaded graphs, whose second
+    argument is the wrench in ``wrench_frame`` (``tool`` or ``base``).
+    """
     if residual is None and use_stored_residual and stored.residual is not None:
         residual = stored.residual.to_torch_module()
+    stiffness = getattr(stored, "stiffness", None)
     graphs = {}
     for key, (_, dtype, _, _) in GRAPHS.items():
-        cls = CompensatorGraph if key.startswith("compensator") else MonitorGraph
-        graphs[key] = cls(stored.model, stored.x, residual, dtype=dtype).eval()
+        if stiffness is None:
+            cls = CompensatorGraph if key.startswith("compensator") else MonitorGraph
+            graphs[key] = cls(stored.model, stored.x, residual, dtype=dtype).eval()
+        else:
+            compliance = stiffness.compliance.cpu()
+            if key.startswith("compensator"):
+                floor = {"damping_floor": FLOAT32_DAMPING_FLOOR} if dtype == torch.float32 else {}
+                graph = LoadedCompensatorGraph(stored.model, stored.x, compliance, residual, wrench_frame=wrench_frame, dtype=dtype, **floor)
+            else:
+                graph = LoadedMonitorGraph(stored.model, stored.x, compliance, residual, wrench_frame=wrench_frame, dtype=dtype)
+            graphs[key] = graph.eval()
     return graphs
+
+
+def has_wrench_input(graphs: dict[str, torch.nn.Module]) -> bool:
+    """Whether the graphs take the expected wrench as a second input."""
+    return isinstance(graphs["compensator"], LoadedCompensatorGraph)
+
+
+def sample_wrenches(n: int, max_force_n: float, max_torque_nm: float, generator: torch.Generator) -> torch.Tensor:
+    """Random wrenches ``(n, 6)`` (N, N m): uniform directions, magnitudes uniform up to the maxima."""
+    directions = torch.randn(n, 2, 3, generator=generator, dtype=torch.float64)
+    directions = directions / directions.norm(dim=-1, keepdim=True)
+    size = torch.rand(n, 2, 1, generator=generator, dtype=torch.float64) * torch.tensor([[max_force_n], [max_torque_nm]])
+    return (directions * size).reshape(n, 6)
+
+
+def budget_wrenches(stored, n: int, generator: torch.Generator) -> torch.Tensor:
+    """Wrenches for the float32 budget: up to the largest force and moment of the stiffness data."""
+    loads = (stored.stiffness.metadata.get("training_wrench") if stored.stiffness is not None else None) or DEFAULT_BUDGET_WRENCH
+    return sample_wrenches(n, loads["max_force_n"], loads["max_torque_nm"], generator)
+
+
+def _feeds(session, q, wrench=None) -> dict:
+    """Input dict of an ORT session: joints first, then the wrench where the graph takes one."""
+    names = [i.name for i in session.get_inputs()]
+    feeds = {names[0]: q}
+    if len(names) > 1:
+        feeds[names[1]] = wrench.astype(q.dtype)
+    return feeds
 
 
 def sha256_file(path: str | Path) -> str:
@@ -105,23 +175,33 @@ def float32_budget(graphs: dict[str, torch.nn.Module], out_dir: Path, stored, n_
     calibrated TCP at the float32 ORT command and at the float64 torch command. Monitor: 3-D
     distance of the predicted errors.
     """
-    q = stored.robot.sample_joints(n_poses, torch.Generator().manual_seed(seed))
+    gen = torch.Generator().manual_seed(seed)
+    q = stored.robot.sample_joints(n_poses, gen)
+    loaded = has_wrench_input(graphs)
+    wrench = budget_wrenches(stored, n_poses, gen) if loaded else None
+    args = (q, wrench) if loaded else (q,)
     with torch.no_grad():
-        qc64 = graphs["compensator"](q)
-        mon64 = graphs["monitor"](q)
-    qc32 = torch.from_numpy(_session(out_dir / GRAPHS["compensator_f32"][0]).run(None, {"q_nominal": q.float().numpy()})[0]).double()
-    mon32 = torch.from_numpy(_session(out_dir / GRAPHS["monitor_f32"][0]).run(None, {"q": q.float().numpy()})[0]).double()
+        qc64 = graphs["compensator"](*args)
+        mon64 = graphs["monitor"](*args)
+    w32 = wrench.numpy() if loaded else None
+    session = _session(out_dir / GRAPHS["compensator_f32"][0])
+    qc32 = torch.from_numpy(session.run(None, _feeds(session, q.float().numpy(), w32))[0]).double()
+    session = _session(out_dir / GRAPHS["monitor_f32"][0])
+    mon32 = torch.from_numpy(session.run(None, _feeds(session, q.float().numpy(), w32))[0]).double()
     model = stored.model
     tcp = lambda qq: model.base_flange_pose(qq, stored.x) @ model.flange_from_tool(stored.x)  # noqa: E731
     d_cmd = (tcp(qc32)[..., :3, 3] - tcp(qc64)[..., :3, 3]).norm(dim=-1) * 1e3
     d_mon = (mon32 - mon64).norm(dim=-1) * 1e3
-    return {
+    budget = {
         "n_poses": n_poses,
         "sampling": "uniform within joint limits, seed %d" % seed,
         "compensator_tcp_mm": {"max": float(d_cmd.max()), "p99": float(d_cmd.quantile(0.99)), "median": float(d_cmd.median())},
         "compensator_joint_rad_max": float((qc32 - qc64).abs().max()),
         "monitor_mm": {"max": float(d_mon.max()), "p99": float(d_mon.quantile(0.99)), "median": float(d_mon.median())},
     }
+    if loaded:
+        budget["wrench_sampling"] = "uniform directions, magnitudes uniform up to the stiffness data's largest force and moment"
+    return budget
 
 
 def _held_out_metrics(model_dir: Path, meta: dict) -> dict | None:
@@ -135,17 +215,22 @@ def _held_out_metrics(model_dir: Path, meta: dict) -> dict | None:
     return None
 
 
-def export_model(model_dir: str | Path, out_dir: str | Path) -> dict:
-    """Export the compensator of a model folder; returns the manifest (also written to disk)."""
+def export_model(model_dir: str | Path, out_dir: str | Path, *, wrench_frame: str = "tool") -> dict:
+    """Export the compensator of a model folder; returns the manifest (also written to disk).
+
+    ``wrench_frame`` (``tool`` | ``base``) sets the axes of the ``wrench`` input of a model
+    folder with a stiffness stage; it is recorded in the manifest.
+    """
     from torchcal.model_store import load_model
 
     model_dir, out_dir = Path(model_dir), Path(out_dir)
     stored = load_model(model_dir)
-    graphs = build_graphs(stored)
+    graphs = build_graphs(stored, wrench_frame=wrench_frame)
+    loaded = has_wrench_input(graphs)
     robot = stored.robot
     files, digests = {}, {}
     for key, (name, dtype, input_name, output_name) in GRAPHS.items():
-        data = onnx_bytes(graphs[key], robot.dof, dtype, input_name, output_name)
+        data = onnx_bytes(graphs[key], robot.dof, dtype, input_name, output_name, wrench_input=WRENCH_INPUT if loaded else None)
         atomic_write_bytes(out_dir / name, data)
         files[key] = name
         digests[key] = hashlib.sha256(data).hexdigest()
@@ -182,10 +267,52 @@ def export_model(model_dir: str | Path, out_dir: str | Path) -> dict:
         "files": files,
         "sha256": digests,
     }
+    if loaded:
+        _describe_stiffness(manifest, stored, wrench_frame)
     manifest["float32_error_budget"] = float32_budget(graphs, out_dir, stored)
     atomic_write_json(out_dir / "manifest.json", manifest)
     atomic_write_text(out_dir / "README.md", readme_text(manifest))
     return manifest
+
+
+def _describe_stiffness(manifest: dict, stored, wrench_frame: str) -> None:
+    """Manifest entries of the stiffness stage and of the ``wrench`` input (in place)."""
+    stage = stored.stiffness
+    axes = "the tool (TCP) axes at the commanded pose, as an F/T sensor at the TCP reports them" if wrench_frame == "tool" else "the robot base axes"
+    manifest["stages"]["stiffness"] = True
+    for key in ("compensator", "monitor"):
+        manifest["units"][key]["input"] += f"; {WRENCH_INPUT}, N and N m, {wrench_frame} frame"
+    manifest["units"]["monitor"]["output"] += " (loaded TCP under the wrench input, minus the nominal unloaded TCP)"
+    manifest["extra_inputs"] = {"compensator": [WRENCH_INPUT], "monitor": [WRENCH_INPUT]}
+    manifest["wrench"] = {
+        "name": WRENCH_INPUT,
+        "shape": "(batch, 6)",
+        "components": ["fx", "fy", "fz", "tx", "ty", "tz"],
+        "units": ["N", "N", "N", "N m", "N m", "N m"],
+        "frame": wrench_frame,
+        "axes": axes,
+        "point": "force applied at the TCP, moment about the TCP",
+        "payload": (
+            "a payload of mass m (kg) with centre of mass c (m, tool frame) hanging at the tool: "
+            "f = m g and moment c x f, with g = R_base_tool^T [0, 0, -9.81] in the tool frame "
+            "(the base z axis pointing up)" if wrench_frame == "tool" else
+            "a payload of mass m (kg) with centre of mass c (m, from the TCP, base axes): f = m [0, 0, -9.81], moment c x f"
+        ),
+        "zero": "a zero wrench gives the unloaded compensation (geometry and residual only)",
+    }
+    meta = stage.metadata
+    manifest["stiffness"] = {
+        "model": "virtual joint method, first-order deflection J C J^T W at the current iterate",
+        "entries": {n: p["value"] for n, p in meta.get("parameters", {}).items()},
+        "units": meta.get("units"),
+        "treated_as_rigid": meta.get("treated_as_rigid", []),
+        "unobservable": meta.get("unobservable", []),
+        "training_data": {k: meta.get("data", {}).get(k) for k in ("sha256", "n_poses")},
+        "training_wrench": meta.get("training_wrench"),
+        "fit_metrics": meta.get("fit_metrics"),
+    }
+    manifest["sign_convention"] += "; with stiffness, T_real is the loaded TCP under the wrench input"
+    manifest["solver"]["damping_floor_float32"] = FLOAT32_DAMPING_FLOOR
 
 
 def readme_text(manifest: dict) -> str:
@@ -193,20 +320,37 @@ def readme_text(manifest: dict) -> str:
     budget = manifest["float32_error_budget"]
     joints = ", ".join(manifest["joint_names"])
     residual = "yes" if manifest["stages"]["residual"] else "no"
+    stiffness = "yes" if manifest["stages"]["stiffness"] else "no"
+    wrench = manifest.get("wrench")
+    n = manifest["n_joints"]
+    if wrench:
+        extra = f", `{wrench['name']}` (batch, 6)"
+        load = f"""
+## Load (stiffness stage)
+
+Both graphs take a second input `{wrench['name']}` (batch, 6): `fx, fy, fz` in N (force applied at
+the TCP) and `tx, ty, tz` in N m (moment about the TCP), along {wrench['axes']}. Give the load the
+robot will carry at that command; the compensated robot then puts its *loaded* TCP on the
+nominal target. For a payload: {wrench['payload']}. A zero wrench compensates geometry only.
+Stiffness entries treated as rigid (not observable from the stiffness data):
+{', '.join(manifest['stiffness']['treated_as_rigid']) or 'none'}.
+"""
+    else:
+        extra, load = "", ""
     return f"""# Compensator for {manifest['robot']}
 
 Exported by torchcal {manifest['versions']['torchcal']} (ONNX opset {manifest['opset']}).
-Stages: geometry yes, learned residual {residual}, stiffness no.
+Stages: geometry yes, learned residual {residual}, stiffness {stiffness}.
 
 ## Files
 
 | file | input | output |
 | --- | --- | --- |
-| `compensator.onnx` (float64), `compensator_f32.onnx` (float32) | `q_nominal` (batch, {manifest['n_joints']}), rad | `q_corrected` (batch, {manifest['n_joints']}), rad |
-| `monitor.onnx` (float64), `monitor_f32.onnx` (float32) | `q` (batch, {manifest['n_joints']}), rad | `tcp_error_m` (batch, 3), m, robot base frame |
+| `compensator.onnx` (float64), `compensator_f32.onnx` (float32) | `q_nominal` (batch, {n}), rad{extra} | `q_corrected` (batch, {n}), rad |
+| `monitor.onnx` (float64), `monitor_f32.onnx` (float32) | `q` (batch, {n}), rad{extra} | `tcp_error_m` (batch, 3), m, robot base frame |
 
 Joint order: {joints}. Angles in **radians** in and out (convert degrees before the call).
-
+{load}
 ## Use
 
 Give the compensator the joint command the controller computed with its nominal kinematics; send
@@ -244,11 +388,19 @@ def export_and_check(model_dir: str | Path, out_dir: str | Path, test, console=N
     stored = load_model(model_dir)
     graphs = build_graphs(stored)
     q = test.q.to(torch.float64)
+    wrench = None
+    if has_wrench_input(graphs):  # the file's wrench (tool frame) where it has one, else unloaded
+        wrench = getattr(test, "wrench", None)
+        wrench = torch.zeros(len(q), 6, dtype=torch.float64) if wrench is None else wrench.to(torch.float64)
+    args = (q,) if wrench is None else (q, wrench)
+    w = None if wrench is None else wrench.numpy()
     with torch.no_grad():
-        ref_cmd = graphs["compensator"](q)
-        ref_mon = graphs["monitor"](q)
-    ort_cmd = torch.from_numpy(_session(out_dir / manifest["files"]["compensator"]).run(None, {"q_nominal": q.numpy()})[0])
-    ort_mon = torch.from_numpy(_session(out_dir / manifest["files"]["monitor"]).run(None, {"q": q.numpy()})[0])
+        ref_cmd = graphs["compensator"](*args)
+        ref_mon = graphs["monitor"](*args)
+    session = _session(out_dir / manifest["files"]["compensator"])
+    ort_cmd = torch.from_numpy(session.run(None, _feeds(session, q.numpy(), w))[0])
+    session = _session(out_dir / manifest["files"]["monitor"])
+    ort_mon = torch.from_numpy(session.run(None, _feeds(session, q.numpy(), w))[0])
     model = stored.model
     tcp = lambda qq: (model.base_flange_pose(qq, stored.x) @ model.flange_from_tool(stored.x))[..., :3, 3]  # noqa: E731
     nominal = stored.robot.tcp_position(q)

@@ -8,8 +8,12 @@ PC needs neither torch nor the rest of torchcal's dependencies::
     q_corrected = rt.correct(q_nominal_rad)        # (N,) or (B, N), rad
     tcp_error_m = rt.predict_error(q_rad)          # (3,) or (B, 3), m, robot base frame
 
+A folder exported with a stiffness stage (``manifest["stages"]["stiffness"]``) needs the
+expected load too: ``rt.correct(q, wrench)`` with ``wrench`` ``(6,)`` or ``(B, 6)``, ``[fx, fy,
+fz]`` N at the TCP and ``[tx, ty, tz]`` N m about it, in the frame ``manifest["wrench"]["frame"]``.
+
 Every ``.onnx`` file is checked against the SHA-256 of ``manifest.json`` before it is loaded,
-and every call checks the joint count and refuses NaN or infinite joints.
+and every call checks the joint count and refuses NaN or infinite joints (and wrenches).
 """
 
 from __future__ import annotations
@@ -74,6 +78,7 @@ class CompensatorRuntime:
                 f"{self.folder}: joints {list(self.joint_names)} do not match the expected {list(expected_joints)}"
             )
         self.n_joints = int(self.manifest["n_joints"])
+        self.wrench_input = "wrench" in self.manifest and bool(self.manifest.get("stages", {}).get("stiffness"))
         self.dtype = np.float64 if precision == "float64" else np.float32
         suffix = "" if precision == "float64" else "_f32"
         options = ort.SessionOptions()
@@ -101,12 +106,14 @@ class CompensatorRuntime:
             )
         session = ort.InferenceSession(data, options, providers=["CPUExecutionProvider"])
         inputs = session.get_inputs()
-        width = inputs[0].shape[-1] if inputs and len(inputs[0].shape) == 2 else None
-        if len(inputs) != 1 or width != self.n_joints:
+        expected = [self.n_joints, 6] if self.wrench_input else [self.n_joints]
+        widths = [i.shape[-1] if len(i.shape) == 2 else None for i in inputs]
+        if widths != expected:
             raise CompensatorError(
-                f"{path}: graph input {[(i.name, i.shape) for i in inputs]} does not match the manifest's {self.n_joints} joints"
+                f"{path}: graph inputs {[(i.name, i.shape) for i in inputs]} do not match the manifest "
+                f"({self.n_joints} joints{' and a 6-D wrench' if self.wrench_input else ''})"
             )
-        return session, inputs[0].name
+        return session, [i.name for i in inputs]
 
     def _prepare(self, q) -> tuple[np.ndarray, bool]:
         array = np.asarray(q, dtype=self.dtype)
@@ -123,16 +130,44 @@ class CompensatorRuntime:
             raise CompensatorError(f"joint input has NaN or infinite values (rows {rows[:5].tolist()}); refusing to compensate")
         return np.ascontiguousarray(array), single
 
-    def _run(self, graph, q) -> np.ndarray:
-        session, name = graph
+    def _prepare_wrench(self, wrench, batch: int) -> np.ndarray:
+        if wrench is None:
+            frame = self.manifest["wrench"].get("frame")
+            raise CompensatorError(
+                f"{self.folder}: this compensator has a stiffness stage; pass the expected wrench "
+                f"(6,) or (batch, 6): fx, fy, fz in N, tx, ty, tz in N m, {frame} frame (zeros for no load)"
+            )
+        array = np.asarray(wrench, dtype=self.dtype)
+        if array.ndim == 1:
+            array = array[None, :]
+        if array.ndim != 2 or array.shape[1] != 6 or array.shape[0] not in (1, batch):
+            raise CompensatorError(f"wrench has shape {tuple(np.shape(wrench))}; expected (6,), (1, 6) or ({batch}, 6), N and N m")
+        if not np.isfinite(array).all():
+            raise CompensatorError("wrench has NaN or infinite values; refusing to compensate")
+        return np.ascontiguousarray(np.broadcast_to(array, (batch, 6)))
+
+    def _run(self, graph, q, wrench=None) -> np.ndarray:
+        session, names = graph
         array, single = self._prepare(q)
-        out = session.run(None, {name: array})[0]
+        feeds = {names[0]: array}
+        if self.wrench_input:
+            feeds[names[1]] = self._prepare_wrench(wrench, array.shape[0])
+        elif wrench is not None:
+            raise CompensatorError(f"{self.folder}: this compensator has no stiffness stage; it takes no wrench")
+        out = session.run(None, feeds)[0]
         return out[0] if single else out
 
-    def correct(self, q_nominal) -> np.ndarray:
-        """Corrected joint command(s), rad, for nominal command(s) ``(N,)`` or ``(B, N)`` in rad."""
-        return self._run(self._compensator, q_nominal)
+    def correct(self, q_nominal, wrench=None) -> np.ndarray:
+        """Corrected joint command(s), rad, for nominal command(s) ``(N,)`` or ``(B, N)`` in rad.
 
-    def predict_error(self, q) -> np.ndarray:
-        """Predicted TCP position error (real - nominal), m, robot ``base`` frame: ``(3,)`` or ``(B, 3)``."""
-        return self._run(self._monitor, q)
+        ``wrench``: the expected load ``(6,)`` or ``(B, 6)`` (N, N m, see the manifest's
+        ``wrench``), required by a compensator with a stiffness stage, refused by one without.
+        """
+        return self._run(self._compensator, q_nominal, wrench)
+
+    def predict_error(self, q, wrench=None) -> np.ndarray:
+        """Predicted TCP position error (real - nominal), m, robot ``base`` frame: ``(3,)`` or ``(B, 3)``.
+
+        ``wrench`` as for :meth:`correct` (the real TCP is then the loaded one).
+        """
+        return self._run(self._monitor, q, wrench)

@@ -29,9 +29,20 @@ def _tracker() -> TwinWriter:
     return TwinWriter(TwinConfig, write_twin_case, "laser-tracker points (train.csv, test.csv)")
 
 
+def _stiffness() -> TwinWriter:
+    from torchcal.sim.stiffness_case import StiffnessCaseConfig, write_stiffness_twin_case
+
+    return TwinWriter(
+        StiffnessCaseConfig,
+        write_stiffness_twin_case,
+        "loading rig (robot.yaml, stiffness_train.csv, stiffness_test.csv, stiffness_truth.json)",
+    )
+
+
 # Loaders are lazy so that ``simulate`` imports only the instrument it writes.
 TWIN_WRITERS: dict[str, Callable[[], TwinWriter]] = {
     "tracker": _tracker,
+    "stiffness": _stiffness,
 }
 
 

@@ -103,6 +103,8 @@ class StiffnessTwin:
         self.joint_stiffness = sample_joint_stiffness(self.robot.dof, gen).to(self.device)
         if compliance is None:
             compliance = classic_compliance(self.joint_stiffness)
+        else:  # the truth file reports the given springs about the joint axes (inf: rigid)
+            self.joint_stiffness = 1.0 / compliance[..., 5, 5].to(self.device, torch.float64)
         self.compliance = compliance.to(self.device, torch.float64)
         # The tracker a few metres away, arbitrarily rotated about a near-vertical axis.
         T = torch.eye(4, dtype=torch.float64)
@@ -239,11 +241,20 @@ def write_stiffness_csv(path: str | Path, data: StiffnessData) -> Path:
 
 
 def write_stiffness_case(
-    out: str | Path, config: StiffnessTwinConfig = StiffnessTwinConfig(), *, n_train: int = 120, n_test: int = 200
+    out: str | Path,
+    config: StiffnessTwinConfig = StiffnessTwinConfig(),
+    *,
+    n_train: int = 120,
+    n_test: int = 200,
+    robot: RobotModel | None = None,
+    compliance: torch.Tensor | None = None,
 ) -> dict[str, Path]:
-    """Write ``stiffness_train.csv``, ``stiffness_test.csv`` and ``stiffness_truth.json`` to ``out``."""
+    """Write ``stiffness_train.csv``, ``stiffness_test.csv`` and ``stiffness_truth.json`` to ``out``.
+
+    ``robot`` and ``compliance`` are handed to :class:`StiffnessTwin` (defaults: twin-kr6, sampled).
+    """
     out = Path(out)
-    twin = StiffnessTwin(config)
+    twin = StiffnessTwin(config, robot=robot, compliance=compliance)
     gen = torch.Generator().manual_seed(config.seed + 104729)
     paths = {name: out / name for name in ("stiffness_train.csv", "stiffness_test.csv", "stiffness_truth.json")}
     write_stiffness_csv(paths["stiffness_train.csv"], twin.sample(n_train, gen))

@@ -97,11 +97,14 @@ def instrument_model(
     closed form (Kabsch) from the model's TCP to them; without them it is the identity.
     ``x`` (default nominal) supplies calibrated geometry; its base correction is replaced.
     """
+    options: dict = {}
     if isinstance(robot, ErrorModel):
+        # keep the parameter layout of a calibrated model (tool rotation, Hayati rows)
+        options = {"with_orientation": robot.with_orientation, "parallel_threshold_deg": robot.parallel_threshold_deg}
         robot = robot.robot
     if data.n_joints != robot.dof:
         raise DataError(f"has {data.n_joints} joint columns but the robot has {robot.dof} joints", path=data.path)
-    base_model = ErrorModel(robot, device=device)
+    base_model = ErrorModel(robot, device=device, **options)
     x = base_model.nominal_vector() if x is None else x.to(device=device, dtype=torch.float64).clone()
     x[base_model.layout.base_slice] = 0.0
     if data.unloaded is None:
@@ -116,7 +119,7 @@ def instrument_model(
             column="x",
         )
     T = tf.rigid_registration(p_base, measured)
-    return ErrorModel(robot, T_instrument_base=T, device=device), x
+    return ErrorModel(robot, T_instrument_base=T, device=device, **options), x
 
 
 def stiffness_regressor(

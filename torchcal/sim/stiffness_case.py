@@ -1,0 +1,74 @@
+"""``torchcal simulate instrument=stiffness``: a loading-rig twin case written as contract files.
+
+Writes ``robot.yaml`` (the nominal robot), ``stiffness_train.csv``, ``stiffness_test.csv`` and
+``stiffness_truth.json`` (see :mod:`torchcal.sim.stiffness_twin` for the physics).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+from pathlib import Path
+
+import torch
+
+from torchcal.errors import TorchcalError
+from torchcal.io import atomic_write_text
+from torchcal.kinematics.robot import default_robot_path, load_robot, robot_to_yaml
+from torchcal.sim.stiffness_twin import StiffnessTwinConfig, write_stiffness_case
+from torchcal.stiffness.vjm import classic_compliance
+
+
+@dataclass
+class StiffnessCaseConfig:
+    """``key=value`` settings of a stiffness twin case (contract units: mm, deg, N, N m).
+
+    Attributes:
+        robot: robot YAML or URDF (default: the embedded twin-kr6).
+        n_train / n_test: loaded poses in ``stiffness_train.csv`` / ``stiffness_test.csv``.
+        joint_stiffness_nm_per_rad: true stiffness about each joint axis, N m/rad (default:
+            sampled per ``seed``, 1e5..5e5 for axes 1-3 and 1e4..5e4 for the wrist).
+        The other fields are those of :class:`~torchcal.sim.stiffness_twin.StiffnessTwinConfig`.
+    """
+
+    robot: str | None = None
+    n_train: int = 120
+    n_test: int = 200
+    joint_stiffness_nm_per_rad: list[float] | None = None
+    seed: int = 0
+    max_force_n: float = 300.0
+    max_torque_nm: float = 30.0
+    noise_mm: float = 0.012
+    rotation_noise_deg: float = 0.01
+    with_rotation: bool = True
+    with_unloaded: bool = True
+    instrument_distance_mm: float = 3000.0
+    margin_deg: float = 5.0
+    min_singular_value: float = 0.02
+    equilibrium_iterations: int = 4
+
+    def twin_config(self) -> StiffnessTwinConfig:
+        """The rig settings as the (frozen) twin configuration."""
+        names = {f.name for f in fields(StiffnessTwinConfig)}
+        return StiffnessTwinConfig(**{k: getattr(self, k) for k in names})
+
+
+def write_stiffness_twin_case(out: str | Path, config: StiffnessCaseConfig) -> dict[str, Path]:
+    """Write ``robot.yaml`` and the stiffness case files of ``config`` to ``out``."""
+    if config.n_train < 1 or config.n_test < 1:
+        raise TorchcalError(f"n_train and n_test must be positive, got {config.n_train} and {config.n_test}")
+    out = Path(out)
+    robot = load_robot(config.robot or default_robot_path())
+    compliance = None
+    if config.joint_stiffness_nm_per_rad is not None:
+        k = torch.tensor(list(config.joint_stiffness_nm_per_rad), dtype=torch.float64)
+        if k.shape != (robot.dof,) or not bool((k > 0).all()):
+            raise TorchcalError(
+                f"joint_stiffness_nm_per_rad needs {robot.dof} positive values (N m/rad), got {list(config.joint_stiffness_nm_per_rad)}"
+            )
+        compliance = classic_compliance(k)
+    robot_path = out / "robot.yaml"
+    atomic_write_text(robot_path, robot_to_yaml(robot))
+    paths = write_stiffness_case(
+        out, config.twin_config(), n_train=config.n_train, n_test=config.n_test, robot=robot, compliance=compliance
+    )
+    return {"robot.yaml": robot_path, **paths}

@@ -1,0 +1,245 @@
+"""``torchcal fit`` and ``evaluate`` for stiffness files (registered in :mod:`torchcal.commands_by_kind`).
+
+``fit`` identifies the joint stiffness (:func:`torchcal.stiffness.identify.identify_stiffness`)
+and writes a model folder: the robot's nominal geometry with the stiffness stage, or, with
+``model=<model folder>``, a copy of that calibrated model with the stiffness added (its
+kinematics are used for the Jacobians), so that geometry and stiffness form one model folder
+that ``torchcal export`` turns into one compensator.
+
+``evaluate`` predicts the deflection of every row of a stiffness file and reports
+``deflection_rms_mm`` (RMS 3-D distance between measured and predicted deflection) and
+``deflection_measured_rms_mm`` (RMS 3-D norm of the measured deflection), mm, instrument frame.
+The instrument frame is the file's own: registered from its unloaded ``x, y, z`` when it has
+them, the robot ``base`` otherwise (the data contract), so ``--register`` changes nothing here.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+import sys
+import warnings
+from dataclasses import dataclass, fields
+from pathlib import Path
+
+import torch
+
+from torchcal.data.stiffness import StiffnessData, load_stiffness
+from torchcal.errors import DataError, TorchcalError
+from torchcal.kinematics.error_model import ErrorModel
+from torchcal.stiffness.identify import (
+    DEFAULT_SIGMA_POSITION_M,
+    DEFAULT_SIGMA_ROTATION_RAD,
+    deflection_metrics,
+    identify_stiffness,
+    instrument_model,
+)
+from torchcal.stiffness.vjm import deflection
+
+
+@dataclass
+class StiffnessFitConfig:
+    """``key=value`` options of ``fit`` / ``evaluate`` on a stiffness file.
+
+    Attributes:
+        joint_unit / length_unit: units of the file's ``q*`` (``deg`` | ``rad``) and of its
+            ``d*``, ``x, y, z`` (``mm`` | ``m``).
+        model: calibrated model folder whose geometry the stiffness is added to (default: the
+            nominal robot of ``--robot``).
+        parameters: ``classic`` (one spring about each joint axis) or ``full`` (observable part
+            of the 6-D diagonal per joint).
+        use_rotation: fit the ``drx, dry, drz`` columns too (default: when the file has them).
+        sigma_position_mm / sigma_rotation_deg: noise of one deflection component (weights and
+            covariance).
+        wrench_frame: frame of the file's wrench, ``tool`` (contract) or ``instrument``.
+        tool_mm: nominal TCP in the flange frame (mm) replacing the robot file's.
+        rank_tol: normalized singular value below which a direction is unobservable.
+        poor_relative_std: relative std above which an entry is reported poorly determined.
+        device: ``cpu`` or a torch device string.
+    """
+
+    joint_unit: str = "deg"
+    length_unit: str = "mm"
+    model: str | None = None
+    parameters: str = "classic"
+    use_rotation: bool | None = None
+    sigma_position_mm: float = DEFAULT_SIGMA_POSITION_M * 1e3
+    sigma_rotation_deg: float = math.degrees(DEFAULT_SIGMA_ROTATION_RAD)
+    wrench_frame: str = "tool"
+    tool_mm: list[float] | None = None
+    rank_tol: float = 1e-7
+    poor_relative_std: float = 0.25
+    device: str = "cpu"
+
+
+def stiffness_config(overrides: list[str]) -> StiffnessFitConfig:
+    """Merge ``key=value`` overrides; tracker-fit keys that mean nothing here are ignored with a warning."""
+    from torchcal.cli import _apply_overrides
+    from torchcal.pipeline import FitConfig
+
+    own = {f.name for f in fields(StiffnessFitConfig)}
+    tracker_only = {f.name for f in fields(FitConfig)} - own
+    kept, ignored = [], []
+    for item in overrides:
+        key = item.partition("=")[0].strip().split(".")[0]
+        (ignored if key in tracker_only else kept).append(item)
+    if ignored:
+        warnings.warn(f"ignored for a stiffness file: {', '.join(ignored)}", stacklevel=2)
+    config = _apply_overrides(StiffnessFitConfig(), kept)
+    if config.wrench_frame not in ("tool", "instrument"):
+        raise TorchcalError(f"wrench_frame must be 'tool' or 'instrument', got {config.wrench_frame!r}")
+    if config.parameters not in ("classic", "full"):
+        raise TorchcalError(f"parameters must be 'classic' or 'full', got {config.parameters!r}")
+    return config
+
+
+def _sha256(path: str | Path) -> str:
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+def _load(path, n_joints: int, config: StiffnessFitConfig) -> StiffnessData:
+    return load_stiffness(
+        path, n_joints=n_joints, joint_unit=config.joint_unit, length_unit=config.length_unit, device=config.device
+    )
+
+
+def fit_stiffness(
+    robot_path: str | Path,
+    data_path: str | Path,
+    out_dir: str | Path,
+    overrides: list[str],
+    *,
+    base_link: str | None = None,
+    end_link: str | None = None,
+) -> Path:
+    """``torchcal fit`` on a stiffness file: identify, then write the model folder ``out_dir``."""
+    from torchcal.kinematics.robot import load_robot
+    from torchcal.model_store import copy_model, load_model, save_model
+    from torchcal.pipeline import with_tool
+    from torchcal.stiffness_store import save_stiffness
+
+    config = stiffness_config(overrides)
+    out = Path(out_dir)
+    robot = with_tool(load_robot(robot_path, base_link=base_link, end_link=end_link), config)  # type: ignore[arg-type]
+    stored = None
+    if config.model is not None:
+        stored = load_model(config.model, device=config.device)
+        if stored.robot.dof != robot.dof:
+            raise TorchcalError(f"model {config.model} has {stored.robot.dof} joints but {robot_path} has {robot.dof}")
+        if config.tool_mm is not None:
+            warnings.warn("tool_mm is ignored with model=: the calibrated tool of the model is used", stacklevel=2)
+    data = _load(data_path, robot.dof, config)
+    estimate = identify_stiffness(
+        stored.model if stored is not None else robot,
+        data,
+        x=stored.x if stored is not None else None,
+        parameters=config.parameters,
+        use_rotation=config.use_rotation,
+        sigma_position_m=config.sigma_position_mm * 1e-3,
+        sigma_rotation_rad=math.radians(config.sigma_rotation_deg),
+        wrench_frame=config.wrench_frame,  # type: ignore[arg-type]
+        rank_tol=config.rank_tol,
+        poor_relative_std=config.poor_relative_std,
+        device=config.device,
+    )
+    wrench = data.wrench
+    meta = {
+        "data": {
+            "file": str(data_path),
+            "sha256": _sha256(data_path),
+            "n_poses": len(data),
+            "joint_unit": config.joint_unit,
+            "length_unit": config.length_unit,
+        },
+        "training_wrench": {
+            "max_force_n": float(wrench[:, :3].norm(dim=-1).max()),
+            "max_torque_nm": float(wrench[:, 3:].norm(dim=-1).max()),
+        },
+        "geometry": {"source": "calibrated model", "model": str(config.model)} if stored else {"source": "nominal robot", "robot": str(robot_path)},
+        "fit_metrics": deflection_metrics(estimate, data),
+    }
+    if stored is not None:
+        if out.resolve() != Path(config.model).resolve():
+            copy_model(config.model, out)
+    else:
+        # no geometric calibration: the nominal table, the loading set-up's instrument frame
+        model = ErrorModel(robot, T_instrument_base=estimate.model.T_reference, device=config.device)
+        empty = torch.zeros(0, dtype=torch.long)
+        save_model(
+            out, robot, model, estimate.x, empty, torch.zeros(0, 0, dtype=torch.float64),
+            {
+                "method": "none (nominal geometry; stiffness only)",
+                "data": {"file": str(data_path), "sha256": meta["data"]["sha256"], "n_poses": len(data)},
+                "notes": ["geometry not calibrated: fit a tracker file and pass model=<folder> to combine"],
+            },
+        )
+    save_stiffness(out, estimate, meta)
+    _summary(estimate, meta["fit_metrics"])
+    return out
+
+
+def _summary(estimate, metrics: dict) -> None:
+    parts = [f"{n} = {k:.4g} (+-{100 * s:.1f} %)" for n, k, s in zip(estimate.names, estimate.stiffness.tolist(), estimate.relative_std.tolist())]
+    print("stiffness: " + "; ".join(parts), file=sys.stderr)
+    if estimate.identifiability.unobservable:
+        print(f"not observable (rigid): {', '.join(estimate.identifiability.unobservable)}", file=sys.stderr)
+    print(
+        f"training deflection RMS {metrics['deflection_rms_mm']:.4f} mm of {metrics['deflection_measured_rms_mm']:.4f} mm measured",
+        file=sys.stderr,
+    )
+
+
+def predicted_deflection(stored, data: StiffnessData) -> torch.Tensor:
+    """Deflection ``(B, 6)`` ``[dp (m); dphi (rad)]`` the model folder predicts for ``data``.
+
+    Geometry from the model, compliance from its stiffness stage, instrument frame from the file
+    (see the module docstring).
+    """
+    stage = stored.stiffness
+    if stage is None:
+        raise TorchcalError(f"{stored.folder}: the model has no stiffness stage (fit it with a stiffness file)")
+    model, x = instrument_model(stored.model, data, stored.x, device=stored.x.device)
+    q, wrench = data.q.to(x.device), data.wrench.to(x.device)
+    return deflection(model, q, x, stage.compliance.to(x), wrench, wrench_frame=stage.wrench_frame)  # type: ignore[arg-type]
+
+
+def evaluate_stiffness(model_dir: str | Path, data_path: str | Path, overrides: list[str], *, register: bool = False) -> dict:
+    """``torchcal evaluate`` on a stiffness file: deflection metrics, mm (and deg when it has rotations)."""
+    from torchcal.model_store import load_model
+
+    config = stiffness_config(overrides)
+    stored = load_model(model_dir, device=config.device)
+    data = _load(data_path, stored.robot.dof, config)
+    predicted = predicted_deflection(stored, data)
+    measured = data.deflection.to(predicted)
+    err = (predicted[:, :3] - measured).norm(dim=-1) * 1e3
+    size = measured.norm(dim=-1) * 1e3
+    metrics = {
+        "n_poses": len(data),
+        "deflection_rms_mm": float(err.pow(2).mean().sqrt()),
+        "deflection_measured_rms_mm": float(size.pow(2).mean().sqrt()),
+        "deflection_mean_mm": float(err.mean()),
+        "deflection_max_mm": float(err.max()),
+        "deflection_p95_mm": float(err.quantile(0.95)),
+        "deflection_ratio": float(err.pow(2).mean().sqrt() / size.pow(2).mean().sqrt().clamp_min(1e-300)),
+    }
+    if data.rotation is not None:
+        rot_err = (predicted[:, 3:] - data.rotation.to(predicted)).norm(dim=-1)
+        metrics["rotation_rms_deg"] = math.degrees(float(rot_err.pow(2).mean().sqrt()))
+        metrics["rotation_measured_rms_deg"] = math.degrees(float(data.rotation.norm(dim=-1).pow(2).mean().sqrt()))
+    metrics.update(
+        {
+            "model": str(model_dir),
+            "data": str(data_path),
+            "instrument_frame": "registered from the file's x, y, z" if data.unloaded is not None else "robot base",
+            "registered": register,
+        }
+    )
+    return metrics
+
+
+def handlers():
+    """The :class:`~torchcal.commands_by_kind.KindHandlers` of stiffness files."""
+    from torchcal.commands_by_kind import KindHandlers
+
+    return KindHandlers(fit=fit_stiffness, evaluate=evaluate_stiffness)
