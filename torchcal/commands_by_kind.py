@@ -24,7 +24,15 @@ class KindHandlers:
 
 
 # kind -> loader of its handlers; the tracker kind is handled by torchcal.pipeline directly.
-KIND_HANDLERS: dict[str, Callable[[], KindHandlers]] = {}
+def _tracer() -> KindHandlers:
+    from torchcal.tracer_commands import handlers
+
+    return handlers()
+
+
+KIND_HANDLERS: dict[str, Callable[[], KindHandlers]] = {
+    "tracer": _tracer,
+}
 
 
 def handlers_for(kind: str, command: str) -> KindHandlers:
