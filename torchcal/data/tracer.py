@@ -32,10 +32,10 @@ import torch
 from torchcal.data.csv_table import read_csv_table
 from torchcal.errors import DataError
 from torchcal.kinematics.robot import RobotModel
+from torchcal.measure.tracer_locate import MIN_STATIONS_PER_POSE
 
 MIN_STATIONS = 4
 MIN_POSES_PER_STATION = 5  # position and dead path (4 unknowns) plus one to check them
-MIN_STATIONS_PER_POSE = 3  # a point located by lengths alone needs three ranges
 
 
 @dataclass(frozen=True)

@@ -26,8 +26,8 @@ from dataclasses import dataclass, field
 
 import torch
 
-from torchcal.data.tracer import MIN_STATIONS_PER_POSE, TracerData
-from torchcal.errors import DataError, IdentifiabilityWarning
+from torchcal.data.tracer import TracerData
+from torchcal.errors import DataError, IdentifiabilityWarning, TorchcalError
 from torchcal.identify.base import SolveResult
 from torchcal.identify.identifiability import IdentifiabilityReport, analyze
 from torchcal.identify.lm import LevenbergMarquardt
@@ -35,7 +35,7 @@ from torchcal.identify.uncertainty import covariance
 from torchcal.kinematics.error_model import DEFAULT_PARALLEL_THRESHOLD_DEG, ErrorModel
 from torchcal.kinematics.robot import RobotModel
 from torchcal.measure.lengths import LengthSigma, station_distances, stations_from_points
-from torchcal.measure.tracer import MultilaterationResult, multilaterate
+from torchcal.measure.tracer_locate import locate_poses
 
 
 def station_names(m: int) -> list[str]:
@@ -177,21 +177,24 @@ class TracerJointResult:
 
 def start_stations(
     data: TracerData, nominal_points: torch.Tensor, sigma: LengthSigma | None
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, MultilaterationResult]:
-    """Stations ``(m, 3)``, dead paths ``(m,)`` near the ``base`` frame, the usable-length mask.
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Stations ``(m, 3)`` and dead paths ``(m,)`` near the ``base`` frame, and the usable-length mask.
 
     Multilaterates the poses seen by at least three stations from the nominal points and fits the
-    result to them (mirror included): gross errors are rejected there and named in the mask.
+    result to them (mirror included): gross errors are rejected there and left out of the mask.
+    Where the located poses alone cannot be multilaterated (many poses seen by one or two
+    stations), the stations follow from the nominal points by linear least squares instead.
     """
-    rows = (data.seen.sum(1) >= MIN_STATIONS_PER_POSE).nonzero().flatten()
-    ml = multilaterate(
-        data.lengths[rows], initial=nominal_points[rows], reference_points=nominal_points[rows],
-        sigma=sigma, outliers="reject",
-    )
     used = data.seen.clone()
+    try:
+        ml, rows = locate_poses(data.lengths, nominal_points, sigma)
+    except TorchcalError:
+        # The joint fit can still use every length: the robot model locates the poses.
+        stations, dead = stations_from_points(nominal_points, data.lengths)
+        return stations, dead, used
     for i, j in ml.rejected.tolist():
         used[rows[i], j] = False
-    return ml.stations, ml.dead_paths, used, ml
+    return ml.stations, ml.dead_paths, used
 
 
 def calibrate_joint(
@@ -221,7 +224,7 @@ def calibrate_joint(
     model = ErrorModel(robot, parallel_threshold_deg=parallel_threshold_deg, device=device)
     x0 = model.nominal_vector()
     nominal_points = model.tcp_position(data.q, x0)
-    s0, d0, used, ml = start_stations(data, nominal_points, sigma)
+    s0, d0, used = start_stations(data, nominal_points, sigma)
     m = data.n_stations
     z0 = torch.cat([x0, s0.reshape(-1), d0])
 

@@ -15,19 +15,22 @@ Poses seen by fewer than three stations cannot be located and are left out of th
 
 from __future__ import annotations
 
+import math
+import warnings
 from dataclasses import dataclass
 
 import torch
 
 from torchcal.data.measurements import Measurements
-from torchcal.data.tracer import MIN_STATIONS_PER_POSE, TracerData
+from torchcal.data.tracer import TracerData
 from torchcal.errors import DataError
 from torchcal.identify.base import Identifier
 from torchcal.identify.calibrate import CalibrationResult, calibrate
 from torchcal.kinematics.error_model import DEFAULT_PARALLEL_THRESHOLD_DEG, ErrorModel
 from torchcal.kinematics.robot import RobotModel
 from torchcal.measure.lengths import LengthSigma
-from torchcal.measure.tracer import MultilaterationResult, multilaterate
+from torchcal.measure.tracer import MultilaterationResult
+from torchcal.measure.tracer_locate import locate_pose_candidates
 
 
 @dataclass
@@ -89,20 +92,36 @@ def calibrate_two_step(
         identifier: robot identifier of step 2 (default Levenberg-Marquardt).
     """
     data = data.to(device)
-    rows = (data.seen.sum(1) >= MIN_STATIONS_PER_POSE).nonzero().flatten()
     nominal = ErrorModel(robot, device=device)
-    p0 = nominal.tcp_position(data.q[rows], nominal.nominal_vector())
-    ml = multilaterate(data.lengths[rows], initial=p0, reference_points=p0, sigma=sigma or LengthSigma(), outliers="reject")
-    located = torch.isfinite(ml.points).all(-1)  # whole points rejected as gross errors are NaN
-    cov = ml.point_covariances[located]
-    try:
-        whitening = torch.linalg.inv(torch.linalg.cholesky(cov))
-    except RuntimeError:
-        raise DataError("a multilaterated point has a singular covariance; remove poses seen by few stations",
-                        path=data.source) from None
-    points = Measurements(q=data.q[rows][located], position=ml.points[located], source=data.source, sha256=data.sha256)
-    result = calibrate(robot, points, identifier=identifier, parallel_threshold_deg=parallel_threshold_deg,
-                       device=device, whitening=whitening)
+    p0 = nominal.tcp_position(data.q, nominal.nominal_vector())
+    candidates, rows = locate_pose_candidates(data.lengths, p0, sigma or LengthSigma())
+    best = None
+    for ml in candidates:
+        located = torch.isfinite(ml.points).all(-1)  # whole points rejected as gross errors are NaN
+        # a-posteriori where the lengths scatter more than the model says (robot repeatability)
+        vf = ml.variance_factor if math.isfinite(ml.variance_factor) else 1.0
+        cov = ml.point_covariances[located] * max(vf, 1.0)
+        try:
+            whitening = torch.linalg.inv(torch.linalg.cholesky(cov))
+        except RuntimeError:
+            continue
+        points = Measurements(q=data.q[rows][located], position=ml.points[located], source=data.source, sha256=data.sha256)
+        result = calibrate(robot, points, identifier=identifier, parallel_threshold_deg=parallel_threshold_deg,
+                           device=device, whitening=whitening)
+        # With little redundancy a wrong geometry can fit the lengths as well as the right one:
+        # the robot model, which a wrong point cloud does not fit, decides.
+        if best is None or result.sigma_residual_m < best[0].sigma_residual_m:
+            best = (result, ml, located, points)
+    if best is None:
+        raise DataError("no multilateration of these lengths gives points with a regular covariance; "
+                        "remove poses seen by few stations", path=data.source)
+    result, ml, located, points = best
+    if result.sigma_residual_m > 10.0:
+        result.notes.append(
+            f"the multilaterated points fit the robot at {result.sigma_residual_m:.0f} times their own sigma: the "
+            f"lengths alone hardly fix the geometry (redundancy {ml.dof}); prefer tracer_method=joint"
+        )
+        warnings.warn(result.notes[-1], stacklevel=2)
     t_ref = result.model.T_reference.to(ml.stations)
     stations = (ml.stations - t_ref[:3, 3]) @ t_ref[:3, :3]  # multilateration frame -> base
     residual = points.position - result.model.tcp_position(points.q, result.x)
