@@ -84,13 +84,16 @@ def _station_columns(header: tuple[str, ...], path: str) -> list[str]:
     numbers = sorted(int(h[1:]) for h in names)
     if numbers != list(range(1, len(numbers) + 1)):
         raise DataError(f"station columns must be l1..lM without gaps, found {names}", path=path, row=1)
-    if len(numbers) < MIN_STATIONS:
+    return [f"l{i}" for i in numbers]
+
+
+def _check_station_count(names: list[str], path: str) -> None:
+    if len(names) < MIN_STATIONS:
         raise DataError(
-            f"{len(numbers)} station column(s) {names}: self-calibrating multilateration needs at least "
+            f"{len(names)} station column(s) {names}: self-calibrating multilateration needs at least "
             f"{MIN_STATIONS} stations (l1..l{MIN_STATIONS})",
             path=path, row=1,
         )
-    return [f"l{i}" for i in numbers]
 
 
 def load_tracer_data(
@@ -142,9 +145,11 @@ def load_tracer_data(
     extra = [h for h in header if h not in set(expected_q) | set(stations)]
     if extra:
         hint = ""
-        if extra[0].strip().lower() in set(expected_q) | set(stations):
-            hint = f" (did you mean '{extra[0].strip().lower()}'? names are case-sensitive)"
+        lowered = extra[0].strip().lower()
+        if lowered in set(expected_q) or (lowered[:1] == "l" and lowered[1:].isdigit()):
+            hint = f" (did you mean '{lowered}'? names are case-sensitive)"
         raise DataError(f"unknown column '{extra[0]}'{hint}; a tracer file has q1..q{n_j}, l1..lM", path=p, row=1, column=extra[0])
+    _check_station_count(stations, p)
 
     q_user = np.stack([table.column(c) for c in expected_q], 1)
     q = q_user * (math.pi / 180.0) if joint_unit == "deg" else q_user

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import math
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 
@@ -73,6 +73,29 @@ class TracerTwoStepResult:
         return vf if vf == vf else 1.0
 
 
+def _fit_points(robot, data, ml, rows, located, identifier, parallel_threshold_deg, device):
+    """Step 2 for one multilateration: ``(result, points, whitening, scale)``, ``None`` if singular.
+
+    ``result.sigma_residual_m`` is the unitless a-posteriori sigma of unit weight.
+    """
+    # a-posteriori where the lengths scatter more than the model says (robot repeatability)
+    vf = ml.variance_factor if math.isfinite(ml.variance_factor) else 1.0
+    cov = ml.point_covariances[located] * max(vf, 1.0)
+    try:
+        whitening = torch.linalg.inv(torch.linalg.cholesky(cov))
+    except RuntimeError:
+        return None
+    # Whitened residuals carry no unit; scaled back to the points' typical sigma they keep the
+    # size of a tracker problem, for which the identifiers' damping and tolerances are tuned.
+    scale = float(cov.diagonal(dim1=-2, dim2=-1).mean().sqrt())
+    whitening = whitening * scale
+    points = Measurements(q=data.q[rows][located], position=ml.points[located], source=data.source, sha256=data.sha256)
+    result = calibrate(robot, points, identifier=identifier, parallel_threshold_deg=parallel_threshold_deg,
+                       device=device, whitening=whitening)
+    result.sigma_residual_m /= scale
+    return result, points, whitening, scale
+
+
 def calibrate_two_step(
     robot: RobotModel,
     data: TracerData,
@@ -98,24 +121,24 @@ def calibrate_two_step(
     best = None
     for ml in candidates:
         located = torch.isfinite(ml.points).all(-1)  # whole points rejected as gross errors are NaN
-        # a-posteriori where the lengths scatter more than the model says (robot repeatability)
-        vf = ml.variance_factor if math.isfinite(ml.variance_factor) else 1.0
-        cov = ml.point_covariances[located] * max(vf, 1.0)
-        try:
-            whitening = torch.linalg.inv(torch.linalg.cholesky(cov))
-        except RuntimeError:
-            continue
-        points = Measurements(q=data.q[rows][located], position=ml.points[located], source=data.source, sha256=data.sha256)
-        result = calibrate(robot, points, identifier=identifier, parallel_threshold_deg=parallel_threshold_deg,
-                           device=device, whitening=whitening)
+        fitted = _fit_points(robot, data, ml, rows, located, identifier, parallel_threshold_deg, device)
         # With little redundancy a wrong geometry can fit the lengths as well as the right one:
         # the robot model, which a wrong point cloud does not fit, decides.
-        if best is None or result.sigma_residual_m < best[0].sigma_residual_m:
-            best = (result, ml, located, points)
+        if fitted is not None and (best is None or fitted[0].sigma_residual_m < best[0].sigma_residual_m):
+            best = (*fitted, ml, located)
     if best is None:
         raise DataError("no multilateration of these lengths gives points with a regular covariance; "
                         "remove poses seen by few stations", path=data.source)
-    result, ml, located, points = best
+    result, points, whitening, scale, ml, located = best
+    # Analyzed at the nominal tool (on axis 6), alpha6 and a6 look confounded with d5 and theta5; at
+    # the fitted, slightly off-axis tool they are separable by a fraction of a micrometre, which
+    # multilaterated points resolve. So the fit is repeated with the fitted tool as nominal.
+    tool = result.x[result.model.layout.tool_slice][:3].detach().cpu()
+    again = calibrate(replace(robot, tool=tool), points, identifier=identifier, parallel_threshold_deg=parallel_threshold_deg,
+                      device=device, whitening=whitening)
+    again.sigma_residual_m /= scale
+    if len(again.free) > len(result.free) and again.sigma_residual_m <= result.sigma_residual_m:
+        result = again
     if result.sigma_residual_m > 10.0:
         result.notes.append(
             f"the multilaterated points fit the robot at {result.sigma_residual_m:.0f} times their own sigma: the "
