@@ -68,3 +68,24 @@ def test_yaml_and_urdf_variants_give_the_same_calibration(tmp_path):
         main(["evaluate", "--model", str(model), "--data", str(case / "test.csv"), "--json", str(out)])
         results.append(json.loads(out.read_text())["position_rms_mm"])
     assert max(results) - min(results) < 1e-6
+
+
+def test_tracer_simulate_fit_evaluate_register(tmp_path):
+    """Lengths alone calibrate the robot to the noise floor of the held-out tracker check."""
+    case = tmp_path / "tracer"
+    assert main(["simulate", "--out", str(case), "instrument=tracer", "seed=3", "n_test=150", "loss_probability=0.05"]) == 0
+    truth = json.loads((case / "truth.json").read_text())
+    for method in ("joint", "two_step"):
+        model = tmp_path / method
+        assert main(["fit", "--robot", str(case / "robot.yaml"), "--data", str(case / "lengths.csv"), "--out", str(model),
+                     f"tracer_method={method}", "residual=none"]) == 0
+        meta = json.loads((model / "calibration.json").read_text())
+        assert meta["tracer"]["method"] == method and len(meta["tracer"]["stations_mm"]) == 4
+        err = np.array(meta["tracer"]["stations_mm"]) - np.array(truth["stations_mm"])
+        assert np.abs(err).max() < 2.0  # mm: the base frame as the nominal row 1 realizes it
+        out = tmp_path / f"{method}.json"
+        assert main(["evaluate", "--model", str(model), "--data", str(case / "test.csv"), "--register", "--json", str(out)]) == 0
+        metrics = json.loads(out.read_text())
+        assert metrics["n_poses"] == 150
+        assert metrics["position_rms_mm"] < 1.25 * truth["noise_floor_rms_mm"], (method, metrics["position_rms_mm"])
+    assert main(["export", "--model", str(tmp_path / "joint"), "--out", str(tmp_path / "onnx")]) == 0

@@ -27,11 +27,16 @@ class KindHandlers:
 def _stiffness() -> KindHandlers:
     from torchcal.stiffness_stage import handlers
 
+
+def _tracer() -> KindHandlers:
+    from torchcal.tracer_commands import handlers
+
     return handlers()
 
 
 KIND_HANDLERS: dict[str, Callable[[], KindHandlers]] = {
     "stiffness": _stiffness,
+    "tracer": _tracer,
 }
 
 

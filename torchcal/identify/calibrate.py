@@ -81,6 +81,7 @@ def calibrate(
     fixed: tuple[str, ...] = (),
     register: bool = True,
     device: str | torch.device = "cpu",
+    whitening: torch.Tensor | None = None,
 ) -> CalibrationResult:
     """Identify the geometric parameters of ``robot`` from position (and orientation) data.
 
@@ -90,11 +91,16 @@ def calibrate(
         fixed: parameter names to keep at nominal in addition to the non-identifiable ones.
         register: find the instrument frame by closed-form registration (otherwise the data
             is taken to be in the ``base`` frame, and the base correction is still fitted).
+        whitening: optional ``(n, 3, 3)`` per-pose whitening of the position residuals (see
+            :class:`CalibrationProblem`); ``sigma_residual_m`` is then the unitless a-posteriori
+            sigma of unit weight.
     """
     from torchcal.identify.lm import LevenbergMarquardt
 
     identifier = identifier or LevenbergMarquardt()
     use_orientation = data.rotation is not None if use_orientation is None else use_orientation
+    if whitening is not None and use_orientation:
+        raise DataError("whitening applies to position-only fits", path=data.source)
     if use_orientation and data.rotation is None:
         raise DataError("orientation fit requested but the file has no rx, ry, rz columns", path=data.source)
     data = data.to(device)
@@ -110,7 +116,10 @@ def calibrate(
             raise DataError(f"cannot fix unknown parameter '{name}'; known: {', '.join(model.layout.names)}")
         active[model.layout.index(name)] = False
     candidates = torch.nonzero(active).squeeze(-1)
-    problem = CalibrationProblem(model, data, candidates, use_orientation=use_orientation)
+    problem = CalibrationProblem(
+        model, data, candidates, use_orientation=use_orientation,
+        whitening=None if whitening is None else whitening.to(device),
+    )
     rows = problem.rows_per_pose * len(data)
     if rows <= len(candidates):
         raise DataError(

@@ -1,7 +1,9 @@
 """The least-squares calibration problem: residuals and Jacobian of measured vs. predicted TCP.
 
 Residual ``r = measured - predicted`` stacked per pose as ``(x, y, z[, wx, wy, wz])`` in the
-``instrument`` frame (m; rotation rows in rad times ``orientation_weight_m_per_rad``).
+``instrument`` frame (m; rotation rows in rad times ``orientation_weight_m_per_rad``). With a
+``whitening`` matrix per pose (``W_i`` with ``W_i^T W_i`` the inverse covariance of point ``i``,
+e.g. multilaterated points) the position rows are ``W_i r_i`` and carry no unit.
 """
 
 from __future__ import annotations
@@ -26,6 +28,8 @@ class CalibrationProblem:
         use_orientation: include rotation residuals (needs ``data.rotation``).
         orientation_weight_m_per_rad: how many metres of position one radian of orientation
             error is worth in the cost.
+        whitening: optional ``(n, 3, 3)`` per-pose whitening of the position residuals, 1/m
+            (position data only).
     """
 
     model: ErrorModel
@@ -33,6 +37,13 @@ class CalibrationProblem:
     free: torch.Tensor
     use_orientation: bool = False
     orientation_weight_m_per_rad: float = 1.0
+    whitening: torch.Tensor | None = None
+
+    def _whiten(self, r: torch.Tensor) -> torch.Tensor:
+        """Apply the per-pose whitening to ``(n, 3, ...)`` position rows."""
+        if self.whitening is None:
+            return r
+        return self.whitening.to(r) @ r
 
     @property
     def rows_per_pose(self) -> int:
@@ -47,7 +58,8 @@ class CalibrationProblem:
         """``(n * rows_per_pose,)`` residual vector at full parameter vector ``x``."""
         q = self.data.q.to(x)
         if not self.use_orientation:
-            return (self.data.position.to(x) - self.model.tcp_position(q, x)).reshape(-1)
+            r = (self.data.position.to(x) - self.model.tcp_position(q, x)).unsqueeze(-1)
+            return self._whiten(r).reshape(-1)
         pose = self.model.tcp_pose(q, x)
         dp = self.data.position.to(x) - pose[..., :3, 3]
         dr = tf.so3_log(self.data.rotation.to(x) @ pose[..., :3, :3].transpose(-1, -2))
@@ -63,8 +75,8 @@ class CalibrationProblem:
         if not self.use_orientation:
             # the screw-based Jacobian equals the autodiff one (tested) at a fraction of the cost
             pred, jac = self.model.position_jacobian(q, x, columns, method="analytic")
-            r = (self.data.position.to(x) - pred).reshape(-1)
-            return r, -jac.reshape(-1, jac.shape[-1])
+            r = self._whiten((self.data.position.to(x) - pred).unsqueeze(-1)).reshape(-1)
+            return r, -self._whiten(jac).reshape(-1, jac.shape[-1])
         pose, jac = self.model.pose_jacobian(q, x, columns)
         dp = self.data.position.to(x) - pose[..., :3, 3]
         dr = tf.so3_log(self.data.rotation.to(x) @ pose[..., :3, :3].transpose(-1, -2))
@@ -74,4 +86,6 @@ class CalibrationProblem:
         return r, -jac.reshape(-1, jac.shape[-1])
 
     def with_free(self, free: torch.Tensor) -> "CalibrationProblem":
-        return CalibrationProblem(self.model, self.data, free, self.use_orientation, self.orientation_weight_m_per_rad)
+        return CalibrationProblem(
+            self.model, self.data, free, self.use_orientation, self.orientation_weight_m_per_rad, self.whitening
+        )

@@ -39,10 +39,17 @@ def _stiffness() -> TwinWriter:
     )
 
 
+def _tracer() -> TwinWriter:
+    from torchcal.sim.tracer_case import TracerTwinConfig, write_tracer_case
+
+    return TwinWriter(TracerTwinConfig, write_tracer_case, "multi-station laser-tracer lengths (lengths.csv, test.csv)")
+
+
 # Loaders are lazy so that ``simulate`` imports only the instrument it writes.
 TWIN_WRITERS: dict[str, Callable[[], TwinWriter]] = {
     "tracker": _tracker,
     "stiffness": _stiffness,
+    "tracer": _tracer,
 }
 
 
