@@ -47,7 +47,7 @@ class ProfileTwinConfig:
 
     seed: int = 0
     n_planes: int = 3
-    points_per_scan: int = 100
+    points_per_scan: int = 800
     noise_w_mm: float = 0.015
     noise_u_mm: float = 0.0
     repeatability_mm: float = 0.0
@@ -58,15 +58,15 @@ class ProfileTwinConfig:
     w_max_mm: float = 160.0
     mount_error_deg: float = 2.0
     mount_error_mm: float = 2.0
-    plane_tilt_deg: float = 25.0
-    target_x_mm: float = 650.0
+    plane_tilt_deg: float = 35.0
+    target_x_mm: float = 500.0
     target_y_mm: float = 0.0
-    target_z_mm: float = 150.0
-    target_spread_mm: float = 120.0
-    n_translations: int = 3
-    n_rotations: int = 3
+    target_z_mm: float = 300.0
+    target_spread_mm: float = 100.0
+    n_translations: int = 4
+    n_rotations: int = 6
     translation_share: float = 0.3
-    rotation_deg: float = 10.0
+    rotation_deg: float = 15.0
     view_down: bool = True
 
     @property
