@@ -167,7 +167,13 @@ def main(argv: list[str] | None = None) -> int:
 
     import warnings
 
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args, extra = parser.parse_known_args(argv)
+    # key=value overrides may also follow the options (``simulate instrument=x --out DIR seed=3``)
+    if extra:
+        if not hasattr(args, "overrides") or any(e.startswith("-") or "=" not in e for e in extra):
+            parser.error(f"unrecognized arguments: {' '.join(extra)}")
+        args.overrides = list(args.overrides) + extra
     warnings.formatwarning = lambda message, category, *rest: f"torchcal: warning: {message}\n"
     try:
         return int(args.func(args) or 0)

@@ -23,8 +23,16 @@ class KindHandlers:
     evaluate: Callable[..., dict] | None = None
 
 
+def _profile() -> KindHandlers:
+    from torchcal.measure.profile_commands import evaluate_profile, fit_profile
+
+    return KindHandlers(fit=fit_profile, evaluate=evaluate_profile)
+
+
 # kind -> loader of its handlers; the tracker kind is handled by torchcal.pipeline directly.
-KIND_HANDLERS: dict[str, Callable[[], KindHandlers]] = {}
+KIND_HANDLERS: dict[str, Callable[[], KindHandlers]] = {
+    "profile": _profile,
+}
 
 
 def handlers_for(kind: str, command: str) -> KindHandlers:

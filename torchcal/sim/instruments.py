@@ -29,9 +29,16 @@ def _tracker() -> TwinWriter:
     return TwinWriter(TwinConfig, write_twin_case, "laser-tracker points (train.csv, test.csv)")
 
 
+def _profile() -> TwinWriter:
+    from torchcal.sim.profile_twin import ProfileTwinConfig, write_profile_case
+
+    return TwinWriter(ProfileTwinConfig, write_profile_case, "line-laser profile sensor on a plane target (profile.csv)")
+
+
 # Loaders are lazy so that ``simulate`` imports only the instrument it writes.
 TWIN_WRITERS: dict[str, Callable[[], TwinWriter]] = {
     "tracker": _tracker,
+    "profile": _profile,
 }
 
 
