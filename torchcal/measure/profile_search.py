@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import itertools
 import math
+import warnings
 
 import torch
 
@@ -49,14 +50,14 @@ def _subsample(data: ProfileData, per_scan: int) -> ProfileData:
 
 
 def search_start(
-    data: ProfileData, T_base_flange: torch.Tensor, *, points_per_scan: int = 20, iterations: int = 15
+    data: ProfileData, T_base_flange: torch.Tensor, *, points_per_scan: int = 12, iterations: int = 12
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """Best ``(R, t, normals, offsets)`` over the multi-start set (see the module docstring)."""
     small = _subsample(data, points_per_scan)
     T = T_base_flange.to(data.uw)
     point_plane = small.point_plane()
     starts = [c @ tf.rot_z(torch.tensor(math.radians(a), dtype=torch.float64)) for c in cube_rotations() for a in (0.0, 30.0, 60.0)]
-    best, best_cost = None, math.inf
+    found = []
     solver = LevenbergMarquardt(max_iterations=iterations)
     for R0 in starts:
         t0 = torch.zeros(3, dtype=torch.float64)
@@ -66,10 +67,22 @@ def search_start(
             sol = solver.solve(problem, problem.initial(t0, offsets))  # type: ignore[arg-type]
         except torch.linalg.LinAlgError:
             continue
-        if sol.cost < best_cost:
-            best_cost, best = sol.cost, problem.unpack(sol.x)
-    if best is None:
+        found.append((sol.cost, problem.unpack(sol.x)))
+    if not found:
         raise DataError("no start of the rotation search converged; the scans do not determine the sensor pose", path=data.path)
-    R, t, _, _ = best
+    found.sort(key=lambda item: item[0])
+    best_cost, (R, t, _, _) = found[0]
+    # Another minimum as good as the best but elsewhere: these scans cannot tell them apart.
+    for cost, (R_other, t_other, _, _) in found[1:]:
+        if cost > 2.0 * best_cost + 1e-18:
+            break
+        if math.degrees(float(tf.so3_log(R.T @ R_other).norm())) > 1.0:
+            warnings.warn(
+                f"{data.path}: the rotation search found two equally good sensor poses "
+                f"(t differs by {float((t - t_other).norm()) * 1e3:.1f} mm); pure translations at >= 3 plane "
+                "orientations make the solution unique (closed form)",
+                stacklevel=2,
+            )
+            break
     normals, offsets, _ = fit_planes(base_points(T, data.point_scan, data.uw, R, t), data.point_plane(), data.n_planes)
     return R, t, normals, offsets
