@@ -80,6 +80,27 @@ class ProfileData:
         """``(K,)`` placement index of each point."""
         return self.plane[self.point_scan]
 
+    def select_scans(self, keep: torch.Tensor) -> "ProfileData":
+        """The scans where ``keep`` ``(S,)`` is true, with their points (placements kept as they are)."""
+        keep = keep.to(torch.bool).cpu()
+        index = keep.nonzero().squeeze(-1)
+        remap = torch.full((self.n_scans,), -1, dtype=torch.long)
+        remap[index] = torch.arange(index.numel())
+        points = keep[self.point_scan.cpu()]
+        lines = [ln for ln, k in zip(self.point_lines, points.tolist()) if k] if self.point_lines else []
+        return ProfileData(
+            q=self.q[index.to(self.q.device)],
+            plane=self.plane[index.to(self.plane.device)],
+            point_scan=remap[self.point_scan.cpu()[points]].to(self.point_scan.device),
+            uw=self.uw[points.to(self.uw.device)],
+            scan_labels=tuple(self.scan_labels[i] for i in index.tolist()),
+            plane_labels=self.plane_labels,
+            scan_lines=tuple(self.scan_lines[i] for i in index.tolist()) if self.scan_lines else (),
+            point_lines=tuple(lines),
+            path=self.path,
+            sha256=self.sha256,
+        )
+
     def describe_scan(self, j: int) -> str:
         """``scan '<label>' (plane <label>, line <n>)`` for messages."""
         where = f", line {self.scan_lines[j]}" if self.scan_lines else ""

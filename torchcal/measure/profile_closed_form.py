@@ -171,11 +171,12 @@ def _rotation(data: ProfileData, T_base_flange: torch.Tensor, groups: list[Motio
             for g in bad[:4]
         )
         reason = (
-            f"only {len(usable)} plane orientation(s) have >= 3 non-coplanar pure translations; need 3"
+            f"fewer than 3 plane orientations: only {len(usable)} plane orientation(s) (placement at a flange "
+            "orientation) have >= 3 non-coplanar pure translations; need 3"
             if not bad
             else f"the translations are coplanar or too few (need 4 scans at one flange orientation whose positions "
             f"span 3-D; the third extent must exceed {COPLANAR_RATIO:.0%} of the first) in: {details}. "
-            f"Only {len(usable)} plane orientation(s) are usable; need 3"
+            f"Only {len(usable)} plane orientation(s) are usable; need 3 (fewer than 3 plane orientations)"
         )
         raise DataError(f"degenerate motion set: {reason}", **_where(data, (bad or translated)[0].scans[0]))
     rows, a, b, plane_normals = [], [], [], {}
