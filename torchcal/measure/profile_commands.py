@@ -16,7 +16,7 @@ from pathlib import Path
 import torch
 
 from torchcal.data.profile import ProfileData, load_profile
-from torchcal.errors import DataError, ModelError, TorchcalError
+from torchcal.errors import ModelError, TorchcalError
 from torchcal.io import atomic_write_json, atomic_write_text
 from torchcal.kinematics import transforms as tf
 from torchcal.kinematics.robot import RobotModel, load_robot, robot_to_yaml
@@ -54,9 +54,18 @@ class ProfileFitConfig:
 
 
 def _config(overrides: list[str]) -> ProfileFitConfig:
-    from torchcal.cli import _apply_overrides
+    from dataclasses import fields
 
-    config = _apply_overrides(ProfileFitConfig(), overrides)
+    from torchcal.cli import _apply_overrides
+    from torchcal.pipeline import FitConfig
+
+    # Options of the robot fit (residual=none, method=lm...) mean nothing here: say so, do not fail.
+    own = {f.name for f in fields(ProfileFitConfig)}
+    robot_only = {f.name for f in fields(FitConfig)} - own
+    ignored = [o for o in overrides if o.partition("=")[0].strip() in robot_only]
+    if ignored:
+        warnings.warn(f"ignored for a profile file: {', '.join(ignored)}", stacklevel=2)
+    config = _apply_overrides(ProfileFitConfig(), [o for o in overrides if o not in ignored])
     if config.start not in ("auto", "closed_form", "search"):
         raise TorchcalError(f"start must be auto, closed_form or search, got {config.start!r}")
     return config
