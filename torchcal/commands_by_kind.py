@@ -23,9 +23,17 @@ class KindHandlers:
     evaluate: Callable[..., dict] | None = None
 
 
+def _profile() -> KindHandlers:
+    from torchcal.measure.profile_commands import evaluate_profile, fit_profile
+
+    return KindHandlers(fit=fit_profile, evaluate=evaluate_profile)
+
+
 # kind -> loader of its handlers; the tracker kind is handled by torchcal.pipeline directly.
 def _stiffness() -> KindHandlers:
     from torchcal.stiffness_stage import handlers
+
+    return handlers()
 
 
 def _tracer() -> KindHandlers:
@@ -35,6 +43,7 @@ def _tracer() -> KindHandlers:
 
 
 KIND_HANDLERS: dict[str, Callable[[], KindHandlers]] = {
+    "profile": _profile,
     "stiffness": _stiffness,
     "tracer": _tracer,
 }

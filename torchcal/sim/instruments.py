@@ -45,11 +45,18 @@ def _tracer() -> TwinWriter:
     return TwinWriter(TracerTwinConfig, write_tracer_case, "multi-station laser-tracer lengths (lengths.csv, test.csv)")
 
 
+def _profile() -> TwinWriter:
+    from torchcal.sim.profile_twin import ProfileTwinConfig, write_profile_case
+
+    return TwinWriter(ProfileTwinConfig, write_profile_case, "line-laser profile sensor on a plane target (profile.csv)")
+
+
 # Loaders are lazy so that ``simulate`` imports only the instrument it writes.
 TWIN_WRITERS: dict[str, Callable[[], TwinWriter]] = {
     "tracker": _tracker,
     "stiffness": _stiffness,
     "tracer": _tracer,
+    "profile": _profile,
 }
 
 
