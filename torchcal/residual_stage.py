@@ -58,7 +58,7 @@ def choose_residual(model, x, robot, data: Measurements, config) -> tuple[Select
     feats = features(data.q, data.temperature)
     targets = residual_targets_mm(model, x, data)
     train, val = split(len(data), config.validation_fraction, config.seed)
-    selection = select_head(_candidates(config), feats[train], targets[train], feats[val], targets[val],
+    selection = select_head(_candidates(config), feats[train], targets[train], feats[val], targets[val], seed=config.seed,
                             margin=config.residual_margin)
     return selection, features
 
