@@ -11,7 +11,10 @@ import torch
 
 from torchcal.kinematics.robot import default_robot_path, load_robot
 
-REAL_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real"
+import os
+
+# ../shared/data/real next to the checkout; TORCHCAL_REAL_DATA points elsewhere (e.g. from a worktree)
+REAL_DATA = Path(os.environ.get("TORCHCAL_REAL_DATA", Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real"))
 
 
 @pytest.fixture(scope="session")

@@ -46,6 +46,9 @@ class FitConfig:
         mayfly_population / mayfly_iterations: MMA search of the ELM hidden layer.
         residual_margin: a head must lower the validation RMS by this fraction to be kept.
         progress: show progress bars of long steps.
+        gravity_compliance: joint compliance under the arm's own weight, identified with the
+            geometry (:mod:`torchcal.identify.compliance`): ``none``, ``wrist``, ``elbow+wrist``
+            or ``auto`` (the set with the lowest 5-fold CV RMS on the fit's own poses).
     """
 
     method: str = "lm"
@@ -62,6 +65,7 @@ class FitConfig:
     mayfly_iterations: int = 50
     residual_margin: float = 0.05
     progress: bool = True
+    gravity_compliance: str = "none"
 
 
 def registered_errors(predicted_base: torch.Tensor, measured: torch.Tensor) -> torch.Tensor:
@@ -91,8 +95,25 @@ def fit(robot: RobotModel, data: Measurements, config: FitConfig, *, progress=No
     """Geometric identification with the configured identifier."""
     if config.method not in IDENTIFIERS:
         raise DataError(f"unknown method '{config.method}'; choose one of {sorted(IDENTIFIERS)}")
-    identifier = IDENTIFIERS[config.method]()
-    return calibrate(robot, data, identifier=identifier, parallel_threshold_deg=config.parallel_threshold_deg, device=config.device)
+    from torchcal.identify.compliance import POINT_SETS, choose_points_by_cv, fit_with_compliance
+
+    choice = config.gravity_compliance
+    if choice not in POINT_SETS and choice != "auto":
+        raise DataError(f"unknown gravity_compliance '{choice}'; choose auto or one of {sorted(POINT_SETS)}")
+
+    def geometry(train: Measurements) -> CalibrationResult:
+        return calibrate(robot, train, identifier=IDENTIFIERS[config.method](),
+                         parallel_threshold_deg=config.parallel_threshold_deg, device=config.device)
+
+    note = None
+    if choice == "auto":
+        choice, scores = choose_points_by_cv(robot, data, geometry, seed=config.seed)
+        note = ("gravity compliance chosen by 5-fold CV on the fit's poses: "
+                + ", ".join(f"{k} {v:.4f} mm" for k, v in scores.items()) + f" -> {choice}")
+    result = fit_with_compliance(robot, data, geometry(data), POINT_SETS[choice])
+    if note:
+        result.notes.append(note)
+    return result
 
 
 def save_fit(folder: Path, robot: RobotModel, data: Measurements, result: CalibrationResult, extra: dict) -> Path:
@@ -113,18 +134,34 @@ def save_fit(folder: Path, robot: RobotModel, data: Measurements, result: Calibr
         "notes": result.notes,
         **extra,
     }
+    if result.compliance is not None:
+        meta["gravity_compliance"] = result.compliance.to_json()
     return save_model(folder, robot, result.model, result.x, result.free, result.covariance, meta)
+
+
+def stored_compliance(stored: StoredModel):
+    """The model folder's gravity compliance, or ``None``."""
+    from torchcal.identify.compliance import GravityCompliance
+
+    data = stored.metadata.get("gravity_compliance")
+    return GravityCompliance.from_json(data) if data else None
+
+
+def model_joints(stored: StoredModel, q: torch.Tensor) -> torch.Tensor:
+    """Joints to put through the geometric chain: ``q`` plus any identified gravity deflection."""
+    compliance = stored_compliance(stored)
+    return compliance.effective_joints(stored.robot, q) if compliance is not None else q
 
 
 def predict_positions(
     stored: StoredModel, q: torch.Tensor, temperature: torch.Tensor | None = None, wrench: torch.Tensor | None = None
 ) -> torch.Tensor:
-    """Model prediction of TCP positions (instrument frame, m), residual head included.
+    """Model prediction of TCP positions (instrument frame, m), compliance and residual head included.
 
     With a ``wrench`` ``(n, 6)`` (N, N m at the TCP, tool frame) and a stiffness stage in the
     model, the deflection it predicts is added (the loaded TCP).
     """
-    p = stored.model.tcp_position(q, stored.x)
+    p = stored.model.tcp_position(model_joints(stored, q), stored.x)
     if stored.residual is not None:
         p = p + stored.residual.predict_base_error(q, temperature) @ stored.model.T_reference[:3, :3].T.to(p)
     if wrench is not None and stored.stiffness is not None:
@@ -135,18 +172,26 @@ def predict_positions(
     return p
 
 
+def held_out_errors(stored: StoredModel, data: Measurements, *, register: bool = False, residual: bool = True) -> torch.Tensor:
+    """``measured - predicted`` (instrument frame, m) of a stored model on ``data``.
+
+    ``register``: first re-fit only the rigid instrument frame (Kabsch, its exact least-squares
+    optimum), for data measured with the instrument elsewhere. ``residual=False`` scores the
+    model without its learned head.
+    """
+    if residual:
+        predicted = predict_positions(stored, data.q, data.temperature, data.wrench)
+    else:
+        predicted = stored.model.tcp_position(model_joints(stored, data.q), stored.x)
+    return registered_errors(predicted, data.position) if register else data.position - predicted
+
+
 def evaluate(model_dir: str | Path, data_path: str | Path, *, register: bool = False, config: FitConfig | None = None) -> dict:
     """Score a model folder on a measurement file (see the command-line contract)."""
     config = config or FitConfig()
     stored = load_model(model_dir)
     data = load_measurements(data_path, stored.robot, joint_unit=config.joint_unit, length_unit=config.length_unit)
-    predicted = predict_positions(stored, data.q, data.temperature, data.wrench)
-    if register:
-        # Only the rigid instrument frame is re-fitted: Kabsch is its exact least-squares optimum.
-        errors = registered_errors(predicted, data.position)
-    else:
-        errors = data.position - predicted
-    metrics = position_metrics(errors)
+    metrics = position_metrics(held_out_errors(stored, data, register=register))
     metrics.update({"model": str(model_dir), "data": str(data_path), "registered": register})
     return metrics
 
@@ -217,7 +262,7 @@ def run(config: RunConfig, console=None) -> dict:
         status.update("[bold]evaluating on held-out poses")
         stored = load_model(model_dir)
         err_nominal = nominal_errors(robot, test)
-        err_geometric = test.position - stored.model.tcp_position(test.q, stored.x)
+        err_geometric = test.position - stored.model.tcp_position(model_joints(stored, test.q), stored.x)
         stages = {"nominal (registered)": err_nominal, "geometric": err_geometric}
         if stored.residual is not None:
             stages["geometric + residual"] = test.position - predict_positions(stored, test.q, test.temperature)

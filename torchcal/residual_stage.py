@@ -37,9 +37,13 @@ def _candidates(config) -> list:
     return heads
 
 
-def residual_targets_mm(model, x, data: Measurements) -> torch.Tensor:
-    """Geometric residuals of ``data`` in the ``base`` frame, mm ``(n, 3)``."""
-    error = data.position - model.tcp_position(data.q, x)
+def residual_targets_mm(model, x, data: Measurements, joints: torch.Tensor | None = None) -> torch.Tensor:
+    """Geometric residuals of ``data`` in the ``base`` frame, mm ``(n, 3)``.
+
+    ``joints``: what the chain is evaluated at (default ``data.q``; the deflected joints when the
+    model has gravity compliance), while the head's features stay the commanded joints.
+    """
+    error = data.position - model.tcp_position(data.q if joints is None else joints, x)
     return error @ model.T_reference[:3, :3].to(error) * 1e3
 
 
@@ -49,16 +53,16 @@ def split(n: int, fraction: float, seed: int) -> tuple[torch.Tensor, torch.Tenso
     return perm[n_val:], perm[:n_val]
 
 
-def choose_residual(model, x, robot, data: Measurements, config) -> tuple[Selection, JointFeatures]:
+def choose_residual(model, x, robot, data: Measurements, config, joints: torch.Tensor | None = None) -> tuple[Selection, JointFeatures]:
     temperature = None
     if data.temperature is not None:
         t = data.temperature
         temperature = (float(t.mean()), float(t.std().clamp_min(1e-6)))
     features = JointFeatures(robot.joint_limits.to(torch.float64), temperature)
     feats = features(data.q, data.temperature)
-    targets = residual_targets_mm(model, x, data)
+    targets = residual_targets_mm(model, x, data, joints)
     train, val = split(len(data), config.validation_fraction, config.seed)
-    selection = select_head(_candidates(config), feats[train], targets[train], feats[val], targets[val],
+    selection = select_head(_candidates(config), feats[train], targets[train], feats[val], targets[val], seed=config.seed,
                             margin=config.residual_margin)
     return selection, features
 
@@ -68,8 +72,10 @@ def fit_residual_stage(model_dir, data: Measurements, config, console=None) -> d
     from torchcal.model_store import load_model
     from torchcal.residual_store import StoredResidual, save_residual
 
+    from torchcal.pipeline import model_joints
+
     stored = load_model(model_dir)
-    selection, features = choose_residual(stored.model, stored.x, stored.robot, data, config)
+    selection, features = choose_residual(stored.model, stored.x, stored.robot, data, config, model_joints(stored, data.q))
     summary = {"decision": selection.decision, "validation_rms_mm": selection.validation_rms,
                "geometric_validation_rms_mm": selection.baseline_rms, "kept": selection.head.name if selection.head else None}
     if selection.head is not None:
@@ -85,9 +91,13 @@ def residual_for_validation(result, train: Measurements, test: Measurements, *, 
     """Held-out errors of geometry + gated residual (geometry alone where the gate says no)."""
     from torchcal.pipeline import FitConfig, registered_errors
 
+    from torchcal.identify.compliance import predicted_positions
+
     config = config or FitConfig(seed=seed)
-    selection, features = choose_residual(result.model, result.x, result.model.robot, train, config)
-    predicted = result.model.tcp_position(test.q, result.x)
+    compliance = result.compliance
+    joints = compliance.effective_joints(result.model.robot, train.q) if compliance is not None else None
+    selection, features = choose_residual(result.model, result.x, result.model.robot, train, config, joints)
+    predicted = predicted_positions(result, test.q)
     if selection.head is not None:
         with torch.no_grad():
             base_err_mm = selection.head.predict(features(test.q, test.temperature))

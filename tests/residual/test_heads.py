@@ -109,5 +109,15 @@ def test_gate_rejects_heads_on_pure_noise():
     selection = select_head([ELM(hidden=40), MayflyELM(hidden=20, population=4, iterations=3)], x[:480], noise[:480], x[480:], noise[480:])
     assert selection.head is None and "no residual head kept" in selection.decision
     x, y = _smooth_problem(600)
-    selection = select_head([ELM(hidden=200)], x[:480], y[:480], x[480:], y[480:])
+    selection = select_head([ELM(hidden=80)], x[:480], y[:480], x[480:], y[480:])
     assert selection.head is not None
+
+
+def test_gate_is_not_fooled_by_a_search_that_tuned_on_the_validation_poses():
+    """Few poses, pure noise: a Mayfly search tuned on the gate's own poses used to 'win' it."""
+    gen = torch.Generator().manual_seed(3)
+    x, _ = _smooth_problem(30)
+    noise = 0.01 * torch.randn(30, 3, generator=gen, dtype=torch.float64)
+    head = MayflyELM(hidden=80, population=20, iterations=50, seed=0)
+    selection = select_head([head], x[:24], noise[:24], x[24:], noise[24:])
+    assert selection.head is None, selection.decision

@@ -38,6 +38,8 @@ class CalibrationResult:
         sigma_residual_m: residual standard deviation per coordinate.
         identifiability: the analysis at the start.
         solve: the solver's own result (iterations, history...).
+        compliance: gravity compliance identified with the geometry
+            (:class:`~torchcal.identify.compliance.GravityCompliance`), if any.
     """
 
     model: ErrorModel
@@ -49,6 +51,7 @@ class CalibrationResult:
     solve: SolveResult
     method: str = "lm"
     notes: list[str] = field(default_factory=list)
+    compliance: object | None = None
 
     @property
     def free_names(self) -> list[str]:

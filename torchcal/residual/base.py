@@ -17,6 +17,8 @@ class ResidualHead(ABC):
     """A learned model of the geometric residual."""
 
     name = "head"
+    #: whether ``fit`` steers itself with its validation pair (search, early stopping)
+    tunes_on_validation = True
 
     @abstractmethod
     def fit(self, x_train: torch.Tensor, y_train: torch.Tensor, x_val: torch.Tensor, y_val: torch.Tensor) -> "ResidualHead":

@@ -49,6 +49,7 @@ class ELM(ResidualHead):
     """
 
     name = "elm"
+    tunes_on_validation = False
 
     def __init__(self, hidden: int = 80, ridge: float | None = 1e-6, seed: int = 0) -> None:
         self.hidden, self.ridge, self.seed = hidden, ridge, seed

@@ -1,7 +1,21 @@
-"""Fit candidate heads and keep one only where it beats "no residual" on validation."""
+"""Fit candidate heads and keep one only where it beats "no residual" on validation.
+
+The validation poses decide and nothing else sees them: a head's own model selection (the
+Mayfly search of an MMA-ELM, the early stopping of an MLP) runs on a tuning part split off the
+training poses; a head that tunes nothing (plain ELM) fits on all training poses. A search scored on the gate's poses would pass the gate by having fitted their
+noise (on 30 real poses an MMA-ELM "won" by 50 % and then doubled the held-out error).
+
+A head is kept when both hold on the validation poses:
+
+* its RMS is below ``(1 - margin)`` of the RMS of predicting zero, and
+* the per-pose gain ``d_i = |e_i|^2 - |e_i - h_i|^2`` is positive beyond chance: its mean is
+  more than ``z_min`` standard errors above zero (a paired one-sided test; with a handful of
+  validation poses even a large apparent gain is not evidence).
+"""
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -19,23 +33,49 @@ class Selection:
     decision: str
 
 
-def select_head(candidates: list[ResidualHead], x_train, y_train, x_val, y_val, *, margin: float = 0.05) -> Selection:
-    """Fit each candidate; keep the best if its validation RMS is below ``(1 - margin)`` of zero's."""
+def paired_gain_z(y_val: torch.Tensor, predicted: torch.Tensor) -> float:
+    """Mean per-pose gain in squared error over its standard error (``inf`` when all equal and positive)."""
+    gain = y_val.pow(2).sum(-1) - (y_val - predicted).pow(2).sum(-1)
+    n = gain.shape[0]
+    if n < 2:
+        return 0.0
+    se = float(gain.std()) / math.sqrt(n)
+    mean = float(gain.mean())
+    return mean / se if se > 0 else (math.inf if mean > 0 else 0.0)
+
+
+def tuning_split(n: int, fraction: float = 0.2, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
+    """Seeded ``(fit, tune)`` indices of the training poses (at least one of each when ``n >= 2``)."""
+    perm = torch.randperm(n, generator=torch.Generator().manual_seed(seed + 7919))
+    n_tune = min(max(1, int(round(fraction * n))), n - 1)
+    return perm[n_tune:], perm[:n_tune]
+
+
+def select_head(candidates: list[ResidualHead], x_train, y_train, x_val, y_val, *, margin: float = 0.05,
+                z_min: float = 2.0, seed: int = 0) -> Selection:
+    """Fit each candidate on the training pair, keep the best only if it passes the gate on the validation pair."""
     baseline = rms(y_val)
+    fit_idx, tune_idx = tuning_split(len(x_train), seed=seed)
     scores: dict[str, float] = {}
-    best, best_score = None, float("inf")
+    best, best_score, best_z = None, float("inf"), 0.0
     for head in candidates:
-        head.fit(x_train, y_train, x_val, y_val)
-        score = rms(head.predict(x_val) - y_val)
+        if head.tunes_on_validation:
+            head.fit(x_train[fit_idx], y_train[fit_idx], x_train[tune_idx], y_train[tune_idx])
+        else:
+            head.fit(x_train, y_train, x_train[tune_idx], y_train[tune_idx])
+        predicted = head.predict(x_val)
+        score = rms(predicted - y_val)
         scores[head.name] = score
         if score < best_score:
-            best, best_score = head, score
-    if best is not None and best_score < (1.0 - margin) * baseline:
+            best, best_score, best_z = head, score, paired_gain_z(y_val, predicted)
+    n_val = len(y_val)
+    if best is not None and best_score < (1.0 - margin) * baseline and best_z > z_min:
         gain = 100.0 * (1.0 - best_score / baseline)
         decision = (f"residual head '{best.name}' kept: validation RMS {best_score:.4f} mm vs {baseline:.4f} mm "
-                    f"without it ({gain:.0f} % lower)")
+                    f"without it ({gain:.0f} % lower, paired z {best_z:.1f} on {n_val} poses)")
         return Selection(best, scores, baseline, decision)
     tried = ", ".join(f"{k} {v:.4f} mm" for k, v in scores.items())
-    decision = (f"no residual head kept: none beat geometry alone on validation by {margin * 100:.0f} % "
-                f"(geometry {baseline:.4f} mm; {tried})")
+    why = (f"none beat geometry alone on {n_val} validation poses by {margin * 100:.0f} % with paired z > {z_min:g}"
+           f" (best z {best_z:.1f})")
+    decision = f"no residual head kept: {why} (geometry {baseline:.4f} mm; {tried})"
     return Selection(None, scores, baseline, decision)
