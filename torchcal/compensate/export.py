@@ -42,7 +42,7 @@ WRENCH_INPUT = "wrench"
 """Name of the second input of graphs with a stiffness stage."""
 DEFAULT_BUDGET_WRENCH = {"max_force_n": 300.0, "max_torque_nm": 30.0}
 FLOAT32_DAMPING_FLOOR = 1e-3
-"""``lambda_0`` of the float32 compensator graphs. The float64 floor (1e-5, squared 1e-10)
+"""``lambda_0`` of float32 graphs with a stiffness stage. The float64 floor (1e-5, squared 1e-10)
 is below float32 rounding of ``J^T J`` (~1e-7): at a singular pose (wrist, ``|q5| < 1e-3`` rad)
 the unpivoted elimination then divides by a rounded-away pivot. ``1e-3`` keeps the pivots
 positive and changes the float32 commands on regular poses by < 1e-4 mm (measured)."""
@@ -100,11 +100,8 @@ def build_graphs(
     graphs = {}
     for key, (_, dtype, _, _) in GRAPHS.items():
         if stiffness is None:
-            if key.startswith("compensator"):
-                floor = {"damping_floor": FLOAT32_DAMPING_FLOOR} if dtype == torch.float32 else {}
-                graphs[key] = CompensatorGraph(stored.model, stored.x, residual, dtype=dtype, **floor).eval()
-            else:
-                graphs[key] = MonitorGraph(stored.model, stored.x, residual, dtype=dtype).eval()
+            cls = CompensatorGraph if key.startswith("compensator") else MonitorGraph
+            graphs[key] = cls(stored.model, stored.x, residual, dtype=dtype).eval()
         else:
             compliance = stiffness.compliance.cpu()
             if key.startswith("compensator"):
@@ -267,7 +264,6 @@ def export_model(model_dir: str | Path, out_dir: str | Path, *, wrench_frame: st
             "damping": "lambda^2 = gain * |e|^2 + floor^2",
             "damping_gain": float(compensator.damping_gain),
             "damping_floor": math.sqrt(float(compensator.damping_floor_sq)),
-            "damping_floor_float32": FLOAT32_DAMPING_FLOOR,
         },
         "training_data": {"sha256": meta.get("data", {}).get("sha256"), "n_poses": meta.get("data", {}).get("n_poses")},
         "calibration": {"method": meta.get("method"), "residual_sigma_mm": meta.get("residual_sigma_mm")},
@@ -321,6 +317,7 @@ def _describe_stiffness(manifest: dict, stored, wrench_frame: str) -> None:
         "fit_metrics": meta.get("fit_metrics"),
     }
     manifest["sign_convention"] += "; with stiffness, T_real is the loaded TCP under the wrench input"
+    manifest["solver"]["damping_floor_float32"] = FLOAT32_DAMPING_FLOOR
 
 
 def readme_text(manifest: dict) -> str:
