@@ -26,7 +26,7 @@ SMALL = [
     "fit.residual_hidden=40",
     "fit.mayfly_population=8",
     "study.heartbeat_interval_s=1",
-    "study.grace_period_s=3",
+    "study.grace_period_s=6",
     "study.refit_best=false",
 ]
 

@@ -20,7 +20,7 @@ def _kill_and_resume(tmp_path, name: str, storage: str) -> None:
     first = start(study_command(name, N_TRIALS, storage), tmp_path)
     killed = kill_during_second_trial(first, name, storage)
     before = {t.number: (t.state, t.values, t.params) for t in load(name, storage).trials if t.state.is_finished()}
-    time.sleep(4)  # past the grace period: the killed trial's heartbeat is stale
+    time.sleep(7)  # past the grace period: the killed trial's heartbeat is stale
     finish(start(study_command(name, N_TRIALS, storage), tmp_path))
 
     trials = load(name, storage).trials

@@ -80,6 +80,17 @@ def work(base, config: StudyConfig, study_dir: str, threads: int = 1) -> int:
             raise TorchcalError(f"study '{config.name}': {failures} trials in a row failed; see the failed trials' messages")
 
 
+def _run_waiting(base, config: StudyConfig, study, study_dir: Path, threads: int) -> None:
+    from optuna.trial import TrialState
+
+    from torchcal.studies.objective import StudyObjective
+
+    objective = None
+    while study.get_trials(deepcopy=False, states=(TrialState.WAITING,)) and _budget_used(study) <= config.n_trials:
+        objective = objective or StudyObjective(base, config, study_dir)
+        study.optimize(objective, n_trials=1, catch=(TorchcalError, RuntimeError, ValueError))
+
+
 @dataclass
 class StudyOutcome:
     """What a finished study produced."""
@@ -109,6 +120,11 @@ def run_study(base, config: StudyConfig, *, workers: int = 1, console=None) -> S
         console.log(f"study '{config.name}' at {storage_url(config, study_dir).split('@')[-1]}: "
                     f"{done['COMPLETE'] + done['PRUNED']} of {config.n_trials} trials finished; {workers} worker(s)")
     threads = max(1, (os.cpu_count() or 1) // max(1, workers))
+    if workers > 1 and storage_url(config, study_dir).startswith("sqlite"):
+        # SQLite has no row locks: two processes could both take the same queued trial (the
+        # default configuration, a retry). Queued trials run here first; workers then only ask
+        # for new ones, which the storage numbers atomically.
+        _run_waiting(base, config, study, study_dir, threads)
     if workers <= 1:
         _with_progress(lambda: work(base, config, str(study_dir), threads), study, config, console)
     else:
