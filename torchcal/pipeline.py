@@ -45,6 +45,8 @@ class FitConfig:
         residual_hidden: hidden units of ELM heads.
         mayfly_population / mayfly_iterations: MMA search of the ELM hidden layer.
         residual_margin: a head must lower the validation RMS by this fraction to be kept.
+        residual_refit: refit a kept head on the training and validation poses together once the
+            gate has decided (the reported validation RMS is the one measured before).
         progress: show progress bars of long steps.
         gravity_compliance: joint compliance under the arm's own weight, identified with the
             geometry (:mod:`torchcal.identify.compliance`): ``none``, ``wrist``, ``elbow+wrist``
@@ -64,6 +66,7 @@ class FitConfig:
     mayfly_population: int = 20
     mayfly_iterations: int = 50
     residual_margin: float = 0.05
+    residual_refit: bool = True
     progress: bool = True
     gravity_compliance: str = "none"
 

@@ -14,7 +14,7 @@ import torch
 from torchcal.data.measurements import Measurements
 from torchcal.residual import HEADS
 from torchcal.residual.features import JointFeatures
-from torchcal.residual.selection import Selection, select_head
+from torchcal.residual.selection import Selection, refit_on_all, select_head
 
 AUTO_HEADS = ("mma-elm", "mlp")
 
@@ -64,6 +64,9 @@ def choose_residual(model, x, robot, data: Measurements, config, joints: torch.T
     train, val = split(len(data), config.validation_fraction, config.seed)
     selection = select_head(_candidates(config), feats[train], targets[train], feats[val], targets[val], seed=config.seed,
                             margin=config.residual_margin)
+    if selection.head is not None and getattr(config, "residual_refit", True):
+        refit_on_all(selection.head, feats[train], targets[train], feats[val], targets[val], seed=config.seed)
+        selection.decision += "; refitted on all training poses"
     return selection, features
 
 

@@ -79,3 +79,18 @@ def select_head(candidates: list[ResidualHead], x_train, y_train, x_val, y_val, 
            f" (best z {best_z:.1f})")
     decision = f"no residual head kept: {why} (geometry {baseline:.4f} mm; {tried})"
     return Selection(None, scores, baseline, decision)
+
+
+def refit_on_all(head: ResidualHead, x_train, y_train, x_val, y_val, *, seed: int = 0) -> ResidualHead:
+    """Refit a kept head on the training and validation poses together, after the gate decided.
+
+    The validation poses have done their job (the decision and its RMS estimate, which stays the
+    reported one); holding them out of the final fit only costs data. The tuning slice of the
+    training poses still steers the head's own model selection, exactly as in :func:`select_head`.
+    """
+    fit_idx, tune_idx = tuning_split(len(x_train), seed=seed)
+    if head.tunes_on_validation:
+        x_fit, y_fit = torch.cat([x_train[fit_idx], x_val]), torch.cat([y_train[fit_idx], y_val])
+    else:
+        x_fit, y_fit = torch.cat([x_train, x_val]), torch.cat([y_train, y_val])
+    return head.fit(x_fit, y_fit, x_train[tune_idx], y_train[tune_idx])
