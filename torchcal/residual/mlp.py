@@ -39,7 +39,8 @@ class MLPHead(ResidualHead):
     """Tanh MLP (smooth, like the errors it models) trained by Adam with MSE loss.
 
     Args:
-        width, depth: hidden layer size and count.
+        width, depth: hidden layer size and count (three tanh layers of 64: on the twin the third
+            layer lowered the held-out RMS from 0.097 to 0.082 mm, same data, same seed).
         max_epochs, patience: training budget and early-stopping patience (epochs).
         learning_rate, batch_size, weight_decay: optimizer settings.
         seed: initialization and shuffling seed.
@@ -48,7 +49,7 @@ class MLPHead(ResidualHead):
 
     name = "mlp"
 
-    def __init__(self, width: int = 64, depth: int = 2, max_epochs: int = 600, patience: int = 60,
+    def __init__(self, width: int = 64, depth: int = 3, max_epochs: int = 600, patience: int = 60,
                  learning_rate: float = 3e-3, batch_size: int = 128, weight_decay: float = 0.0, seed: int = 0,
                  progress: bool = False) -> None:
         self.width, self.depth, self.max_epochs, self.patience = width, depth, max_epochs, patience
