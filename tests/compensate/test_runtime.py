@@ -91,3 +91,23 @@ def test_runtime_module_does_not_import_torch():
                           env={"PYTHONPATH": str(ROOT), "PATH": "/usr/bin:/bin"})
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout.strip() == "False"
+
+
+def test_non_finite_output_is_refused_not_returned(exported):
+    """At exactly singular wrist poses the float32 solve can lose its pivot: the runner must refuse."""
+    import onnxruntime as ort
+
+    folder, manifest = exported
+    gen = torch.Generator().manual_seed(5)
+    q = (torch.rand(2000, 6, generator=gen, dtype=torch.float64) - 0.5) * 2.0
+    q[:, 4] = (torch.rand(2000, generator=gen, dtype=torch.float64) - 0.5) * 2e-3  # |q5| < 1e-3 rad
+    session = ort.InferenceSession(str(folder / manifest["files"]["compensator_f32"]), providers=["CPUExecutionProvider"])
+    raw = session.run(None, {session.get_inputs()[0].name: q.float().numpy()})[0]
+    bad = np.flatnonzero(~np.isfinite(raw).all(axis=1))
+    if bad.size == 0:
+        pytest.skip("this onnxruntime build kept every float32 pivot; nothing to refuse")
+    rt32 = CompensatorRuntime(folder, precision="float32")
+    with pytest.raises(CompensatorError, match=rf"row\(s\) \[{bad[0]}"):
+        rt32.correct(q.numpy())
+    # the float64 graph is finite on the same poses
+    assert np.isfinite(CompensatorRuntime(folder).correct(q.numpy())).all()

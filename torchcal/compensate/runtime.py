@@ -79,6 +79,7 @@ class CompensatorRuntime:
             )
         self.n_joints = int(self.manifest["n_joints"])
         self.wrench_input = "wrench" in self.manifest and bool(self.manifest.get("stages", {}).get("stiffness"))
+        self.precision = precision
         self.dtype = np.float64 if precision == "float64" else np.float32
         suffix = "" if precision == "float64" else "_f32"
         options = ort.SessionOptions()
@@ -155,6 +156,13 @@ class CompensatorRuntime:
         elif wrench is not None:
             raise CompensatorError(f"{self.folder}: this compensator has no stiffness stage; it takes no wrench")
         out = session.run(None, feeds)[0]
+        if not np.isfinite(out).all():
+            # Never hand a controller NaN: float32 loses the solve at exactly singular poses.
+            rows = np.flatnonzero(~np.isfinite(out).reshape(out.shape[0], -1).all(axis=1))
+            raise CompensatorError(
+                f"{self.folder}: no finite output for row(s) {rows[:10].tolist()} (pose at a singularity, "
+                f"{self.precision} graph); use precision='float64' or keep the nominal command there"
+            )
         return out[0] if single else out
 
     def correct(self, q_nominal, wrench=None) -> np.ndarray:
