@@ -66,10 +66,24 @@ def kill_during_second_trial(proc: subprocess.Popen, name: str, storage: str, ti
         except Exception:  # not created yet
             trials = []
         done = [t for t in trials if t.state.is_finished()]
-        running = [t for t in trials if t.state == optuna.trial.TrialState.RUNNING]
+        # mid-trial: its parameters are drawn and the fit is under way
+        running = [t for t in trials if t.state == optuna.trial.TrialState.RUNNING and t.params]
         if done and running:
             os.killpg(proc.pid, signal.SIGKILL)
             proc.wait()
             return running[0].number
         time.sleep(0.05)
     pytest.fail("no trial was seen running")
+
+
+def open_storage_once(url: str) -> str:
+    """Open (and so create) the study tables at ``url``; the error text if it failed."""
+    from torchcal.errors import TorchcalError
+    from torchcal.studies.spec import StudyConfig
+    from torchcal.studies.storage import open_storage
+
+    try:
+        open_storage(StudyConfig(storage=url), Path("."))
+        return ""
+    except TorchcalError as exc:
+        return str(exc)

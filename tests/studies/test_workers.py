@@ -53,3 +53,26 @@ def test_local_workers_sqlite(tmp_path):
     assert first.params == {"fit.residual_hidden": 40, "fit.mayfly_population": 8}
     for t in trials:
         assert (tmp_path / "runs" / "studies" / name / "trials" / f"{t.number:04d}" / "config.yaml").is_file()
+
+
+@pytest.mark.postgres
+def test_workers_starting_together_on_an_empty_database(postgres_url):
+    """Every worker creates Optuna's tables at start; on a fresh database only one can win the race."""
+    import multiprocessing
+
+    import psycopg
+
+    from study_procs import open_storage_once
+
+    name = f"torchcal_race_{uuid.uuid4().hex[:8]}"
+    admin = postgres_url
+    with psycopg.connect(admin.replace("+psycopg", ""), autocommit=True) as conn:
+        conn.execute(f"CREATE DATABASE {name}")
+    url = postgres_url.rsplit("/", 1)[0] + f"/{name}"
+    try:
+        with multiprocessing.get_context("spawn").Pool(4) as pool:
+            errors = pool.map(open_storage_once, [url] * 4)
+        assert errors == ["", "", "", ""]
+    finally:
+        with psycopg.connect(admin.replace("+psycopg", ""), autocommit=True) as conn:
+            conn.execute(f"DROP DATABASE {name} WITH (FORCE)")

@@ -8,10 +8,13 @@ same parameters. Finished trials are rows in the database and are never touched 
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 
 from torchcal.errors import TorchcalError
 from torchcal.studies.spec import StudyConfig
+
+CREATE_ATTEMPTS = 5
 
 
 def storage_url(config: StudyConfig, study_dir: Path) -> str:
@@ -26,7 +29,7 @@ def open_storage(config: StudyConfig, study_dir: Path):
     import warnings
 
     import optuna
-    from sqlalchemy.exc import SQLAlchemyError
+    from sqlalchemy.exc import IntegrityError, ProgrammingError, SQLAlchemyError
 
     # Heartbeats are the documented way to recover killed trials; their "experimental" notice is noise.
     warnings.filterwarnings("ignore", category=optuna.exceptions.ExperimentalWarning)
@@ -38,17 +41,28 @@ def open_storage(config: StudyConfig, study_dir: Path):
         engine_kwargs = {"connect_args": {"timeout": 60}}
     else:
         engine_kwargs = {"pool_pre_ping": True}
-    try:
-        return optuna.storages.RDBStorage(
-            url,
-            engine_kwargs=engine_kwargs,
-            heartbeat_interval=config.heartbeat_interval_s,
-            grace_period=config.grace_period_s,
-            heartbeat_stale_trial_callback=optuna.storages.RetryHeartbeatStaleTrialCallback(max_retry=config.max_retry),
-        )
-    except (SQLAlchemyError, ImportError, ValueError) as exc:
-        shown = url.split("@")[-1] if "@" in url else url
-        raise TorchcalError(f"cannot open study storage '{shown}': {str(exc).splitlines()[0]}") from None
+    # Workers on several machines may start together on an empty database: all of them try to
+    # create Optuna's tables and all but one fail on the catalog's unique index. The tables then
+    # exist, so opening again succeeds.
+    for attempt in range(CREATE_ATTEMPTS):
+        try:
+            return optuna.storages.RDBStorage(
+                url,
+                engine_kwargs=engine_kwargs,
+                heartbeat_interval=config.heartbeat_interval_s,
+                grace_period=config.grace_period_s,
+                heartbeat_stale_trial_callback=optuna.storages.RetryHeartbeatStaleTrialCallback(max_retry=config.max_retry),
+            )
+        except (IntegrityError, ProgrammingError) as exc:
+            if attempt == CREATE_ATTEMPTS - 1:
+                error = exc
+                break
+            time.sleep(0.5 * (attempt + 1))
+        except (SQLAlchemyError, ImportError, ValueError) as exc:
+            error = exc
+            break
+    shown = url.split("@")[-1] if "@" in url else url
+    raise TorchcalError(f"cannot open study storage '{shown}': {str(error).splitlines()[0]}") from None
 
 
 def open_study(config: StudyConfig, study_dir: Path):
