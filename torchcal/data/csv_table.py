@@ -90,3 +90,36 @@ def joint_columns(header: tuple[str, ...]) -> list[str]:
     if numbers != list(range(1, len(numbers) + 1)):
         raise DataError(f"joint columns must be q1..qN without gaps, found {names}")
     return [f"q{i}" for i in numbers]
+
+
+def check_units(joint_unit: str, length_unit: str, path: str | Path) -> None:
+    """Refuse unit names other than those of the data contract (``deg``/``rad``, ``mm``/``m``)."""
+    if joint_unit not in ("deg", "rad"):
+        raise DataError(f"joint_unit must be 'deg' or 'rad', got {joint_unit!r}", path=str(path))
+    if length_unit not in ("mm", "m"):
+        raise DataError(f"length_unit must be 'mm' or 'm', got {length_unit!r}", path=str(path))
+
+
+def joint_columns(header: tuple[str, ...], path: str | Path, n_joints: int | None = None,
+                  robot_name: str | None = None) -> list[str]:
+    """The joint columns ``q1..qN`` of a header, in order, checked against the robot's joint count.
+
+    With ``robot_name`` every mismatch is reported as what that robot needs; without it, gaps and
+    a missing ``q1..qN`` are reported as such and the count is checked when ``n_joints`` is given.
+    """
+    p = str(path)
+    names = [h for h in header if len(h) > 1 and h[0] == "q" and h[1:].isdigit()]
+    numbers = sorted(int(h[1:]) for h in names)
+    if robot_name is not None and n_joints is not None:
+        expected = [f"q{i}" for i in range(1, n_joints + 1)]
+        if len(names) != n_joints or set(names) != set(expected):
+            raise DataError(f"robot '{robot_name}' has {n_joints} joints, so the file needs columns "
+                            f"{expected[0]}..{expected[-1]}; found {names or 'none'}", path=p, row=1)
+        return expected
+    if not numbers:
+        raise DataError("no joint columns q1..qN", path=p, row=1)
+    if numbers != list(range(1, len(numbers) + 1)):
+        raise DataError(f"joint columns must be q1..qN without gaps, found {names}", path=p, row=1)
+    if n_joints is not None and len(numbers) != n_joints:
+        raise DataError(f"has {len(numbers)} joint columns but the robot has {n_joints} joints", path=p, row=1)
+    return [f"q{i}" for i in numbers]

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from torchcal.data.csv_table import read_csv_table
+from torchcal.data.csv_table import check_units, joint_columns, read_csv_table
 from torchcal.errors import DataError
 from torchcal.kinematics.robot import RobotModel
 from torchcal.kinematics.transforms import euler_xyz_to_matrix
@@ -92,22 +92,12 @@ def load_measurements(
             non-numeric or non-finite cells, joints outside the robot's limits, a joint count
             that does not match the robot, and exactly duplicated rows.
     """
-    if joint_unit not in ("deg", "rad"):
-        raise DataError(f"joint_unit must be 'deg' or 'rad', got {joint_unit!r}", path=str(path))
-    if length_unit not in ("mm", "m"):
-        raise DataError(f"length_unit must be 'mm' or 'm', got {length_unit!r}", path=str(path))
+    check_units(joint_unit, length_unit, path)
     table = read_csv_table(path)
     p = str(table.path)
     header = table.header
     n = robot.dof
-    expected_q = [f"q{i}" for i in range(1, n + 1)]
-    q_like = [h for h in header if len(h) > 1 and h[0] == "q" and h[1:].isdigit()]
-    if len(q_like) != n or set(q_like) != set(expected_q):
-        raise DataError(
-            f"robot '{robot.name}' has {n} joints, so the file needs columns {expected_q[0]}..{expected_q[-1]}; "
-            f"found {q_like or 'none'}",
-            path=p, row=1,
-        )
+    expected_q = joint_columns(header, p, n, robot.name)
     allowed = set(expected_q) | set(POSITION) | set(ORIENTATION) | set(WRENCH) | set(TEMPERATURE)
     extra = [h for h in header if h not in allowed]
     if extra:

@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from torchcal.data.csv_table import CsvTable, read_csv_table
+from torchcal.data.csv_table import CsvTable, check_units, joint_columns, read_csv_table
 from torchcal.errors import DataError
 
 REQUIRED = ("scan", "u", "w")
@@ -148,11 +148,7 @@ def load_profile(
             that does not match the robot, joints outside the limits, rows of one scan with
             different joints, or a scan with fewer than two distinct points.
     """
-    p = str(path)
-    if joint_unit not in ("deg", "rad"):
-        raise DataError(f"joint_unit must be 'deg' or 'rad', got {joint_unit!r}", path=p)
-    if length_unit not in ("mm", "m"):
-        raise DataError(f"length_unit must be 'mm' or 'm', got {length_unit!r}", path=p)
+    check_units(joint_unit, length_unit, path)
     table = read_csv_table(path)
     p = str(table.path)
     header = table.header
@@ -161,13 +157,7 @@ def load_profile(
         lowered = {h.lower(): h for h in header}
         hint = f" (found '{lowered[missing[0]]}'; names are case-sensitive)" if missing[0] in lowered else ""
         raise DataError(f"missing column '{missing[0]}'{hint}; a profile file needs scan, q1..qN, u, w", path=p, row=1, column=missing[0])
-    joints = [h for h in header if len(h) > 1 and h[0] == "q" and h[1:].isdigit()]
-    numbers = sorted(int(h[1:]) for h in joints)
-    if not numbers or numbers != list(range(1, len(numbers) + 1)):
-        raise DataError(f"joint columns must be q1..qN without gaps, found {joints or 'none'}", path=p, row=1)
-    joints = [f"q{i}" for i in numbers]
-    if n_joints is not None and len(joints) != n_joints:
-        raise DataError(f"has {len(joints)} joint columns but the robot has {n_joints} joints", path=p, row=1)
+    joints = joint_columns(header, p, n_joints)
     extra = [h for h in header if h not in set(REQUIRED) | set(OPTIONAL) | set(joints)]
     if extra:
         raise DataError(f"unknown column '{extra[0]}'; allowed: scan, q1..q{len(joints)}, u, w, plane", path=p, row=1, column=extra[0])

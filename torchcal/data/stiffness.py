@@ -25,6 +25,7 @@ from pathlib import Path
 
 import torch
 
+from torchcal.data.csv_table import check_units, joint_columns
 from torchcal.errors import DataError
 
 WRENCH_COLUMNS = ("fx", "fy", "fz", "tx", "ty", "tz")
@@ -76,16 +77,6 @@ class StiffnessData:
             unloaded=pick(self.unloaded),
             path=self.path,
         )
-
-
-def _joint_columns(header: tuple[str, ...], path: str) -> list[str]:
-    names = [h for h in header if len(h) > 1 and h[0] == "q" and h[1:].isdigit()]
-    numbers = sorted(int(h[1:]) for h in names)
-    if not numbers:
-        raise DataError("no joint columns q1..qN", path=path, row=1)
-    if numbers != list(range(1, len(numbers) + 1)):
-        raise DataError(f"joint columns must be q1..qN without gaps, found {names}", path=path, row=1)
-    return [f"q{i}" for i in numbers]
 
 
 def _read(path: Path) -> tuple[tuple[str, ...], list[list[str]], list[int]]:
@@ -152,16 +143,9 @@ def load_stiffness(
     """
     path = Path(path)
     p = str(path)
-    if joint_unit not in ("deg", "rad"):
-        raise DataError(f"joint_unit must be 'deg' or 'rad', got {joint_unit!r}", path=p)
-    if length_unit not in ("mm", "m"):
-        raise DataError(f"length_unit must be 'mm' or 'm', got {length_unit!r}", path=p)
+    check_units(joint_unit, length_unit, path)
     header, rows, lines = _read(path)
-    joints = _joint_columns(header, p)
-    if n_joints is not None and len(joints) != n_joints:
-        raise DataError(
-            f"has {len(joints)} joint columns but the robot has {n_joints} joints", path=p, row=1
-        )
+    joints = joint_columns(header, p, n_joints)
     _group(header, WRENCH_COLUMNS, p, "a wrench", required=True)
     _group(header, DEFLECTION_COLUMNS, p, "a deflection", required=True)
     has_rot = _group(header, ROTATION_COLUMNS, p, "a rotation", required=False)

@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from torchcal.data.csv_table import read_csv_table
+from torchcal.data.csv_table import check_units, joint_columns, read_csv_table
 from torchcal.errors import DataError
 from torchcal.kinematics.robot import RobotModel
 from torchcal.measure.tracer_locate import MIN_STATIONS_PER_POSE
@@ -124,23 +124,12 @@ def load_tracer_data(
     Raises:
         DataError: file, line and column of the first problem found.
     """
-    p = str(path)
-    if joint_unit not in ("deg", "rad"):
-        raise DataError(f"joint_unit must be 'deg' or 'rad', got {joint_unit!r}", path=p)
-    if length_unit not in ("mm", "m"):
-        raise DataError(f"length_unit must be 'mm' or 'm', got {length_unit!r}", path=p)
+    check_units(joint_unit, length_unit, path)
     table = read_csv_table(path)
     p = str(table.path)
     header = table.header
     n_j = robot.dof
-    expected_q = [f"q{i}" for i in range(1, n_j + 1)]
-    q_like = [h for h in header if len(h) > 1 and h[0] == "q" and h[1:].isdigit()]
-    if len(q_like) != n_j or set(q_like) != set(expected_q):
-        raise DataError(
-            f"robot '{robot.name}' has {n_j} joints, so the file needs columns {expected_q[0]}..{expected_q[-1]}; "
-            f"found {q_like or 'none'}",
-            path=p, row=1,
-        )
+    expected_q = joint_columns(header, p, n_j, robot.name)
     stations = _station_columns(header, p)
     extra = [h for h in header if h not in set(expected_q) | set(stations)]
     if extra:
