@@ -56,3 +56,21 @@ def test_plain_elm_refit_equals_a_fit_on_all_poses():
     direct = ELM(hidden=20, seed=4).fit(torch.cat([x, xv]), torch.cat([y, yv]), xv, yv)
     xt, _ = _data(50, 5)
     torch.testing.assert_close(refitted.predict(xt), direct.predict(xt))
+
+
+def test_mma_elm_refit_keeps_the_searched_hidden_layer():
+    from torchcal.residual import MayflyELM
+
+    x, y = _data(120, 6)
+    xv, yv = _data(30, 7)
+    head = MayflyELM(hidden=10, population=4, iterations=3, seed=1)
+    fit_idx, tune_idx = tuning_split(120, seed=0)
+    head.fit(x[fit_idx], y[fit_idx], x[tune_idx], y[tune_idx])
+    w, b = head.elm.weights.clone(), head.elm.bias.clone()
+    refit_on_all(head, x, y, xv, yv, seed=0)
+    torch.testing.assert_close(head.elm.weights, w)
+    torch.testing.assert_close(head.elm.bias, b)
+    direct = ELM(hidden=10, seed=1)
+    direct.set_hidden_layer(w, b)
+    direct.fit(torch.cat([x, xv]), torch.cat([y, yv]))
+    torch.testing.assert_close(head.predict(xv), direct.predict(xv))

@@ -64,6 +64,11 @@ class MayflyELM(ResidualHead):
         self.elm.fit(x_train, y_train)
         return self
 
+    def refit_output(self, x: torch.Tensor, y: torch.Tensor) -> "MayflyELM":
+        """Re-solve the output weights on ``(x, y)``, keeping the hidden layer the search chose."""
+        self.elm.fit(x, y)
+        return self
+
     def module(self) -> torch.nn.Module:
         return self.elm.module()
 
