@@ -59,7 +59,7 @@ def test_objective_is_the_heads_validation_rms_and_size_grows_with_hidden(tmp_pa
     t = trials[0]
     hidden = t.params["fit.residual_hidden"]
     data = objective.prepare(base)
-    head = ELM(hidden=hidden, seed=base.fit.seed).fit(data.x[data.train], data.y[data.train], data.x[data.val], data.y[data.val])
+    head = ELM(hidden=hidden, seed=base.fit.seed).fit(data.x[data.train], data.y[data.train])
     assert t.values[0] == pytest.approx(rms(head.predict(data.x[data.val]) - data.y[data.val]), rel=1e-9)
     # model size is the head's parameter count, so it grows with the hidden layer
     by_hidden = sorted((tr.params["fit.residual_hidden"], tr.values[1]) for tr in trials)

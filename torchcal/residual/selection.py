@@ -51,6 +51,14 @@ def tuning_split(n: int, fraction: float = 0.2, seed: int = 0) -> tuple[torch.Te
     return perm[n_tune:], perm[:n_tune]
 
 
+def fit_before_gate(head: ResidualHead, x_train, y_train, *, seed: int = 0) -> ResidualHead:
+    """Fit ``head`` on the training pair only, its own tuning on a slice split off it."""
+    fit_idx, tune_idx = tuning_split(len(x_train), seed=seed)
+    if head.tunes_on_validation:
+        return head.fit(x_train[fit_idx], y_train[fit_idx], x_train[tune_idx], y_train[tune_idx])
+    return head.fit(x_train, y_train, x_train[tune_idx], y_train[tune_idx])
+
+
 def select_head(candidates: list[ResidualHead], x_train, y_train, x_val, y_val, *, margin: float = 0.05,
                 z_min: float = 2.0, seed: int = 0) -> Selection:
     """Fit each candidate on the training pair, keep the best only if it passes the gate on the validation pair."""
@@ -59,10 +67,7 @@ def select_head(candidates: list[ResidualHead], x_train, y_train, x_val, y_val, 
     scores: dict[str, float] = {}
     best, best_score, best_z = None, float("inf"), 0.0
     for head in candidates:
-        if head.tunes_on_validation:
-            head.fit(x_train[fit_idx], y_train[fit_idx], x_train[tune_idx], y_train[tune_idx])
-        else:
-            head.fit(x_train, y_train, x_train[tune_idx], y_train[tune_idx])
+        fit_before_gate(head, x_train, y_train, seed=seed)
         predicted = head.predict(x_val)
         score = rms(predicted - y_val)
         scores[head.name] = score

@@ -1,8 +1,10 @@
 """One trial of a study: the run configuration with the trial's values, scored on validation.
 
 The objective is the validation RMS (mm) of the residual head on the validation split of the
-*training* poses, the same split the residual gate uses; the twin's test poses are scored too but
-only recorded (``test_rms_mm``), so a study never selects on data it is judged by. Data and the
+*training* poses, the split the residual gate uses, with the head fitted exactly as before the
+gate (its own tuning on a slice of the training part, never on the validation poses). The twin's
+test poses are scored too but only recorded (``test_rms_mm``), so a study never selects on data
+it is judged by. Data and the
 geometric fit depend only on the twin and geometric settings, so they are computed once per
 worker process and reused by every trial that shares them.
 """
@@ -107,6 +109,7 @@ class StudyObjective:
 
         from torchcal.config import save_resolved_config
         from torchcal.residual.base import rms
+        from torchcal.residual.selection import fit_before_gate
         from torchcal.residual_stage import _candidates
 
         values = {d.key: d.suggest(trial) for d in self.space}
@@ -128,7 +131,8 @@ class StudyObjective:
                         raise optuna.TrialPruned(f"validation RMS {value:.4f} mm at iteration {step}")
 
                 head.on_iteration = report
-            head.fit(data.x[data.train], data.y[data.train], data.x[data.val], data.y[data.val])
+            # as the gate of `fit` does: tuned on a slice of the training part, scored on validation
+            fit_before_gate(head, data.x[data.train], data.y[data.train], seed=config.fit.seed)
             scores[head.name] = rms(head.predict(data.x[data.val]) - data.y[data.val])
             if scores[head.name] < best_score:
                 best_head, best_score = head, scores[head.name]
