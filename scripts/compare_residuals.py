@@ -24,7 +24,7 @@ from torchcal.metrics import position_metrics
 from torchcal.pipeline import nominal_errors
 from torchcal.residual import ELM, MayflyELM, MLPHead
 from torchcal.residual.features import JointFeatures
-from torchcal.residual.selection import refit_on_all
+from torchcal.residual.selection import fit_before_gate, refit_on_all
 from torchcal.residual_stage import residual_targets_mm, split
 from torchcal.sim.twin import Twin, TwinConfig
 
@@ -51,8 +51,9 @@ def one_seed(seed: int, with_mlp: bool = True) -> dict[str, dict]:
         heads.append(("geometric + MLP", MLPHead(seed=seed)))
     for label, head in heads:
         start = time.perf_counter()
-        # the head `fit` ends with when it keeps one: tuned on a slice of the training part, then
-        # fitted on the training and validation parts together (refit_on_all)
+        # the head `fit` ends with when it keeps one: fitted as before the gate (tuned on a slice of
+        # the training part), then refitted on the training and validation parts together
+        fit_before_gate(head, x[a], y[a], seed=seed)
         refit_on_all(head, x[a], y[a], x[b], y[b], seed=seed)
         elapsed = time.perf_counter() - start
         correction = (head.predict(feats(test.q)) * 1e-3) @ rotation.T

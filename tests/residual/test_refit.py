@@ -74,3 +74,13 @@ def test_mma_elm_refit_keeps_the_searched_hidden_layer():
     direct.set_hidden_layer(w, b)
     direct.fit(torch.cat([x, xv]), torch.cat([y, yv]))
     torch.testing.assert_close(head.predict(xv), direct.predict(xv))
+
+
+def test_mma_elm_refit_before_fit_is_refused():
+    import pytest
+
+    from torchcal.residual import MayflyELM
+
+    x, y = _data(40, 8)
+    with pytest.raises(RuntimeError, match="call fit first"):
+        refit_on_all(MayflyELM(hidden=5, population=2, iterations=1), x, y, x, y)

@@ -66,6 +66,8 @@ class MayflyELM(ResidualHead):
 
     def refit_output(self, x: torch.Tensor, y: torch.Tensor) -> "MayflyELM":
         """Re-solve the output weights on ``(x, y)``, keeping the hidden layer the search chose."""
+        if self.search is None:
+            raise RuntimeError("refit_output needs a fitted MMA-ELM: call fit first (the search chooses the hidden layer)")
         self.elm.fit(x, y)
         return self
 
