@@ -18,6 +18,9 @@ def _check_shared(trials, n_workers: int) -> set[int]:
     finished = [t for t in trials if t.state in (TrialState.COMPLETE, TrialState.PRUNED)]
     # both workers may start a last trial at the same instant: at most n_workers - 1 extra
     assert N_TRIALS <= len(finished) <= N_TRIALS + n_workers - 1
+    # and they did not propose the same configurations in lock-step
+    params = [tuple(sorted(t.params.items())) for t in sorted(finished, key=lambda t: t.number)]
+    assert len(set(params)) > len(params) // 2
     assert not [t for t in trials if t.state in (TrialState.RUNNING, TrialState.WAITING, TrialState.FAIL)]
     # each trial folder holds its resolved config, written by the worker that ran it
     return {t.user_attrs["worker_pid"] for t in trials}
@@ -76,3 +79,13 @@ def test_workers_starting_together_on_an_empty_database(postgres_url):
     finally:
         with psycopg.connect(admin.replace("+psycopg", ""), autocommit=True) as conn:
             conn.execute(f"DROP DATABASE {name} WITH (FORCE)")
+
+
+def test_local_workers_do_not_repeat_each_other(tmp_path):
+    """Workers of one study draw from different sampler streams (same seed would mean same proposals)."""
+    from torchcal.studies.spec import StudyConfig
+    from torchcal.studies.storage import sampler_seed
+
+    config = StudyConfig(seed=3)
+    seeds = {sampler_seed(config, tmp_path, k) for k in range(4)}
+    assert seeds == {3, 4, 5, 6}

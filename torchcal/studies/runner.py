@@ -55,7 +55,7 @@ def _enqueue_default(study, base, config: StudyConfig) -> None:
     study.enqueue_trial(params, user_attrs={"default_configuration": True}, skip_if_exists=True)
 
 
-def work(base, config: StudyConfig, study_dir: str, threads: int = 1) -> int:
+def work(base, config: StudyConfig, study_dir: str, threads: int = 1, worker: int = 0) -> int:
     """One worker: run trials of the shared study until its budget is met; returns trials run."""
     import optuna
     import torch
@@ -65,7 +65,7 @@ def work(base, config: StudyConfig, study_dir: str, threads: int = 1) -> int:
 
     torch.set_num_threads(max(1, threads))
     optuna.logging.set_verbosity(optuna.logging.WARNING)
-    study = open_study(config, Path(study_dir))
+    study = open_study(config, Path(study_dir), worker)
     objective = StudyObjective(base, config, Path(study_dir))
     ran, failures = 0, 0
     while True:
@@ -129,7 +129,7 @@ def run_study(base, config: StudyConfig, *, workers: int = 1, console=None) -> S
         _with_progress(lambda: work(base, config, str(study_dir), threads), study, config, console)
     else:
         ctx = multiprocessing.get_context("spawn")
-        procs = [ctx.Process(target=work, args=(base, config, str(study_dir), threads)) for _ in range(workers)]
+        procs = [ctx.Process(target=work, args=(base, config, str(study_dir), threads, k)) for k in range(workers)]
         for p in procs:
             p.start()
         _with_progress(lambda: [p.join() for p in procs], study, config, console)

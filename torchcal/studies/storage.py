@@ -65,15 +65,32 @@ def open_storage(config: StudyConfig, study_dir: Path):
     raise TorchcalError(f"cannot open study storage '{shown}': {str(error).splitlines()[0]}") from None
 
 
-def open_study(config: StudyConfig, study_dir: Path):
+def sampler_seed(config: StudyConfig, study_dir: Path, worker: int = 0) -> int:
+    """The seed of one worker's sampler.
+
+    Workers with the same seed would propose the same parameters one after the other, so local
+    worker ``k`` uses ``seed + k``. Processes on several machines sharing a database server cannot
+    be told apart by an index, and their trial order is not reproducible anyway: their seed also
+    takes the process id.
+    """
+    import os
+
+    seed = config.seed + worker
+    if not storage_url(config, study_dir).startswith("sqlite"):
+        seed += 7919 * os.getpid()
+    return seed % (2**31)
+
+
+def open_study(config: StudyConfig, study_dir: Path, worker: int = 0):
     """Create the study or load it when it exists (this is what makes a restart resume)."""
     import optuna
 
     storage = open_storage(config, study_dir)
+    seed = sampler_seed(config, study_dir, worker)
     if config.sampler == "tpe":
-        sampler = optuna.samplers.TPESampler(seed=config.seed, n_startup_trials=min(8, max(2, config.n_trials // 3)))
+        sampler = optuna.samplers.TPESampler(seed=seed, n_startup_trials=min(8, max(2, config.n_trials // 3)))
     else:
-        sampler = optuna.samplers.RandomSampler(seed=config.seed)
+        sampler = optuna.samplers.RandomSampler(seed=seed)
     pruner = (
         optuna.pruners.MedianPruner(n_startup_trials=3, n_warmup_steps=config.pruner_warmup_steps)
         if config.pruner == "median" and len(config.objectives) == 1
