@@ -162,7 +162,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("overrides", nargs="*", help="config groups and key=value, e.g. model=mlp twin.n_train=120 fit.method=lasso")
     p.set_defaults(func=_cmd_run)
 
-    p = sub.add_parser("simulate", help="write a twin case (instrument=tracker|...): robot.yaml, data files, truth.json")
+    p = sub.add_parser("simulate", help="write a twin case (instrument=tracker|tracer|stiffness|profile): robot.yaml, data files, truth.json")
     p.add_argument("--out", required=True)
     p.add_argument("overrides", nargs="*", help="key=value of the twin, e.g. gravity=true n_train=200")
     p.set_defaults(func=_cmd_simulate)
