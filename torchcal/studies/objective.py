@@ -55,8 +55,8 @@ class PreparedData:
     y: torch.Tensor
     train: torch.Tensor
     val: torch.Tensor
-    x_test: torch.Tensor
-    y_test: torch.Tensor
+    x_test: torch.Tensor | None
+    y_test: torch.Tensor | None
 
 
 class StudyObjective:
@@ -87,19 +87,27 @@ class StudyObjective:
         from torchcal.residual_stage import residual_targets_mm, split
 
         fit_geometry = {k: getattr(config.fit, k) for k in GEOMETRIC_KEYS}
-        key = _digest([asdict(config.twin), fit_geometry, config.fit.validation_fraction, config.fit.seed])
+        source = asdict(config.twin) if self.study.train is None else [self.study.robot, self.study.train, self.study.test]
+        key = _digest([source, fit_geometry, config.fit.validation_fraction, config.fit.seed])
         if key not in self._prepared:
-            case = self._case(config.twin)
-            robot = with_tool(load_robot(case["robot.yaml"]), config.fit)
-            train = load_measurements(case["train.csv"], robot)
-            test = load_measurements(case["test.csv"], robot)
+            units = {"joint_unit": config.fit.joint_unit, "length_unit": config.fit.length_unit}
+            if self.study.train is None:
+                case = self._case(config.twin)
+                robot = with_tool(load_robot(case["robot.yaml"]), config.fit)
+                train = load_measurements(case["train.csv"], robot)
+                test = load_measurements(case["test.csv"], robot)
+            else:
+                robot = with_tool(load_robot(self.study.robot), config.fit)
+                train = load_measurements(self.study.train, robot, **units)
+                test = load_measurements(self.study.test, robot, **units) if self.study.test else None
             result = fit(robot, train, config.fit)
             features = JointFeatures(robot.joint_limits.to(torch.float64), None)
             idx_train, idx_val = split(len(train), config.fit.validation_fraction, config.fit.seed)
             self._prepared[key] = PreparedData(
                 robot, result, features,
                 features(train.q, None), residual_targets_mm(result.model, result.x, train), idx_train, idx_val,
-                features(test.q, None), residual_targets_mm(result.model, result.x, test),
+                features(test.q, None) if test is not None else None,
+                residual_targets_mm(result.model, result.x, test) if test is not None else None,
             )
         return self._prepared[key]
 
@@ -138,7 +146,9 @@ class StudyObjective:
                 best_head, best_score = head, scores[head.name]
         seconds = time.perf_counter() - started
         size = sum(t.numel() for t in best_head.module().state_dict().values()) if best_head is not None else 0
-        test_rms = rms(best_head.predict(data.x_test) - data.y_test) if best_head is not None else rms(data.y_test)
+        test_rms = None
+        if data.x_test is not None:
+            test_rms = rms(best_head.predict(data.x_test) - data.y_test) if best_head is not None else rms(data.y_test)
         trial.set_user_attr("head", best_head.name if best_head is not None else None)
         trial.set_user_attr("validation_rms_by_head_mm", scores)
         trial.set_user_attr("geometric_validation_rms_mm", rms(data.y[data.val]))

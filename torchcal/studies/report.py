@@ -83,6 +83,10 @@ def _save(fig, path: Path) -> None:
     atomic_write_bytes(path, buffer.getvalue())
 
 
+def _mm(value) -> str:
+    return "n/a" if value is None else f"{value:.4f} mm"
+
+
 def write_study_report(study, config: StudyConfig, study_dir: Path, best_run: dict | None = None) -> Path:
     """Write ``report.md`` and its figures into ``study_dir``; returns the report path."""
     import optuna
@@ -102,13 +106,13 @@ def write_study_report(study, config: StudyConfig, study_dir: Path, best_run: di
         default = [t for t in complete if t.user_attrs.get("default_configuration")]
         best = study.best_trial
         lines += ["## Best trial", "", f"Trial {best.number}: {config.objectives[0]} = {best.values[0]:.4f}"
-                  f" (held-out test RMS {best.user_attrs.get('test_rms_mm', float('nan')):.4f} mm, "
+                  f" (held-out test RMS {_mm(best.user_attrs.get('test_rms_mm'))}, "
                   f"head {best.user_attrs.get('head')}, {best.user_attrs.get('model_size')} parameters).", ""]
         lines += ["```yaml"] + [f"{k}: {v}" for k, v in best.params.items()] + ["```", ""]
         if default:
             d = default[0]
             lines.append(f"Default configuration (trial {d.number}): {config.objectives[0]} = {d.values[0]:.4f}, "
-                         f"test RMS {d.user_attrs.get('test_rms_mm', float('nan')):.4f} mm; the best trial is "
+                         f"test RMS {_mm(d.user_attrs.get('test_rms_mm'))}; the best trial is "
                          f"{100 * (1 - best.values[0] / d.values[0]):.1f} % lower on validation.")
             lines.append("")
         if len(complete) >= 3 and len(best.params) >= 1:
@@ -128,10 +132,13 @@ def write_study_report(study, config: StudyConfig, study_dir: Path, best_run: di
             lines.append(f"| {t.number} | " + " | ".join(f"{v:.4g}" for v in t.values) + f" | {t.params} |")
         lines.append("")
     if best_run is not None:
-        final = best_run["test"][best_run["final_stage"]]
-        lines += ["## Best configuration refitted", "",
-                  f"Full run of trial {best_run['trial']} in `{best_run['run_folder']}`: held-out RMS "
-                  f"{final['position_rms_mm']:.4f} mm ({best_run['final_stage']}).", ""]
+        lines += ["## Best configuration refitted", ""]
+        if "test" in best_run:
+            final = best_run["test"][best_run["final_stage"]]
+            lines += [f"Full run of trial {best_run['trial']} in `{best_run['run_folder']}`: held-out RMS "
+                      f"{final['position_rms_mm']:.4f} mm ({best_run['final_stage']}).", ""]
+        else:
+            lines += [f"Trial {best_run['trial']} refitted in `{best_run['run_folder']}` (no held-out file given).", ""]
     lines += ["## All trials", "", "| trial | state | value(s) | test RMS mm | params |", "|---|---|---|---|---|"]
     for t in trials:
         values = ", ".join(f"{v:.4f}" for v in t.values) if t.values else "-"

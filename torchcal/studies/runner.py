@@ -167,12 +167,40 @@ def refit_best(base, config: StudyConfig, study, study_dir: Path, console=None) 
 
     best = study.best_trial
     run_config = apply_values(base, dict(best.params))
+    if config.train is not None:
+        return _refit_best_on_files(run_config, config, best, study_dir, console)
     run_config.out = str(study_dir)
     run_config.name = "best"
     run_config.export_dir = str(Path(base.export_dir) / "studies" / config.name)
     summary = run(run_config, console=console)
     return {"trial": best.number, "params": dict(best.params), "run_folder": str(study_dir / "best"),
             "test": summary["test"], "final_stage": summary["final_stage"], "export": summary.get("export")}
+
+
+def _refit_best_on_files(run_config, config: StudyConfig, best, study_dir: Path, console=None) -> dict:
+    """The best trial on measured data: ``fit`` (geometry, gated residual), model folder, export."""
+    from torchcal.compensate.export import export_model
+    from torchcal.config import save_resolved_config
+    from torchcal.data.measurements import load_measurements
+    from torchcal.kinematics.robot import load_robot
+    from torchcal.pipeline import evaluate, fit, save_fit, with_tool
+    from torchcal.residual_stage import fit_residual_stage
+
+    fit_config = run_config.fit
+    units = {"joint_unit": fit_config.joint_unit, "length_unit": fit_config.length_unit}
+    robot = with_tool(load_robot(config.robot), fit_config)
+    train = load_measurements(config.train, robot, **units)
+    folder = save_fit(study_dir / "best" / "model", robot, train, fit(robot, train, fit_config), {})
+    save_resolved_config(folder / "config.yaml", fit_config)
+    residual = fit_residual_stage(folder, train, fit_config, console=console) if fit_config.residual != "none" else None
+    out = {"trial": best.number, "params": dict(best.params), "run_folder": str(folder), "residual": residual}
+    if config.test:
+        metrics = evaluate(folder, config.test, config=fit_config)
+        out.update({"test": {"model": metrics}, "final_stage": "model"})
+    if run_config.export:
+        manifest = export_model(folder, Path(run_config.export_dir) / "studies" / config.name / "best")
+        out["export"] = manifest["files"]
+    return out
 
 
 def _with_progress(job, study, config: StudyConfig, console) -> None:

@@ -33,7 +33,10 @@ class StudyConfig:
         max_retry: times a failed trial is retried with the same parameters.
         search_space: dotted run-config key -> ``{type: int|float|categorical, low, high, step,
             log, choices}``.
-        refit_best: refit the best trial as a full run (report, export) at the end.
+        refit_best: refit the best trial as a full run (report, held-out test, export) at the end.
+        robot / train / test: measured data instead of the twin: a robot file, the training
+            measurement CSV (its validation split is the objective) and optionally a held-out CSV
+            (recorded, never optimized). Units follow ``fit.joint_unit`` / ``fit.length_unit``.
     """
 
     name: str = "study"
@@ -49,6 +52,9 @@ class StudyConfig:
     max_retry: int = 1
     search_space: dict[str, Any] = field(default_factory=dict)
     refit_best: bool = True
+    robot: str | None = None
+    train: str | None = None
+    test: str | None = None
 
     def validate(self) -> None:
         unknown = [o for o in self.objectives if o not in OBJECTIVES]
@@ -60,6 +66,10 @@ class StudyConfig:
             raise TorchcalError(f"study.pruner '{self.pruner}' unknown; choose one of {PRUNERS}")
         if self.n_trials < 1:
             raise TorchcalError("study.n_trials must be at least 1")
+        if (self.robot is None) != (self.train is None):
+            raise TorchcalError("study.robot and study.train go together: give both to study measured data, or neither for the twin")
+        if self.test is not None and self.train is None:
+            raise TorchcalError("study.test needs study.train (the twin brings its own test poses)")
         if not self.search_space:
             raise TorchcalError("study.search_space is empty: declare at least one parameter")
         for key, spec in self.search_space.items():
