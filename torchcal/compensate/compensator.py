@@ -145,6 +145,10 @@ class CompensatorGraph(nn.Module):
         return cls(stored.model, stored.x, residual, **options)
 
     def forward(self, q_nominal: torch.Tensor) -> torch.Tensor:
+        return self.solve(q_nominal)
+
+    def solve(self, q_nominal: torch.Tensor, wrench: torch.Tensor | None = None) -> torch.Tensor:
+        """The fixed number of damped Newton steps from ``q_nominal`` (``wrench``: loaded graphs)."""
         poses, frames = self.models.both(q_nominal, with_frames=True)
         target = poses[:, 0]
         pose, joint_frames = poses[:, 1], frames[:, 1]
@@ -153,13 +157,14 @@ class CompensatorGraph(nn.Module):
             if step > 0:
                 pose_c, frames_c = self.models.calibrated(q, with_frames=True)
                 pose, joint_frames = pose_c[:, 0], frames_c[:, 0]
-            q = q + self.step(target, pose, joint_frames, q)
+            q = q + self.step(target, pose, joint_frames, q, wrench)
         return q
 
-    def step(self, target: torch.Tensor, pose: torch.Tensor, joint_frames: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
+    def step(self, target: torch.Tensor, pose: torch.Tensor, joint_frames: torch.Tensor, q: torch.Tensor,
+             wrench: torch.Tensor | None = None) -> torch.Tensor:
         """One damped Newton step ``(B, N)`` rad: ``J^T (J J^T + lambda^2 I)^-1 e``."""
         jac_t = geometric_jacobian_t(pose, joint_frames)  # (B, N, 6)
-        error = self.pose_error(target, pose, q).unsqueeze(-1)  # (B, 6, 1)
+        error = self.pose_error(target, pose[:, :3, 3], pose[:, :3, :3], q).unsqueeze(-1)  # (B, 6, 1)
         return self.damped_step(jac_t, error)
 
     def damped_step(self, jac_t: torch.Tensor, error: torch.Tensor) -> torch.Tensor:
@@ -168,10 +173,11 @@ class CompensatorGraph(nn.Module):
         normal = jac_t.transpose(-1, -2) @ jac_t + lam2 * self.eye6
         return (jac_t @ gauss_jordan(normal, error, self.eye6)).squeeze(-1)
 
-    def pose_error(self, target: torch.Tensor, pose: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
-        """``[p_t - p - r(q), vee(R_t R^T)]`` ``(B, 6)`` (m, rad), ``base`` frame."""
-        dp = self.models.add_residual(target[:, :3, 3] - pose[:, :3, 3], q, -1.0)
-        e = target[:, :3, :3] @ pose[:, :3, :3].transpose(-1, -2)
+    def pose_error(self, target: torch.Tensor, position: torch.Tensor, rotation: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
+        """``[p_t - p - r(q), vee(R_t R^T)]`` ``(B, 6)`` (m, rad), ``base`` frame, for the TCP at
+        ``position`` ``(B, 3)`` with ``rotation`` ``(B, 3, 3)``."""
+        dp = self.models.add_residual(target[:, :3, 3] - position, q, -1.0)
+        e = target[:, :3, :3] @ rotation.transpose(-1, -2)
         skew = (e - e.transpose(-1, -2)).reshape(-1, 9)
         return torch.cat([dp, 0.5 * skew[:, [7, 2, 3]]], -1)
 
@@ -243,25 +249,14 @@ class LoadedCompensatorGraph(CompensatorGraph):
         return cls(stored.model, stored.x, stored.stiffness.compliance, residual, **options)
 
     def forward(self, q_nominal: torch.Tensor, wrench: torch.Tensor) -> torch.Tensor:  # type: ignore[override]
-        poses, frames = self.models.both(q_nominal, with_frames=True)
-        target = poses[:, 0]
-        pose, joint_frames = poses[:, 1], frames[:, 1]
-        q = q_nominal
-        for step in range(self.iterations):
-            if step > 0:
-                pose_c, frames_c = self.models.calibrated(q, with_frames=True)
-                pose, joint_frames = pose_c[:, 0], frames_c[:, 0]
-            position, rotation = self.deflection.loaded_pose(pose, joint_frames, wrench)
-            error = self.loaded_error(target, position, rotation, q).unsqueeze(-1)
-            q = q + self.damped_step(geometric_jacobian_t(pose, joint_frames), error)
-        return q
+        return self.solve(q_nominal, wrench)
 
-    def loaded_error(self, target: torch.Tensor, position: torch.Tensor, rotation: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
-        """``[p_t - p_loaded - r(q), vee(R_t R_loaded^T)]`` ``(B, 6)`` (m, rad), ``base`` frame."""
-        dp = self.models.add_residual(target[:, :3, 3] - position, q, -1.0)
-        e = target[:, :3, :3] @ rotation.transpose(-1, -2)
-        skew = (e - e.transpose(-1, -2)).reshape(-1, 9)
-        return torch.cat([dp, 0.5 * skew[:, [7, 2, 3]]], -1)
+    def step(self, target: torch.Tensor, pose: torch.Tensor, joint_frames: torch.Tensor, q: torch.Tensor,
+             wrench: torch.Tensor | None = None) -> torch.Tensor:
+        """The rigid step with the error measured at the loaded TCP (Jacobian kept rigid)."""
+        position, rotation = self.deflection.loaded_pose(pose, joint_frames, wrench)
+        error = self.pose_error(target, position, rotation, q).unsqueeze(-1)
+        return self.damped_step(geometric_jacobian_t(pose, joint_frames), error)
 
 
 class LoadedMonitorGraph(MonitorGraph):
