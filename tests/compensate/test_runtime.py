@@ -93,21 +93,63 @@ def test_runtime_module_does_not_import_torch():
     assert proc.stdout.strip() == "False"
 
 
-def test_non_finite_output_is_refused_not_returned(exported):
-    """At exactly singular wrist poses the float32 solve can lose its pivot: the runner must refuse."""
-    import onnxruntime as ort
-
-    folder, manifest = exported
+def test_float32_graph_is_finite_and_close_to_float64_at_singular_wrist_poses(exported, model_dir):
+    """The float32 graphs solve their 6x6 systems in float64: at |q5| < 1e-3 rad (100 poses exactly
+    0) every command is finite and puts the calibrated TCP where the float64 command does."""
+    folder, _ = exported
     gen = torch.Generator().manual_seed(5)
     q = (torch.rand(2000, 6, generator=gen, dtype=torch.float64) - 0.5) * 2.0
-    q[:, 4] = (torch.rand(2000, generator=gen, dtype=torch.float64) - 0.5) * 2e-3  # |q5| < 1e-3 rad
-    session = ort.InferenceSession(str(folder / manifest["files"]["compensator_f32"]), providers=["CPUExecutionProvider"])
-    raw = session.run(None, {session.get_inputs()[0].name: q.float().numpy()})[0]
-    bad = np.flatnonzero(~np.isfinite(raw).all(axis=1))
-    if bad.size == 0:
-        pytest.skip("this onnxruntime build kept every float32 pivot; nothing to refuse")
-    rt32 = CompensatorRuntime(folder, precision="float32")
-    with pytest.raises(CompensatorError, match=rf"row\(s\) \[{bad[0]}"):
-        rt32.correct(q.numpy())
-    # the float64 graph is finite on the same poses
-    assert np.isfinite(CompensatorRuntime(folder).correct(q.numpy())).all()
+    q[:, 4] = (torch.rand(2000, generator=gen, dtype=torch.float64) - 0.5) * 2e-3
+    q[:100, 4] = 0.0
+    q = q.float().double()  # both precisions see the same joints
+    q32 = CompensatorRuntime(folder, precision="float32").correct(q.numpy())  # refuses non-finite rows
+    q64 = CompensatorRuntime(folder).correct(q.numpy())
+    stored = load_model(model_dir)
+    tcp = lambda qq: (stored.model.base_flange_pose(qq, stored.x) @ stored.model.flange_from_tool(stored.x))[..., :3, 3]  # noqa: E731
+    gap_mm = (tcp(torch.from_numpy(q32).double()) - tcp(torch.from_numpy(q64))).norm(dim=-1) * 1e3
+    assert float(gap_mm.max()) <= 1e-3
+
+
+def _nan_folder(tmp_path: Path) -> Path:
+    """An exported folder whose tiny compensator (hashes in the manifest match) returns
+    ``q + log(w)``: NaN on the rows where the second input ``w`` (the wrench slot) is negative."""
+    import hashlib
+    import json
+
+    import onnx
+    from onnx import TensorProto, helper
+
+    def graph(name: str, width: int) -> bytes:
+        nodes = [helper.make_node("Log", ["sign"], ["log"]), helper.make_node("Add", ["q", "log"], ["sum"]),
+                 helper.make_node("Slice", ["sum", "s0", "s1", "ax"], ["out"])]
+        inits = [helper.make_tensor("s0", TensorProto.INT64, [1], [0]), helper.make_tensor("s1", TensorProto.INT64, [1], [width]),
+                 helper.make_tensor("ax", TensorProto.INT64, [1], [1])]
+        g = helper.make_graph(nodes, name, [helper.make_tensor_value_info("q", TensorProto.DOUBLE, ["batch", 6]),
+                                            helper.make_tensor_value_info("sign", TensorProto.DOUBLE, ["batch", 6])],
+                              [helper.make_tensor_value_info("out", TensorProto.DOUBLE, ["batch", width])], inits)
+        return helper.make_model(g, opset_imports=[helper.make_opsetid("", 17)]).SerializeToString()
+
+    folder = tmp_path / "nan"
+    folder.mkdir()
+    files, digests = {}, {}
+    for key, width in (("compensator", 6), ("monitor", 3)):
+        data = graph(key, width)
+        (folder / f"{key}.onnx").write_bytes(data)
+        files[key], digests[key] = f"{key}.onnx", hashlib.sha256(data).hexdigest()
+    manifest = {"format": "torchcal-compensator/1", "robot": "nan-bot", "n_joints": 6, "joint_names": [f"j{i}" for i in range(1, 7)],
+                "files": files, "sha256": digests, "stages": {"stiffness": True},
+                "wrench": {"frame": "tool"}}
+    (folder / "manifest.json").write_text(json.dumps(manifest))
+    return folder
+
+
+def test_runner_refuses_non_finite_output_and_names_the_rows(tmp_path):
+    """A graph output with NaN is refused with the rows named, never handed to the controller."""
+    folder = _nan_folder(tmp_path)
+    rt = CompensatorRuntime(folder)
+    q = np.zeros((5, 6))
+    sign = np.ones((5, 6))
+    sign[[1, 3]] = -1.0
+    with pytest.raises(CompensatorError, match=r"row\(s\) \[1, 3\]"):
+        rt.correct(q, sign)
+    np.testing.assert_allclose(rt.correct(q, np.ones(6)), np.zeros((5, 6)))  # finite output passes through

@@ -23,8 +23,12 @@ so that ``p_nom(q_c) = p_t - dp(q_c)`` holds exactly (tested).
 geometric Jacobian ``J^T`` ``(N, 6)`` of the calibrated model, each step is
 ``J^T (J J^T + lambda^2 I)^-1 e`` with ``e = [p_t - p_cal - r, vee(R_t R_cal^T)]`` (the vee of the
 skew part is ``sin(angle) axis``: it vanishes exactly where the rotation error does and needs no
-``acos``). The 6x6 solve is an unrolled Gauss-Jordan (:mod:`torchcal.compensate.linalg`). The
-damping follows the error, ``lambda^2 = c |e|^2 + lambda_0^2`` (``c = 10``, ``lambda_0 = 1e-5``;
+``acos``). The 6x6 solve is onnxruntime's one-node ``Inverse`` by default, or an unrolled
+Gauss-Jordan of standard operators (``solver="gauss_jordan"``; :mod:`torchcal.compensate.linalg`).
+It runs in float64 in every variant: a float32 graph casts ``J`` and ``e`` up for the solve and the
+step back down. In float32, ``J^T J`` loses the small singular values of a near-singular pose to
+rounding (~1e-7 relative), so a float32 solve there returns steps of the wrong size or NaN; the
+two casts cost two nodes. The damping follows the error, ``lambda^2 = c |e|^2 + lambda_0^2`` (``c = 10``, ``lambda_0 = 1e-5``;
 Sugihara's rule): large while the error is large, so a step near a singularity stays bounded,
 and vanishing as the error does, so regular poses converge quadratically. The residual's own
 Jacobian is left out of the step: a learned error of ~0.1 mm varies by ~1e-4 m/rad against
@@ -52,13 +56,15 @@ from torch import nn
 
 from torchcal.compensate.chain import ChainGraph, geometric_jacobian_t
 from torchcal.compensate.deflection import DeflectionGraph
-from torchcal.compensate.linalg import gauss_jordan
+from torchcal.compensate.linalg import gauss_jordan, ort_solve
 from torchcal.kinematics.error_model import ErrorModel
 from torchcal.kinematics.robot import RobotModel
 
 DEFAULT_ITERATIONS = 3
 DEFAULT_DAMPING_GAIN = 10.0
 DEFAULT_DAMPING_FLOOR = 1e-5
+SOLVERS = {"inverse": ort_solve, "gauss_jordan": gauss_jordan}
+"""The 6x6 solve of a step: onnxruntime's ``Inverse`` node, or the portable unrolled elimination."""
 
 
 def _end_transforms(robot: RobotModel, model: ErrorModel, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -114,6 +120,8 @@ class CompensatorGraph(nn.Module):
         iterations: damped Newton steps, each with a fresh Jacobian.
         damping_gain: ``c`` of the error-dependent damping ``lambda^2 = c |e|^2 + lambda_0^2``.
         damping_floor: ``lambda_0`` (m per rad, rad per rad).
+        solver: ``"inverse"`` (onnxruntime's contrib ``Inverse``, default) or ``"gauss_jordan"``
+            (standard ONNX operators only, for other runtimes); both solve in float64.
         device: where the constants live (CPU by default).
     """
 
@@ -127,16 +135,22 @@ class CompensatorGraph(nn.Module):
         iterations: int = DEFAULT_ITERATIONS,
         damping_gain: float = DEFAULT_DAMPING_GAIN,
         damping_floor: float = DEFAULT_DAMPING_FLOOR,
+        solver: str = "inverse",
         device: str | torch.device = "cpu",
     ) -> None:
         super().__init__()
         if iterations < 1:
             raise ValueError("iterations must be >= 1")
+        if solver not in SOLVERS:
+            raise ValueError(f"solver must be one of {sorted(SOLVERS)}, got {solver!r}")
         self.models = _TwoModels(model, x, residual, dtype, device)
         self.iterations = int(iterations)
-        self.register_buffer("eye6", torch.eye(6, dtype=torch.float64).to(device, dtype))
-        self.register_buffer("damping_floor_sq", torch.tensor(damping_floor**2, dtype=torch.float64).to(device, dtype))
-        self.register_buffer("damping_gain", torch.tensor(damping_gain, dtype=torch.float64).to(device, dtype))
+        self.solver = solver
+        self.dtype = dtype
+        # the solve's constants are float64 whatever the graph's dtype (see the module docstring)
+        self.register_buffer("eye6", torch.eye(6, dtype=torch.float64, device=device))
+        self.register_buffer("damping_floor_sq", torch.tensor(damping_floor**2, dtype=torch.float64, device=device))
+        self.register_buffer("damping_gain", torch.tensor(damping_gain, dtype=torch.float64, device=device))
 
     @classmethod
     def from_stored(cls, stored, **options) -> "CompensatorGraph":
@@ -168,10 +182,17 @@ class CompensatorGraph(nn.Module):
         return self.damped_step(jac_t, error)
 
     def damped_step(self, jac_t: torch.Tensor, error: torch.Tensor) -> torch.Tensor:
-        """``J^T (J J^T + lambda^2 I)^-1 e`` ``(B, N)`` for ``J^T`` ``(B, N, 6)`` and ``e`` ``(B, 6, 1)``."""
+        """``J^T (J J^T + lambda^2 I)^-1 e`` ``(B, N)`` for ``J^T`` ``(B, N, 6)`` and ``e`` ``(B, 6, 1)``.
+
+        Computed in float64; a float32 graph casts in and out (structural, fixed at construction).
+        """
+        wide = self.dtype != torch.float64
+        if wide:
+            jac_t, error = jac_t.to(torch.float64), error.to(torch.float64)
         lam2 = self.damping_gain * (error * error).sum(-2, keepdim=True) + self.damping_floor_sq  # (B, 1, 1)
         normal = jac_t.transpose(-1, -2) @ jac_t + lam2 * self.eye6
-        return (jac_t @ gauss_jordan(normal, error, self.eye6)).squeeze(-1)
+        step = (jac_t @ SOLVERS[self.solver](normal, error, self.eye6)).squeeze(-1)
+        return step.to(self.dtype) if wide else step
 
     def pose_error(self, target: torch.Tensor, position: torch.Tensor, rotation: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
         """``[p_t - p - r(q), vee(R_t R^T)]`` ``(B, 6)`` (m, rad), ``base`` frame, for the TCP at

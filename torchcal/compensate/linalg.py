@@ -1,15 +1,54 @@
-"""Small dense linear algebra written as a fixed sequence of tensor operations.
+"""Small dense linear algebra for the exported graphs: two ways to solve the compensator's 6x6 systems.
 
-``torch.linalg.solve`` and ``torch.linalg.inv`` have no ONNX export, and the 6x6 systems of the
-compensator are symmetric positive definite (``J J^T + lambda^2 I``), so Gauss-Jordan elimination
-without pivoting is stable on them: the diagonal pivots of an SPD matrix stay positive through
-the elimination (each one is a ratio of leading principal minors). The loop over the matrix size
-is a Python loop over a constant, unrolled at export into ``7 n`` elementwise ONNX nodes.
+``torch.linalg.solve`` and ``torch.linalg.inv`` have no standard ONNX export. The systems of the
+compensator are symmetric positive definite (``J J^T + lambda^2 I``), which leaves two choices:
+
+* :func:`ort_inverse`: one node of onnxruntime's contrib operator ``com.microsoft.Inverse`` (LU
+  with partial pivoting). The default: the compensator is deployed with onnxruntime, and one node
+  replaces ``7 n`` elementwise ones per solve, which is most of the graph's latency.
+* :func:`gauss_jordan`: elimination without pivoting, written as a Python loop over the constant
+  matrix size and unrolled at export into ``7 n`` standard elementwise nodes, for runtimes without
+  the contrib domain (``torchcal export --portable``). It is stable on SPD matrices: their diagonal
+  pivots stay positive through the elimination (each one is a ratio of leading principal minors).
 """
 
 from __future__ import annotations
 
 import torch
+
+CONTRIB_DOMAIN = "com.microsoft"
+"""ONNX domain of onnxruntime's contrib operators (``Inverse`` lives there, version 1)."""
+
+
+class _Inverse(torch.autograd.Function):
+    """``torch.linalg.inv`` in eager mode, exported as one ``com.microsoft.Inverse`` node."""
+
+    @staticmethod
+    def forward(ctx, a: torch.Tensor) -> torch.Tensor:  # noqa: D102
+        return torch.linalg.inv(a)
+
+    @staticmethod
+    def symbolic(g, a):  # noqa: D102
+        out = g.op(f"{CONTRIB_DOMAIN}::Inverse", a)
+        out.setType(a.type())  # same shape and dtype as the input: the exporter cannot infer a contrib op's
+        return out
+
+
+def ort_inverse(a: torch.Tensor) -> torch.Tensor:
+    """Inverse of square matrices ``(..., n, n)``, exportable as onnxruntime's ``Inverse`` node.
+
+    The exported graph then needs onnxruntime (export with ``custom_opsets={CONTRIB_DOMAIN: 1}``).
+    No gradient: the graphs that use it are evaluated, never trained.
+    """
+    return _Inverse.apply(a)
+
+
+def ort_solve(a: torch.Tensor, rhs: torch.Tensor, eye: torch.Tensor | None = None) -> torch.Tensor:
+    """Solve ``a X = rhs`` (``a`` ``(..., n, n)`` invertible, ``rhs`` ``(..., n, k)``) by :func:`ort_inverse`.
+
+    ``eye`` is accepted for a signature shared with :func:`gauss_jordan` and not used.
+    """
+    return ort_inverse(a) @ rhs
 
 
 def gauss_jordan(a: torch.Tensor, rhs: torch.Tensor, eye: torch.Tensor | None = None) -> torch.Tensor:
