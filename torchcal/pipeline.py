@@ -293,10 +293,34 @@ def run(config: RunConfig, console=None) -> dict:
     if config.export:
         from torchcal.compensate.export import export_and_check
 
-        summary["export"] = export_and_check(model_dir, Path(config.export_dir) / config.name, test, console=console)
+        export_dir = Path(config.export_dir) / config.name
+        summary["export"] = export_and_check(model_dir, export_dir, test, console=console)
+        summary["export"]["compensation_on_twin"] = _compensation_on_twin(stored, export_dir, test, twin, console)
     summary["elapsed_s"] = time.perf_counter() - started
     atomic_write_json(folder / "metrics.json", summary)
     return summary
+
+
+def _compensation_on_twin(stored, export_dir: Path, test: Measurements, twin: Twin, console) -> dict:
+    """The exported compensator's commands at the test poses, sent to the true twin (and torch's)."""
+    from torchcal.compensate.export import build_graphs
+    from torchcal.compensate.true_robot_check import compensation_on_true_robot
+
+    manifest = json.loads((export_dir / "manifest.json").read_text())
+    result = compensation_on_true_robot(stored, build_graphs(stored), export_dir, manifest, test.q, twin.true_positions)
+    console.log(
+        "compensated on the true twin ({n} test poses, RMS): uncompensated {u:.4f} mm, torch {t:.4f} mm, "
+        "onnxruntime float64 {o:.4f} mm ({r64:.4f}x torch), float32 {o32:.4f} mm ({r32:.4f}x)".format(
+            n=result["n_poses"], u=result["uncompensated"]["position_rms_mm"], t=result["torch"]["position_rms_mm"],
+            o=result["onnx_float64"]["position_rms_mm"], r64=result["onnx_float64_over_torch"],
+            o32=result["onnx_float32"]["position_rms_mm"], r32=result["onnx_float32_over_torch"])
+    )
+    if result["torch_on_unsolved"] is not None and result["torch_on_solved"] is not None:
+        console.log(
+            f"  {100 * result['solved_share']:.1f} % of the test poses solved to 1 um: RMS {result['torch_on_solved']['position_rms_mm']:.4f} mm "
+            f"there; the rest lie near a singularity (RMS {result['torch_on_unsolved']['position_rms_mm']:.4f} mm, partial correction)"
+        )
+    return result
 
 
 def simulate(out: str | Path, config: TwinConfig) -> dict[str, Path]:
