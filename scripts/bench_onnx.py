@@ -3,10 +3,13 @@
 Usage: python scripts/bench_onnx.py [--model DIR] [--out docs/bench_onnx] [--quick]
 
 Without ``--model`` a twin is calibrated on the spot (geometry only). Measures, for the
-compensator and monitor graphs in float64 and float32:
+exported graphs (compensator and monitor in float64 and float32) and for compensator variants
+in the same run (:data:`VARIANTS`: the portable Gauss-Jordan solve, 1 and 2 Newton steps):
 
+* operators per graph (nodes that run; constants are folded at load);
 * single-sample latency (batch 1), median and p99 over many calls, onnxruntime with
-  ``intra_op_num_threads=1`` (one core, as on a controller) and torch eager with one thread;
+  ``intra_op_num_threads=1`` (one core, as on a controller), all graphs round-robin so they share
+  the load, beside a one-node graph (the cost of a call itself); torch eager with one thread;
 * batch throughput (poses/s) at a large batch, onnxruntime on one thread and on all cores,
   torch eager on all cores;
 * convergence of the compensator against its iteration count (worst and 99th-percentile TCP
@@ -105,6 +108,51 @@ def convergence(stored, n_poses: int, max_iterations: int = 5) -> list[dict]:
     return rows
 
 
+def _floor_graph(path: Path, n_joints: int) -> None:
+    """A one-node graph (``Identity``) with the compensator's input: the cost of a call itself."""
+    import onnx
+    from onnx import TensorProto, helper
+
+    graph = helper.make_graph([helper.make_node("Identity", ["q_nominal"], ["q_corrected"])], "floor",
+                              [helper.make_tensor_value_info("q_nominal", TensorProto.DOUBLE, ["batch", n_joints])],
+                              [helper.make_tensor_value_info("q_corrected", TensorProto.DOUBLE, ["batch", n_joints])])
+    onnx.save(helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)]), str(path))
+
+
+def _operators(path: Path) -> int:
+    """Nodes of a graph that do work at run time (``Constant`` nodes are folded at load)."""
+    import onnx
+
+    return sum(1 for node in onnx.load(str(path)).graph.node if node.op_type != "Constant")
+
+
+def _interleaved_latency(calls_by_name: dict, calls: int, warmup: int = 200) -> dict:
+    """Single-call latency of several callables, measured round-robin so they share the same load."""
+    for fn in calls_by_name.values():
+        for _ in range(warmup):
+            fn()
+    times = {name: np.empty(calls) for name in calls_by_name}
+    for i in range(calls):
+        for name, fn in calls_by_name.items():
+            t0 = time.perf_counter_ns()
+            fn()
+            times[name][i] = time.perf_counter_ns() - t0
+    return {name: {"median_us": float(np.median(t / 1e3)), "p99_us": float(np.percentile(t / 1e3, 99)), "calls": calls}
+            for name, t in times.items()}
+
+
+VARIANTS = {
+    # key: (export options, graph key inside that export, description)
+    "compensator": ({}, "compensator", "float64, 3 Newton steps, onnxruntime Inverse (default)"),
+    "compensator_f32": ({}, "compensator_f32", "float32 in/out, float64 solve, 3 steps"),
+    "compensator_portable": ({"portable": True}, "compensator", "float64, 3 steps, unrolled Gauss-Jordan (standard operators)"),
+    "compensator_2_steps": ({"iterations": 2}, "compensator", "float64, 2 Newton steps"),
+    "compensator_1_step": ({"iterations": 1}, "compensator", "float64, 1 Newton step"),
+    "monitor": ({}, "monitor", "float64"),
+    "monitor_f32": ({}, "monitor_f32", "float32"),
+}
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description="onnxruntime vs torch eager for the exported compensator")
     parser.add_argument("--model", help="model folder (default: calibrate a twin)")
@@ -126,28 +174,42 @@ def main(argv: list[str] | None = None) -> int:
     repeats = 3 if args.quick else 5
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
-        with console.status("[bold]preparing model and export"):
+        with console.status("[bold]preparing model and exports"):
             model_dir = Path(args.model) if args.model else _model_dir(tmp)
-            export_model(model_dir, tmp / "export")
             stored = load_model(model_dir)
-            graphs = build_graphs(stored)
+            folders, graphs = {}, {}
+            for options, _, _ in VARIANTS.values():
+                tag = "-".join(f"{k}{v}" for k, v in sorted(options.items())) or "default"
+                if tag not in folders:
+                    folders[tag] = tmp / tag
+                    export_model(model_dir, folders[tag], **options)
+                    graphs[tag] = build_graphs(stored, **options)
+            _floor_graph(tmp / "floor.onnx", stored.robot.dof)
         rng = np.random.default_rng(0)
         limits = stored.robot.joint_limits.numpy()
-        results = {}
-        for key, (name, dtype, input_name, _) in GRAPHS.items():
-            console.log(f"benchmarking {key}")
+        q_one = limits[:, 0] + rng.random((1, stored.robot.dof)) * (limits[:, 1] - limits[:, 0])
+        results, single_calls = {}, {}
+        floor = _session(tmp / "floor.onnx", threads=1)
+        single_calls["one-node graph (call floor)"] = lambda: floor.run(None, {"q_nominal": q_one})
+        for key, (options, graph_key, description) in VARIANTS.items():
+            tag = "-".join(f"{k}{v}" for k, v in sorted(options.items())) or "default"
+            name, dtype, input_name, _ = GRAPHS[graph_key]
+            console.log(f"benchmarking {key} ({description})")
             # the compensator is ~30x the work of the monitor: a smaller batch keeps the run short
-            batch = (20_000 if args.quick else 200_000) // (10 if key.startswith("compensator") else 1)
+            batch = (20_000 if args.quick else 200_000) // (10 if graph_key.startswith("compensator") else 1)
             q_batch64 = limits[:, 0] + rng.random((batch, stored.robot.dof)) * (limits[:, 1] - limits[:, 0])
             np_dtype = np.float64 if dtype == torch.float64 else np.float32
-            q1 = np.ascontiguousarray(q_batch64[:1].astype(np_dtype))
+            q1 = np.ascontiguousarray(q_one.astype(np_dtype))
             qb = np.ascontiguousarray(q_batch64.astype(np_dtype))
-            one = _session(tmp / "export" / name, threads=1)
-            many = _session(tmp / "export" / name, threads=None)
-            module = graphs[key]
+            path = folders[tag] / name
+            one = _session(path, threads=1)
+            many = _session(path, threads=None)
+            module = graphs[tag][graph_key]
             t1, tb = torch.from_numpy(q1), torch.from_numpy(qb)
+            single_calls[key] = (lambda s, n, x: lambda: s.run(None, {n: x}))(one, input_name, q1)
             entry = {
-                "ort_single_1thread": _latency(lambda: one.run(None, {input_name: q1}), calls),
+                "description": description,
+                "operators": _operators(path),
                 "ort_batch_1thread": _throughput(lambda: one.run(None, {input_name: qb}), batch, repeats),
                 "ort_batch_all_threads": _throughput(lambda: many.run(None, {input_name: qb}), batch, repeats),
             }
@@ -158,13 +220,20 @@ def main(argv: list[str] | None = None) -> int:
                 torch.set_num_threads(torch_threads)
                 entry["torch_batch_all_threads"] = _throughput(lambda: module(tb), batch, repeats)
             results[key] = entry
+        console.log("single-sample latency, all graphs round-robin")
+        latency = _interleaved_latency(single_calls, calls)
+        for key in results:
+            results[key]["ort_single_1thread"] = latency[key]
         with console.status("[bold]convergence against iteration count"):
             conv = convergence(stored, 2000 if args.quick else 10_000)
     report = {
         "machine": {"cpu": platform.processor() or platform.machine(), "cores": os.cpu_count(), "python": platform.python_version(),
                     "onnxruntime": ort.__version__, "torch": torch.__version__,
                     "load_average_1min": {"before": load_before[0], "after": os.getloadavg()[0]}},
+        "model": {"folder": str(model_dir) if args.model else "twin seed 0, 300 poses, geometry only",
+                  "residual_head": stored.residual is not None, "stiffness": getattr(stored, "stiffness", None) is not None},
         "targets": {"single_sample_p99_us": 30.0, "monitor_batch_poses_per_s": 1e6},
+        "call_floor": latency["one-node graph (call floor)"],
         "graphs": results,
         "convergence": conv,
     }
@@ -184,13 +253,18 @@ def markdown(report: dict) -> str:
         "Latency: one pose per call from Python (`InferenceSession.run`), median and p99. "
         "Throughput: one large batch per call, median of repeats.",
         "",
-        "| graph | ORT 1 thread median / p99 (us) | torch 1 thread median / p99 (us) | ORT 1 thread (poses/s) | ORT all threads (poses/s) | torch all threads (poses/s) |",
-        "| --- | --- | --- | --- | --- | --- |",
+        f"Model: {report['model']['folder']} (residual head: {'yes' if report['model']['residual_head'] else 'no'}). "
+        f"A one-node graph costs {report['call_floor']['median_us']:.1f} / {report['call_floor']['p99_us']:.1f} us "
+        "(median / p99) per call: the floor of any graph called from Python. Single-sample latencies of all graphs "
+        "are measured round-robin, so they share the same load.",
+        "",
+        "| graph | what | operators | ORT 1 thread median / p99 (us) | torch 1 thread median / p99 (us) | ORT 1 thread (poses/s) | ORT all threads (poses/s) | torch all threads (poses/s) |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
     for key, e in report["graphs"].items():
         o, t = e["ort_single_1thread"], e["torch_single_1thread"]
         lines.append(
-            f"| {key} | {o['median_us']:.1f} / {o['p99_us']:.1f} | {t['median_us']:.1f} / {t['p99_us']:.1f} | "
+            f"| {key} | {e['description']} | {e['operators']} | {o['median_us']:.1f} / {o['p99_us']:.1f} | {t['median_us']:.1f} / {t['p99_us']:.1f} | "
             f"{e['ort_batch_1thread']['median_poses_per_s']:.3g} | {e['ort_batch_all_threads']['median_poses_per_s']:.3g} | "
             f"{e['torch_batch_all_threads']['median_poses_per_s']:.3g} |"
         )
