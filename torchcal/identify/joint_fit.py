@@ -46,6 +46,8 @@ class JointErrorProblem:
                  columns: list[tuple[int, int]], column_names: list[str] | None = None) -> None:
         self.model, self.data, self.basis, self.free = model, data, basis, free
         self.columns = columns
+        # flat (row, joint) index of each coefficient in the (R, N) coefficient table
+        self._flat = torch.tensor([k * basis.shape[2] + j for k, j in columns], dtype=torch.long)
         self.column_names = column_names or [f"joint_error{k}_{j + 1}" for k, j in columns]
         self.size = model.layout.size
         self.rows_per_pose = 3
@@ -57,9 +59,9 @@ class JointErrorProblem:
 
     def _split(self, xe: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         x = xe[: self.size]
-        c = torch.zeros(self.basis.shape[1], self.basis.shape[2], dtype=xe.dtype)
-        for value, (k, j) in zip(xe[self.size :], self.columns):
-            c[k, j] = value
+        c = torch.zeros(self.basis.shape[1] * self.basis.shape[2], dtype=xe.dtype)
+        c[self._flat] = xe[self.size :]
+        c = c.reshape(self.basis.shape[1], self.basis.shape[2])
         return x, self.data.q + (self.basis * c).sum(1)
 
     def residuals(self, xe: torch.Tensor) -> torch.Tensor:
