@@ -73,7 +73,7 @@ def _cmd_fit(args) -> int:
     with console.status(f"identifying {robot.name} from {len(data)} poses"):
         result = fit(robot, data, config)
     before = position_metrics(nominal_errors(robot, data))
-    from torchcal.identify.compliance import predicted_positions
+    from torchcal.identify.joint_fit import predicted_positions
 
     after = position_metrics(data.position - predicted_positions(result, data.q))
     folder = save_fit(Path(args.out), robot, data, result, {"fit_metrics": {"nominal_registered": before, "geometric": after}})

@@ -18,6 +18,7 @@ from torchcal.data.measurements import Measurements, load_measurements
 from torchcal.errors import DataError
 from torchcal.identify import IDENTIFIERS
 from torchcal.identify.calibrate import CalibrationResult, calibrate
+from torchcal.identify.joint_errors import JointSpaceErrors
 from torchcal.identify.lm import LevenbergMarquardt
 from torchcal.identify.problem import CalibrationProblem
 from torchcal.io import atomic_write_json
@@ -50,7 +51,13 @@ class FitConfig:
         progress: show progress bars of long steps.
         gravity_compliance: joint compliance under the arm's own weight, identified with the
             geometry (:mod:`torchcal.identify.compliance`): ``none``, ``wrist``, ``elbow+wrist``
-            or ``auto`` (the set with the lowest 5-fold CV RMS on the fit's own poses).
+            or ``auto`` (chosen by 5-fold CV on the fit's own poses, with the harmonics).
+        joint_harmonics: first-harmonic joint errors ``a_j sin q_j + b_j cos q_j`` (rad), every
+            joint but the last, identified with the geometry (:mod:`torchcal.identify.harmonics`):
+            ``none``, ``first`` or ``auto``. With ``auto`` (here or in ``gravity_compliance``)
+            the 5-fold CV on the fit's own poses chooses both together and keeps the simplest
+            option within 1 % of the best CV RMS. The exported compensator carries no
+            joint-space errors, so export refuses such models.
     """
 
     method: str = "lm"
@@ -69,6 +76,7 @@ class FitConfig:
     residual_refit: bool = True
     progress: bool = True
     gravity_compliance: str = "none"
+    joint_harmonics: str = "none"
 
 
 def registered_errors(predicted_base: torch.Tensor, measured: torch.Tensor) -> torch.Tensor:
@@ -98,22 +106,31 @@ def fit(robot: RobotModel, data: Measurements, config: FitConfig, *, progress=No
     """Geometric identification with the configured identifier."""
     if config.method not in IDENTIFIERS:
         raise DataError(f"unknown method '{config.method}'; choose one of {sorted(IDENTIFIERS)}")
-    from torchcal.identify.compliance import POINT_SETS, choose_points_by_cv, fit_with_compliance
+    from torchcal.identify.compliance import POINT_SETS
+    from torchcal.identify.harmonics import HARMONIC_SETS
+    from torchcal.identify.joint_fit import choose_joint_errors_by_cv, fit_joint_errors, joint_error_options
 
-    choice = config.gravity_compliance
-    if choice not in POINT_SETS and choice != "auto":
-        raise DataError(f"unknown gravity_compliance '{choice}'; choose auto or one of {sorted(POINT_SETS)}")
+    sets = {"gravity_compliance": POINT_SETS, "joint_harmonics": HARMONIC_SETS}
+    for key, allowed in sets.items():
+        value = getattr(config, key)
+        if value not in allowed and value != "auto":
+            raise DataError(f"unknown {key} '{value}'; choose auto or one of {sorted(allowed)}")
+    options = joint_error_options(*(tuple(allowed) if getattr(config, key) == "auto" else (getattr(config, key),)
+                                    for key, allowed in sets.items()))
 
     def geometry(train: Measurements) -> CalibrationResult:
         return calibrate(robot, train, identifier=IDENTIFIERS[config.method](),
                          parallel_threshold_deg=config.parallel_threshold_deg, device=config.device)
 
     note = None
-    if choice == "auto":
-        choice, scores = choose_points_by_cv(robot, data, geometry, seed=config.seed)
-        note = ("gravity compliance chosen by 5-fold CV on the fit's poses: "
-                + ", ".join(f"{k} {v:.4f} mm" for k, v in scores.items()) + f" -> {choice}")
-    result = fit_with_compliance(robot, data, geometry(data), POINT_SETS[choice])
+    gravity, harmonics = options[0]
+    if len(options) > 1:
+        (gravity, harmonics), scores = choose_joint_errors_by_cv(robot, data, geometry, options, seed=config.seed)
+        from torchcal.identify.joint_fit import option_label
+
+        note = ("joint-space errors chosen by 5-fold CV on the fit's poses: "
+                + ", ".join(f"{k} {v:.4f} mm" for k, v in scores.items()) + f" -> {option_label(gravity, harmonics)}")
+    result = fit_joint_errors(robot, data, geometry(data), POINT_SETS[gravity], HARMONIC_SETS[harmonics])
     if note:
         result.notes.append(note)
     return result
@@ -137,23 +154,13 @@ def save_fit(folder: Path, robot: RobotModel, data: Measurements, result: Calibr
         "notes": result.notes,
         **extra,
     }
-    if result.compliance is not None:
-        meta["gravity_compliance"] = result.compliance.to_json()
+    meta.update(JointSpaceErrors.of(result).to_metadata())
     return save_model(folder, robot, result.model, result.x, result.free, result.covariance, meta)
 
 
-def stored_compliance(stored: StoredModel):
-    """The model folder's gravity compliance, or ``None``."""
-    from torchcal.identify.compliance import GravityCompliance
-
-    data = stored.metadata.get("gravity_compliance")
-    return GravityCompliance.from_json(data) if data else None
-
-
 def model_joints(stored: StoredModel, q: torch.Tensor) -> torch.Tensor:
-    """Joints to put through the geometric chain: ``q`` plus any identified gravity deflection."""
-    compliance = stored_compliance(stored)
-    return compliance.effective_joints(stored.robot, q) if compliance is not None else q
+    """Joints (rad) to put through the geometric chain: ``q`` plus every stored joint-space error."""
+    return JointSpaceErrors.from_metadata(stored.metadata).effective_joints(stored.robot, q)
 
 
 def predict_positions(

@@ -40,8 +40,8 @@ def _candidates(config) -> list:
 def residual_targets_mm(model, x, data: Measurements, joints: torch.Tensor | None = None) -> torch.Tensor:
     """Geometric residuals of ``data`` in the ``base`` frame, mm ``(n, 3)``.
 
-    ``joints``: what the chain is evaluated at (default ``data.q``; the deflected joints when the
-    model has gravity compliance), while the head's features stay the commanded joints.
+    ``joints``: what the chain is evaluated at (default ``data.q``; ``q`` plus the joint-space
+    errors when the model has any), while the head's features stay the commanded joints.
     """
     error = data.position - model.tcp_position(data.q if joints is None else joints, x)
     return error @ model.T_reference[:3, :3].to(error) * 1e3
@@ -94,11 +94,12 @@ def residual_for_validation(result, train: Measurements, test: Measurements, *, 
     """Held-out errors of geometry + gated residual (geometry alone where the gate says no)."""
     from torchcal.pipeline import FitConfig, registered_errors
 
-    from torchcal.identify.compliance import predicted_positions
+    from torchcal.identify.joint_errors import JointSpaceErrors
+    from torchcal.identify.joint_fit import predicted_positions
 
     config = config or FitConfig(seed=seed)
-    compliance = result.compliance
-    joints = compliance.effective_joints(result.model.robot, train.q) if compliance is not None else None
+    joint_errors = JointSpaceErrors.of(result)
+    joints = None if joint_errors.empty else joint_errors.effective_joints(result.model.robot, train.q)
     selection, features = choose_residual(result.model, result.x, result.model.robot, train, config, joints)
     predicted = predicted_positions(result, test.q)
     if selection.head is not None:

@@ -10,9 +10,10 @@ model folder in a temporary directory. Stages, each scored on poses the fit did 
 * ``nominal (registered)``: the nominal model, instrument frame registered on the training poses
   (on the scored poses where the protocol re-registers);
 * ``geometric``: geometric calibration;
-* ``geometric + gravity compliance``: geometry with joint compliance under gravity, the point
-  set chosen by 5-fold CV on the training poses only (``gravity_compliance=auto``); where the CV
-  chooses ``none`` this row equals the geometric one and says so;
+* ``geometric + joint-space errors``: geometry with joint compliance under gravity and
+  first-harmonic joint errors, which of them chosen by 5-fold CV on the training poses only
+  (``gravity_compliance=auto``, ``joint_harmonics=auto``); where the CV chooses ``none`` this row
+  equals the geometric one and says so;
 * ``+ learned residual``: the gated head on top of the previous stage; where the gate keeps no
   head on the training poses this row repeats the previous one, marked "gated off".
 
@@ -38,7 +39,7 @@ from torchcal.kinematics.transforms import rigid_registration
 from torchcal.metrics import position_metrics
 
 CHI2_3_95 = 7.814727903251178
-STAGES = ("nominal (registered)", "geometric", "geometric + gravity compliance", "+ learned residual")
+STAGES = ("nominal (registered)", "geometric", "geometric + joint-space errors", "+ learned residual")
 
 
 @dataclass(frozen=True)
@@ -117,6 +118,13 @@ def _coverage(stored, test: Measurements, errors: torch.Tensor, sigma_m: float) 
     return inside_95(jac, stored.covariance, sigma_m, errors)
 
 
+def _choice_label(result) -> str:
+    """The joint-space terms a fit kept, as in the CV notes: ``wrist``, ``elbow+wrist+harmonics``..."""
+    points = result.compliance.points if result.compliance is not None else ()
+    parts = ["wrist" if p == "tcp" else p for p in points] + (["harmonics"] if result.harmonics is not None else [])
+    return "+".join(parts) or "none"
+
+
 def _fit_and_score(robot, train: Measurements, test: Measurements, protocol: Protocol, config, folder: Path,
                    residual: bool) -> dict:
     """One split through fit -> save -> residual stage -> load -> held-out errors."""
@@ -163,13 +171,13 @@ def run_protocol(root: Path, protocol: Protocol, *, residual: bool = True, seed:
             stages["geometric"].inside.append(geo["inside"])
             comp = _fit_and_score(robot, train, test, protocol,
                                   FitConfig(residual="none" if in_sample or not residual else "auto",
-                                            gravity_compliance="auto", seed=seed, progress=False),
+                                            gravity_compliance="auto", joint_harmonics="auto", seed=seed,
+                                            progress=False),
                                   Path(tmp) / f"c{k}", residual and not in_sample)
-            choice = comp["result"].compliance.points if comp["result"].compliance is not None else ()
-            choices.append("+".join("wrist" if p == "tcp" else p for p in choice) or "none")
-            stages["geometric + gravity compliance"].errors.append(comp["errors"])
-            stages["geometric + gravity compliance"].inside.append(comp["inside"])
-            stages["geometric + gravity compliance"].notes += [n for n in comp["result"].notes if "chosen by" in n]
+            choices.append(_choice_label(comp["result"]))
+            stages["geometric + joint-space errors"].errors.append(comp["errors"])
+            stages["geometric + joint-space errors"].inside.append(comp["inside"])
+            stages["geometric + joint-space errors"].notes += [n for n in comp["result"].notes if "chosen by" in n]
             head = stages["+ learned residual"]
             if comp["residual"] is not None:
                 head.notes.append(comp["residual"]["decision"])
@@ -187,7 +195,7 @@ def run_protocol(root: Path, protocol: Protocol, *, residual: bool = True, seed:
         metrics = position_metrics(errors)
         if stage.inside:
             metrics["inside_95_fraction"] = float(torch.cat(stage.inside).double().mean())
-        if name == "geometric + gravity compliance":
+        if name == "geometric + joint-space errors":
             metrics["status"] = "chosen per split: " + ", ".join(choices)
             metrics["cv_notes"] = stage.notes
         if name == "+ learned residual":

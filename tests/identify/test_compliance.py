@@ -9,13 +9,8 @@ import torch
 from tests.conftest import perturbed_vector
 from torchcal.data.measurements import Measurements
 from torchcal.identify.calibrate import calibrate
-from torchcal.identify.compliance import (
-    CompliantProblem,
-    GravityCompliance,
-    fit_with_compliance,
-    gravity_torque_basis,
-    predicted_positions,
-)
+from torchcal.identify.compliance import GravityCompliance, fit_with_compliance, gravity_torque_basis
+from torchcal.identify.joint_fit import JointErrorProblem, predicted_positions
 from torchcal.kinematics.error_model import ErrorModel
 
 
@@ -55,7 +50,7 @@ def test_compliant_jacobian_matches_finite_differences(robot, generator):
     cols = [(0, 1), (1, 1), (1, 2), (1, 4)]
     size = geometric.model.layout.size
     free = torch.cat([geometric.free[:5], torch.arange(size, size + len(cols))])
-    problem = CompliantProblem(geometric.model, data, basis, free, cols)
+    problem = JointErrorProblem(geometric.model, data, basis, free, cols)
     xe = torch.cat([geometric.x, torch.tensor([1e-3, 2e-3, -1e-3, 5e-3], dtype=torch.float64)])
     _, jac = problem.jacobian(xe)
     numeric = []

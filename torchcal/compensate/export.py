@@ -277,11 +277,15 @@ def export_model(
 
     model_dir, out_dir = Path(model_dir), Path(out_dir)
     stored = load_model(model_dir)
-    if stored.metadata.get("gravity_compliance"):
-        from torchcal.errors import TorchcalError
+    from torchcal.identify.joint_errors import METADATA_KEYS
 
-        raise TorchcalError(f"{model_dir}: the compensator graph has no gravity-compliance term yet; "
-                            "fit with gravity_compliance=none to export")
+    for key in METADATA_KEYS.values():
+        if stored.metadata.get(key):
+            from torchcal.errors import TorchcalError
+
+            # the graph evaluates the chain at the commanded joints: it would drop these errors silently
+            raise TorchcalError(f"{model_dir}: the compensator graph has no joint-space error term ({key}) yet; "
+                                f"fit with {key}=none to export")
     graphs = build_graphs(stored, wrench_frame=wrench_frame, iterations=iterations, portable=portable)
     loaded = has_wrench_input(graphs)
     robot = stored.robot

@@ -40,6 +40,8 @@ class CalibrationResult:
         solve: the solver's own result (iterations, history...).
         compliance: gravity compliance identified with the geometry
             (:class:`~torchcal.identify.compliance.GravityCompliance`), if any.
+        harmonics: first-harmonic joint errors identified with the geometry
+            (:class:`~torchcal.identify.harmonics.JointHarmonics`), if any.
     """
 
     model: ErrorModel
@@ -52,6 +54,7 @@ class CalibrationResult:
     method: str = "lm"
     notes: list[str] = field(default_factory=list)
     compliance: object | None = None
+    harmonics: object | None = None
 
     @property
     def free_names(self) -> list[str]:

@@ -1,0 +1,205 @@
+"""Geometry identified jointly with joint-space errors (gravity compliance, first harmonics).
+
+Every joint-space term is linear in its coefficients: ``dq_j = sum_k c_kj B_kj(q)`` with a basis
+``B (n, K, N)`` evaluated at the commanded joints (unit-weight gravity torques,
+:mod:`torchcal.identify.compliance`; ``sin q_j`` / ``cos q_j``, :mod:`torchcal.identify.harmonics`).
+The TCP displacement per coefficient is ``B_kj`` times the ``theta_j`` column of the position
+Jacobian, so the identification Jacobian is the geometric one extended by those columns.
+
+Coefficients the data cannot separate from the geometry (or from each other) are found by the
+same identifiability analysis as geometric parameters, stay at zero and are named in an
+:class:`~torchcal.errors.IdentifiabilityWarning`. Which terms to use is chosen by K-fold
+cross-validation on the fit's own poses (:func:`choose_joint_errors_by_cv`), never on a test set.
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import replace
+
+import numpy as np
+import torch
+
+from torchcal.data.measurements import Measurements
+from torchcal.errors import IdentifiabilityWarning
+from torchcal.identify.compliance import _ZERO_COLUMN, POINT_SETS, GravityCompliance, gravity_torque_basis
+from torchcal.identify.harmonics import HARMONIC_SETS, JointHarmonics, harmonic_basis
+from torchcal.identify.identifiability import analyze
+from torchcal.identify.joint_errors import JointSpaceErrors
+from torchcal.identify.uncertainty import covariance
+from torchcal.kinematics.error_model import ErrorModel
+from torchcal.kinematics.robot import RobotModel
+
+CV_TOLERANCE = 0.01  # keep the simplest option whose CV RMS is within 1 % of the best
+
+
+class JointErrorProblem:
+    """A calibration problem over ``[x (P), c (K)]``: geometry plus joint-space coefficients.
+
+    ``basis (n, R, N)`` holds the joint-error basis rows; ``columns`` the ``(row, joint)`` of each
+    coefficient and ``column_names`` its name. Offers what an
+    :class:`~torchcal.identify.base.Identifier` uses (``free``, ``names``, ``residuals``,
+    ``jacobian``, ``with_free``). Residuals in the instrument frame, m.
+    """
+
+    def __init__(self, model: ErrorModel, data: Measurements, basis: torch.Tensor, free: torch.Tensor,
+                 columns: list[tuple[int, int]], column_names: list[str] | None = None) -> None:
+        self.model, self.data, self.basis, self.free = model, data, basis, free
+        self.columns = columns
+        # flat (row, joint) index of each coefficient in the (R, N) coefficient table
+        self._flat = torch.tensor([k * basis.shape[2] + j for k, j in columns], dtype=torch.long)
+        self.column_names = column_names or [f"joint_error{k}_{j + 1}" for k, j in columns]
+        self.size = model.layout.size
+        self.rows_per_pose = 3
+
+    @property
+    def names(self) -> list[str]:
+        geo = self.model.layout.names
+        return [geo[i] if i < self.size else self.column_names[i - self.size] for i in self.free.tolist()]
+
+    def _split(self, xe: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        x = xe[: self.size]
+        c = torch.zeros(self.basis.shape[1] * self.basis.shape[2], dtype=xe.dtype)
+        c[self._flat] = xe[self.size :]
+        c = c.reshape(self.basis.shape[1], self.basis.shape[2])
+        return x, self.data.q + (self.basis * c).sum(1)
+
+    def residuals(self, xe: torch.Tensor) -> torch.Tensor:
+        x, q = self._split(xe)
+        return (self.data.position - self.model.tcp_position(q, x)).reshape(-1)
+
+    def jacobian(self, xe: torch.Tensor, columns: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        columns = self.free if columns is None else columns
+        x, q = self._split(xe)
+        layout = self.model.layout
+        theta = torch.tensor([layout.index(f"theta{j + 1}") for j in range(self.model.robot.dof)])
+        geo = columns[columns < self.size]
+        pred, jac = self.model.position_jacobian(q, x, torch.cat([geo, theta]), method="analytic")
+        jac_geo, jac_theta = jac[..., : len(geo)], jac[..., len(geo) :]
+        parts, g = [], 0
+        for col in columns.tolist():
+            if col < self.size:
+                parts.append(jac_geo[..., g])
+                g += 1
+            else:
+                k, j = self.columns[col - self.size]
+                parts.append(jac_theta[..., j] * self.basis[:, k, j : j + 1])
+        full = torch.stack(parts, -1)
+        r = (self.data.position - pred).reshape(-1)
+        return r, -full.reshape(-1, full.shape[-1])
+
+    def with_free(self, free: torch.Tensor) -> "JointErrorProblem":
+        return JointErrorProblem(self.model, self.data, self.basis, free, self.columns, self.column_names)
+
+
+def _candidate_columns(basis: torch.Tensor, points: tuple[str, ...], terms: tuple[str, ...]) -> tuple[list, list]:
+    """``(row, joint)`` and names of every coefficient whose basis column is not identically zero."""
+    scale = basis.abs().amax(0)  # (R, N)
+    labels = [f"c_{p}" for p in points] + [f"harm_{t}" for t in terms]
+    cols = [(k, j) for k in range(basis.shape[1]) for j in range(basis.shape[2]) if float(scale[k, j]) > _ZERO_COLUMN]
+    return cols, [f"{labels[k]}{j + 1}" for k, j in cols]
+
+
+def fit_joint_errors(robot: RobotModel, data: Measurements, geometric, points: tuple[str, ...] = (),
+                     harmonics: tuple[str, ...] = ()):
+    """Refine a geometric :class:`~torchcal.identify.calibrate.CalibrationResult` jointly with joint-space errors.
+
+    ``points``: gravity points (``tcp``, ``elbow``); ``harmonics``: harmonic terms (``sin``,
+    ``cos``). Returns a result of the same type with ``compliance`` / ``harmonics`` set;
+    ``covariance`` is the geometric block of the joint covariance (the marginal of the geometry).
+    """
+    from torchcal.identify.lm import LevenbergMarquardt
+
+    if not points and not harmonics:
+        return geometric
+    data = data.to("cpu")
+    basis = torch.cat([gravity_torque_basis(robot, data.q, points), harmonic_basis(data.q, harmonics)], 1)
+    cols, names = _candidate_columns(basis, points, harmonics)
+    size = geometric.model.layout.size
+    n_geo = len(geometric.free)
+    problem = JointErrorProblem(geometric.model, data, basis, torch.cat([geometric.free, torch.arange(size, size + len(cols))]),
+                                cols, names)
+    x0 = torch.cat([geometric.x, torch.zeros(len(cols), dtype=torch.float64)])
+    # what the data cannot tell apart from the geometry (kept first) or earlier terms stays at zero
+    _, jac0 = problem.jacobian(x0)
+    report = analyze(jac0, problem.names)
+    dropped = [n for n in names if n in report.dependent]
+    notes = list(geometric.notes)
+    if dropped:
+        msg = (f"{len(dropped)} joint-space coefficient(s) cannot be separated from the geometry and stay at zero: "
+               + "; ".join(f"{n} (confounded with {', '.join(p for p, _ in report.dependent[n][:2]) or 'nothing'})"
+                           for n in dropped))
+        notes.append(msg)
+        warnings.warn(msg, IdentifiabilityWarning, stacklevel=2)
+    kept = [i for i, n in enumerate(names) if n not in dropped]
+    free = torch.cat([geometric.free, size + torch.tensor(kept, dtype=torch.long)])
+    sol = LevenbergMarquardt().solve(problem.with_free(free), x0)
+    r, jac = problem.with_free(free).jacobian(sol.x)
+    cov, sigma = covariance(jac, r)
+    rows = basis.shape[1]
+    values = torch.zeros(rows, robot.dof, dtype=torch.float64)
+    sigmas = torch.zeros(rows, robot.dof, dtype=torch.float64)
+    extra_sigma = cov.diagonal()[n_geo:].clamp_min(0).sqrt()
+    for pos, i in enumerate(kept):
+        k, j = cols[i]
+        values[k, j] = sol.x[size + i]
+        sigmas[k, j] = extra_sigma[pos]
+    x = sol.x[:size].clone()
+    reference, x = geometric.model.recentered(x)
+    model = ErrorModel(robot, with_orientation=geometric.model.with_orientation,
+                       parallel_threshold_deg=geometric.model.parallel_threshold_deg, T_instrument_base=reference)
+    terms = ([f"gravity compliance at {'+'.join(points)}"] if points else []) + (["first joint harmonics"] if harmonics else [])
+    notes.append(f"{' and '.join(terms)} identified with the geometry ({len(kept)} coefficients)")
+    compliance = GravityCompliance(points, values[: len(points)]) if points else None
+    harmonic = JointHarmonics(values[len(points) :], sigmas[len(points) :]) if harmonics else None
+    return replace(geometric, model=model, x=x, covariance=cov[:n_geo, :n_geo], sigma_residual_m=sigma,
+                   notes=notes, compliance=compliance, harmonics=harmonic)
+
+
+def predicted_positions(result, q: torch.Tensor) -> torch.Tensor:
+    """TCP positions (instrument frame, m) of a fit result, its joint-space errors included."""
+    return result.model.tcp_position(JointSpaceErrors.of(result).effective_joints(result.model.robot, q), result.x)
+
+
+def option_label(gravity: str, harmonics: str) -> str:
+    """``none``, ``wrist``, ``elbow+wrist``, ``harmonics``, ``wrist+harmonics``, ..."""
+    parts = ([gravity] if gravity != "none" else []) + (["harmonics"] if harmonics != "none" else [])
+    return "+".join(parts) or "none"
+
+
+def joint_error_options(gravity: tuple[str, ...], harmonics: tuple[str, ...]) -> list[tuple[str, str]]:
+    """``(gravity set, harmonic set)`` pairs from the simplest (fewest coefficients) up.
+
+    Gravity sets add about ``N`` coefficients, first harmonics ``2 (N - 1)``: all gravity sets
+    without harmonics come before any with them.
+    """
+    for name in gravity:
+        if name not in POINT_SETS:
+            raise ValueError(f"unknown gravity point set '{name}'; choose one of {sorted(POINT_SETS)}")
+    for name in harmonics:
+        if name not in HARMONIC_SETS:
+            raise ValueError(f"unknown harmonic set '{name}'; choose one of {sorted(HARMONIC_SETS)}")
+    return [(g, h) for h in harmonics for g in gravity]
+
+
+def choose_joint_errors_by_cv(robot: RobotModel, data: Measurements, fit_geometry, options: list[tuple[str, str]], *,
+                              folds: int = 5, seed: int = 0) -> tuple[tuple[str, str], dict[str, float]]:
+    """The simplest option whose K-fold CV RMS (mm) on ``data`` is within 1 % of the best.
+
+    ``options`` are ordered simplest first (:func:`joint_error_options`); returns the chosen
+    option and the CV RMS of each, keyed by :func:`option_label`.
+    """
+    rng = np.random.default_rng(seed)
+    fold = rng.permutation(len(data)) % folds
+    splits = [(data.subset(np.flatnonzero(fold != k)), data.subset(np.flatnonzero(fold == k))) for k in range(folds)]
+    geometry = [fit_geometry(train) for train, _ in splits]  # shared by every option
+    scores: dict[str, float] = {}
+    for gravity, harmonics in options:
+        errors = []
+        for (train, test), geo in zip(splits, geometry):
+            result = fit_joint_errors(robot, train, geo, POINT_SETS[gravity], HARMONIC_SETS[harmonics])
+            errors.append(test.position - predicted_positions(result, test.q))
+        scores[option_label(gravity, harmonics)] = float(torch.cat(errors).norm(dim=-1).pow(2).mean().sqrt()) * 1e3
+    best = min(scores.values())
+    chosen = next(o for o in options if scores[option_label(*o)] <= (1.0 + CV_TOLERANCE) * best)
+    return chosen, scores
