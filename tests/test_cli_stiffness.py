@@ -160,7 +160,7 @@ def test_geometry_and_stiffness_in_one_model_folder(tmp_path):
 
     assert main(["export", "--model", str(combined), "--out", str(tmp_path / "exp")]) == 0
     rt = CompensatorRuntime(tmp_path / "exp")
-    assert rt.manifest["stages"] == {"geometry": True, "residual": False, "stiffness": True}
+    assert rt.manifest["stages"] == {"geometry": True, "residual": False, "stiffness": True, "gravity_compliance": False, "joint_harmonics": False}
     q = rig.sample_poses(200, gen)
     wrench = rig.sample_wrenches(200, gen)
     # The calibrated base frame differs from the true one by what the tracker frame absorbed

@@ -41,7 +41,7 @@ def test_manifest_describes_the_files(exported, model_dir, stored):
     assert json.loads((folder / "manifest.json").read_text()) == manifest
     assert manifest["robot"] == stored.robot.name
     assert manifest["joint_names"] == list(stored.robot.joint_names)
-    assert manifest["stages"] == {"geometry": True, "residual": False, "stiffness": False}
+    assert manifest["stages"] == {"geometry": True, "residual": False, "stiffness": False, "gravity_compliance": False, "joint_harmonics": False}
     assert manifest["opset"] == OPSET
     assert manifest["training_data"]["sha256"] == json.loads((model_dir / "calibration.json").read_text())["data"]["sha256"]
     assert "rad" in manifest["units"]["compensator"]["input"] and "rad" in manifest["units"]["compensator"]["output"]

@@ -59,7 +59,7 @@ def loads(n, seed):
 def test_manifest_documents_the_wrench_input(stiff_export, stiff_dir):
     folder, manifest = stiff_export
     assert json.loads((folder / "manifest.json").read_text()) == manifest
-    assert manifest["stages"] == {"geometry": True, "residual": False, "stiffness": True}
+    assert manifest["stages"] == {"geometry": True, "residual": False, "stiffness": True, "gravity_compliance": False, "joint_harmonics": False}
     wrench = manifest["wrench"]
     assert wrench["name"] == "wrench" and wrench["frame"] == "tool" and wrench["shape"] == "(batch, 6)"
     assert wrench["components"] == ["fx", "fy", "fz", "tx", "ty", "tz"] and wrench["units"] == ["N"] * 3 + ["N m"] * 3

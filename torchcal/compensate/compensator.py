@@ -56,7 +56,9 @@ from torch import nn
 
 from torchcal.compensate.chain import ChainGraph, geometric_jacobian_t
 from torchcal.compensate.deflection import DeflectionGraph
+from torchcal.compensate.joint_error_graph import JointErrorGraph
 from torchcal.compensate.linalg import gauss_jordan, ort_solve
+from torchcal.identify.joint_errors import JointSpaceErrors
 from torchcal.kinematics.error_model import ErrorModel
 from torchcal.kinematics.robot import RobotModel
 
@@ -86,10 +88,25 @@ def _residual_copy(residual: nn.Module | None, dtype: torch.dtype, device) -> nn
     return module
 
 
-class _TwoModels(nn.Module):
-    """Nominal and calibrated chains of one robot (shared by both graphs)."""
+def command_jacobian_t(pose: torch.Tensor, joint_frames: torch.Tensor, slope: torch.Tensor | None) -> torch.Tensor:
+    """Transposed Jacobian ``(B, N, 6)`` of the TCP with respect to the *commanded* joints.
 
-    def __init__(self, model: ErrorModel, x: torch.Tensor, residual: nn.Module | None, dtype: torch.dtype, device) -> None:
+    The chain turns by ``q + dq(q)``: row ``j`` of the geometric Jacobian at that point times
+    ``1 + d dq_j / d q_j`` (``slope``, the harmonics'; ``None``: no joint-space errors).
+    """
+    jac_t = geometric_jacobian_t(pose, joint_frames)
+    return jac_t if slope is None else jac_t * (1.0 + slope).unsqueeze(-1)
+
+
+class _TwoModels(nn.Module):
+    """Nominal and calibrated chains of one robot (shared by both graphs).
+
+    With joint-space errors (``joint_errors``, :class:`JointErrorGraph`) the calibrated chain turns
+    by ``q + dq(q)``; without them every method reduces to the plain chains, node for node.
+    """
+
+    def __init__(self, model: ErrorModel, x: torch.Tensor, residual: nn.Module | None, dtype: torch.dtype, device,
+                 joint_errors: JointSpaceErrors | None = None) -> None:
         super().__init__()
         robot = model.robot
         x = x.detach().cpu().to(torch.float64)
@@ -100,6 +117,33 @@ class _TwoModels(nn.Module):
         self.calibrated = ChainGraph(tables[1:], t0, end_calibrated.unsqueeze(0), dtype=dtype, device=device)
         self.residual = _residual_copy(residual, dtype, device)
         self.n_joints = robot.dof
+        self.joint_errors = None
+        if joint_errors is not None and not joint_errors.empty:
+            self.joint_errors = JointErrorGraph(joint_errors, robot.dof, dtype=dtype, device=device)
+            self.nominal = ChainGraph(tables[:1], t0, end_nominal.unsqueeze(0), dtype=dtype, device=device)
+
+    def nominal_and_calibrated(self, q: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor | None]:
+        """Nominal TCP pose ``(B, 4, 4)`` at ``q``, the calibrated TCP pose and joint frames
+        ``(B, N, 4, 4)`` at ``q + dq(q)``, and the joint errors' slope ``(B, N)`` (or ``None``); ``base``, m."""
+        if self.joint_errors is None:
+            poses, frames = self.both(q, with_frames=True)
+            return poses[:, 0], poses[:, 1], frames[:, 1], None
+        nominal, nominal_frames = self.nominal(q, with_frames=True)
+        nominal = nominal[:, 0]
+        dq, slope = self.joint_errors(q, nominal_frames[:, 0], nominal[:, :3, 3])
+        pose, frames = self.calibrated(q + dq, with_frames=True)
+        return nominal, pose[:, 0], frames[:, 0], slope
+
+    def calibrated_at(self, q: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+        """Calibrated TCP pose and joint frames at ``q + dq(q)``, and the slope (or ``None``)."""
+        if self.joint_errors is not None and self.joint_errors.needs_frames:
+            return self.nominal_and_calibrated(q)[1:]
+        slope = None
+        if self.joint_errors is not None:
+            dq, slope = self.joint_errors(q)
+            q = q + dq
+        pose, frames = self.calibrated(q, with_frames=True)
+        return pose[:, 0], frames[:, 0], slope
 
     def add_residual(self, p: torch.Tensor, q: torch.Tensor, sign: float = 1.0) -> torch.Tensor:
         """``p + sign * r(q)`` ``(B, 3)`` (m, ``base``); ``p`` itself without a residual head."""
@@ -122,6 +166,8 @@ class CompensatorGraph(nn.Module):
         damping_floor: ``lambda_0`` (m per rad, rad per rad).
         solver: ``"inverse"`` (onnxruntime's contrib ``Inverse``, default) or ``"gauss_jordan"``
             (standard ONNX operators only, for other runtimes); both solve in float64.
+        joint_errors: the model's joint-space errors (gravity compliance, harmonics), if any: the
+            calibrated chain then turns by ``q + dq(q)`` (:mod:`torchcal.compensate.joint_error_graph`).
         device: where the constants live (CPU by default).
     """
 
@@ -136,6 +182,7 @@ class CompensatorGraph(nn.Module):
         damping_gain: float = DEFAULT_DAMPING_GAIN,
         damping_floor: float = DEFAULT_DAMPING_FLOOR,
         solver: str = "inverse",
+        joint_errors: JointSpaceErrors | None = None,
         device: str | torch.device = "cpu",
     ) -> None:
         super().__init__()
@@ -143,7 +190,7 @@ class CompensatorGraph(nn.Module):
             raise ValueError("iterations must be >= 1")
         if solver not in SOLVERS:
             raise ValueError(f"solver must be one of {sorted(SOLVERS)}, got {solver!r}")
-        self.models = _TwoModels(model, x, residual, dtype, device)
+        self.models = _TwoModels(model, x, residual, dtype, device, joint_errors)
         self.iterations = int(iterations)
         self.solver = solver
         self.dtype = dtype
@@ -163,23 +210,19 @@ class CompensatorGraph(nn.Module):
 
     def solve(self, q_nominal: torch.Tensor, wrench: torch.Tensor | None = None) -> torch.Tensor:
         """The fixed number of damped Newton steps from ``q_nominal`` (``wrench``: loaded graphs)."""
-        poses, frames = self.models.both(q_nominal, with_frames=True)
-        target = poses[:, 0]
-        pose, joint_frames = poses[:, 1], frames[:, 1]
+        target, pose, joint_frames, slope = self.models.nominal_and_calibrated(q_nominal)
         q = q_nominal
         for step in range(self.iterations):
             if step > 0:
-                pose_c, frames_c = self.models.calibrated(q, with_frames=True)
-                pose, joint_frames = pose_c[:, 0], frames_c[:, 0]
-            q = q + self.step(target, pose, joint_frames, q, wrench)
+                pose, joint_frames, slope = self.models.calibrated_at(q)
+            q = q + self.step(target, pose, joint_frames, q, wrench, slope)
         return q
 
     def step(self, target: torch.Tensor, pose: torch.Tensor, joint_frames: torch.Tensor, q: torch.Tensor,
-             wrench: torch.Tensor | None = None) -> torch.Tensor:
+             wrench: torch.Tensor | None = None, slope: torch.Tensor | None = None) -> torch.Tensor:
         """One damped Newton step ``(B, N)`` rad: ``J^T (J J^T + lambda^2 I)^-1 e``."""
-        jac_t = geometric_jacobian_t(pose, joint_frames)  # (B, N, 6)
         error = self.pose_error(target, pose[:, :3, 3], pose[:, :3, :3], q).unsqueeze(-1)  # (B, 6, 1)
-        return self.damped_step(jac_t, error)
+        return self.damped_step(command_jacobian_t(pose, joint_frames, slope), error)
 
     def damped_step(self, jac_t: torch.Tensor, error: torch.Tensor) -> torch.Tensor:
         """``J^T (J J^T + lambda^2 I)^-1 e`` ``(B, N)`` for ``J^T`` ``(B, N, 6)`` and ``e`` ``(B, 6, 1)``.
@@ -217,10 +260,11 @@ class MonitorGraph(nn.Module):
         residual: nn.Module | None = None,
         *,
         dtype: torch.dtype = torch.float64,
+        joint_errors: JointSpaceErrors | None = None,
         device: str | torch.device = "cpu",
     ) -> None:
         super().__init__()
-        self.models = _TwoModels(model, x, residual, dtype, device)
+        self.models = _TwoModels(model, x, residual, dtype, device, joint_errors)
 
     @classmethod
     def from_stored(cls, stored, **options) -> "MonitorGraph":
@@ -228,8 +272,11 @@ class MonitorGraph(nn.Module):
         return cls(stored.model, stored.x, residual, **options)
 
     def forward(self, q: torch.Tensor) -> torch.Tensor:
-        p = self.models.both.positions(q)
-        return self.models.add_residual(p[:, 1] - p[:, 0], q)
+        if self.models.joint_errors is None:  # the fast path: positions only, no link tensors
+            p = self.models.both.positions(q)
+            return self.models.add_residual(p[:, 1] - p[:, 0], q)
+        nominal, pose, _, _ = self.models.nominal_and_calibrated(q)
+        return self.models.add_residual(pose[:, :3, 3] - nominal[:, :3, 3], q)
 
 
 class LoadedCompensatorGraph(CompensatorGraph):
@@ -273,11 +320,11 @@ class LoadedCompensatorGraph(CompensatorGraph):
         return self.solve(q_nominal, wrench)
 
     def step(self, target: torch.Tensor, pose: torch.Tensor, joint_frames: torch.Tensor, q: torch.Tensor,
-             wrench: torch.Tensor | None = None) -> torch.Tensor:
+             wrench: torch.Tensor | None = None, slope: torch.Tensor | None = None) -> torch.Tensor:
         """The rigid step with the error measured at the loaded TCP (Jacobian kept rigid)."""
         position, rotation = self.deflection.loaded_pose(pose, joint_frames, wrench)
         error = self.pose_error(target, position, rotation, q).unsqueeze(-1)
-        return self.damped_step(geometric_jacobian_t(pose, joint_frames), error)
+        return self.damped_step(command_jacobian_t(pose, joint_frames, slope), error)
 
 
 class LoadedMonitorGraph(MonitorGraph):
@@ -296,9 +343,10 @@ class LoadedMonitorGraph(MonitorGraph):
         *,
         wrench_frame: str = "tool",
         dtype: torch.dtype = torch.float64,
+        joint_errors: JointSpaceErrors | None = None,
         device: str | torch.device = "cpu",
     ) -> None:
-        super().__init__(model, x, residual, dtype=dtype, device=device)
+        super().__init__(model, x, residual, dtype=dtype, joint_errors=joint_errors, device=device)
         self.deflection = DeflectionGraph(compliance, wrench_frame=wrench_frame, dtype=dtype, device=device)
 
     @classmethod
@@ -307,6 +355,6 @@ class LoadedMonitorGraph(MonitorGraph):
         return cls(stored.model, stored.x, stored.stiffness.compliance, residual, **options)
 
     def forward(self, q: torch.Tensor, wrench: torch.Tensor) -> torch.Tensor:  # type: ignore[override]
-        poses, frames = self.models.both(q, with_frames=True)
-        dp, _ = self.deflection(poses[:, 1], frames[:, 1], wrench)
-        return self.models.add_residual(poses[:, 1, :3, 3] - poses[:, 0, :3, 3] + dp, q)
+        nominal, pose, frames, _ = self.models.nominal_and_calibrated(q)
+        dp, _ = self.deflection(pose, frames, wrench)
+        return self.models.add_residual(pose[:, :3, 3] - nominal[:, :3, 3] + dp, q)

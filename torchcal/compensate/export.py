@@ -106,21 +106,26 @@ def build_graphs(
     :data:`SOLVER_PORTABLE`).
     """
     solve = {"iterations": iterations, "solver": SOLVER_PORTABLE if portable else SOLVER_DEFAULT}
+    from torchcal.identify.joint_errors import JointSpaceErrors
+
     if residual is None and use_stored_residual and stored.residual is not None:
         residual = stored.residual.to_torch_module()
     stiffness = getattr(stored, "stiffness", None)
+    joint_errors = JointSpaceErrors.from_metadata(stored.metadata)
     graphs = {}
     for key, (_, dtype, _, _) in GRAPHS.items():
         if stiffness is None:
             cls = CompensatorGraph if key.startswith("compensator") else MonitorGraph
             options = solve if key.startswith("compensator") else {}
-            graphs[key] = cls(stored.model, stored.x, residual, dtype=dtype, **options).eval()
+            graphs[key] = cls(stored.model, stored.x, residual, dtype=dtype, joint_errors=joint_errors, **options).eval()
         else:
             compliance = stiffness.compliance.cpu()
             if key.startswith("compensator"):
-                graph = LoadedCompensatorGraph(stored.model, stored.x, compliance, residual, wrench_frame=wrench_frame, dtype=dtype, **solve)
+                graph = LoadedCompensatorGraph(stored.model, stored.x, compliance, residual, wrench_frame=wrench_frame, dtype=dtype,
+                                               joint_errors=joint_errors, **solve)
             else:
-                graph = LoadedMonitorGraph(stored.model, stored.x, compliance, residual, wrench_frame=wrench_frame, dtype=dtype)
+                graph = LoadedMonitorGraph(stored.model, stored.x, compliance, residual, wrench_frame=wrench_frame, dtype=dtype,
+                                           joint_errors=joint_errors)
             graphs[key] = graph.eval()
     return graphs
 
@@ -277,15 +282,6 @@ def export_model(
 
     model_dir, out_dir = Path(model_dir), Path(out_dir)
     stored = load_model(model_dir)
-    from torchcal.identify.joint_errors import METADATA_KEYS
-
-    for key in METADATA_KEYS.values():
-        if stored.metadata.get(key):
-            from torchcal.errors import TorchcalError
-
-            # the graph evaluates the chain at the commanded joints: it would drop these errors silently
-            raise TorchcalError(f"{model_dir}: the compensator graph has no joint-space error term ({key}) yet; "
-                                f"fit with {key}=none to export")
     graphs = build_graphs(stored, wrench_frame=wrench_frame, iterations=iterations, portable=portable)
     loaded = has_wrench_input(graphs)
     robot = stored.robot
@@ -309,7 +305,8 @@ def export_model(
         },
         "frames": "robot base frame (calibrated); the instrument frame of the calibration is not applied",
         "sign_convention": "dT = T_real(q) - T_nominal(q) (monitor output); T_c = T_t - dT; q_corrected = IK_nominal(T_c)",
-        "stages": {"geometry": True, "residual": stored.residual is not None, "stiffness": False},
+        "stages": {"geometry": True, "residual": stored.residual is not None, "stiffness": False,
+                   **_joint_error_stages(stored.metadata)},
         "inputs": {"compensator": "q_nominal", "monitor": "q"},
         "outputs": {"compensator": "q_corrected", "monitor": "tcp_error_m"},
         "dtypes": {key: str(dtype).replace("torch.", "") for key, (_, dtype, _, _) in GRAPHS.items()},
@@ -341,6 +338,13 @@ def export_model(
     atomic_write_json(out_dir / "manifest.json", manifest)
     atomic_write_text(out_dir / "README.md", readme_text(manifest))
     return manifest
+
+
+def _joint_error_stages(metadata: dict) -> dict:
+    """``stages`` entries of the joint-space errors the graphs carry (absent ones are ``False``)."""
+    from torchcal.identify.joint_errors import METADATA_KEYS
+
+    return {key: bool(metadata.get(key)) for key in METADATA_KEYS.values()}
 
 
 def _describe_stiffness(manifest: dict, stored, wrench_frame: str) -> None:
@@ -389,6 +393,7 @@ def readme_text(manifest: dict) -> str:
     joints = ", ".join(manifest["joint_names"])
     residual = "yes" if manifest["stages"]["residual"] else "no"
     stiffness = "yes" if manifest["stages"]["stiffness"] else "no"
+    joint = ", ".join(k.replace("_", " ") for k in ("gravity_compliance", "joint_harmonics") if manifest["stages"].get(k)) or "none"
     wrench = manifest.get("wrench")
     n = manifest["n_joints"]
     if wrench:
@@ -408,7 +413,7 @@ Stiffness entries treated as rigid (not observable from the stiffness data):
     return f"""# Compensator for {manifest['robot']}
 
 Exported by torchcal {manifest['versions']['torchcal']} (ONNX opset {manifest['opset']}).
-Stages: geometry yes, learned residual {residual}, stiffness {stiffness}.
+Stages: geometry yes, learned residual {residual}, stiffness {stiffness}, joint-space errors {joint}.
 
 ## Files
 

@@ -1,0 +1,89 @@
+"""Joint-space errors of a model as an exportable graph: ``dq(q)`` and its diagonal slope.
+
+The calibrated chain of a model with joint-space errors (:mod:`torchcal.identify.joint_errors`)
+turns by ``q + dq(q)`` at the commanded joints ``q`` (rad):
+
+* gravity compliance (:mod:`torchcal.identify.compliance`): ``dq_j = sum_k c_kj tau_kj(q)``, with
+  ``tau_kj`` the unit-weight gravity torque (m) of point ``k`` (``tcp`` or ``elbow``) about joint
+  ``j`` on the *nominal* chain, ``base`` z up. For a lever ``l = p_k - o_j`` and joint axis ``z_j``,
+  ``z_j . (l x (0, 0, -1)) = z_jy l_x - z_jx l_y``: four elementwise nodes on the joint frames the
+  nominal chain graph already produces;
+* first harmonics (:mod:`torchcal.identify.harmonics`): ``dq_j = a_j sin q_j + b_j cos q_j``.
+
+The slope ``d dq_j / d q_j`` of the harmonics enters the compensator's Newton step (the Jacobian
+with respect to the command is ``J(q + dq) diag(1 + slope)``): an amplitude of 0.05 rad slows the
+contraction by that factor per step without it. The gravity term's own slope is ``c dtau/dq``,
+~1e-4 rad/rad on the real sets, and is left out, as the residual head's Jacobian is.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from torchcal.identify.compliance import ELBOW_FRAME
+from torchcal.identify.joint_errors import JointSpaceErrors
+
+
+class JointErrorGraph(nn.Module):
+    """``(q, nominal joint frames, nominal TCP) -> (dq, slope)`` for one model's joint-space errors.
+
+    Args:
+        errors: the identified terms (``JointSpaceErrors.from_metadata(stored.metadata)``).
+        n_joints: the robot's joint count.
+        dtype / device: of the graph's constants.
+    """
+
+    def __init__(self, errors: JointSpaceErrors, n_joints: int, *, dtype: torch.dtype = torch.float64,
+                 device: str | torch.device = "cpu") -> None:
+        super().__init__()
+        if errors.empty:
+            raise ValueError("no joint-space errors to build a graph of")
+        self.points: tuple[str, ...] = errors.compliance.points if errors.compliance is not None else ()
+        self.has_harmonics = errors.harmonics is not None
+        if self.points:
+            coefficients = errors.compliance.coefficients.to(torch.float64).clone()  # (K, N) rad/m
+            for k, name in enumerate(self.points):
+                if name == "elbow":  # the upper-arm weight loads only the joints before the elbow frame
+                    coefficients[k, ELBOW_FRAME - 1 :] = 0.0
+                elif name != "tcp":
+                    raise ValueError(f"unknown gravity point '{name}'")
+            self.register_buffer("gravity_coefficients", coefficients.to(device, dtype))
+        if self.has_harmonics:
+            a, b = errors.harmonics.coefficients.to(torch.float64).clone()  # rows a (sin), b (cos), rad
+            a[-1] = b[-1] = 0.0  # as harmonic_basis: the last joint has none
+            self.register_buffer("harmonic_sin", a.to(device, dtype))
+            self.register_buffer("harmonic_cos", b.to(device, dtype))
+        self.n_joints = n_joints
+
+    @property
+    def needs_frames(self) -> bool:
+        """Whether :meth:`forward` reads the nominal chain (gravity terms do, harmonics do not)."""
+        return bool(self.points)
+
+    def forward(self, q: torch.Tensor, frames: torch.Tensor | None = None,
+                tcp: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """Joint errors ``(B, N)`` rad and the harmonics' slope ``(B, N)`` (``None`` without harmonics).
+
+        Args:
+            q: commanded joints ``(B, N)`` rad.
+            frames: ``(B, N, 4, 4)`` joint frames of the *nominal* chain at ``q``, ``base`` frame
+                (needed with gravity terms).
+            tcp: ``(B, 3)`` nominal TCP position at ``q``, ``base``, m (needed with a ``tcp`` point).
+        """
+        dq = None
+        if self.points:
+            axes, origins = frames[..., :3, 2], frames[..., :3, 3]  # (B, N, 3)
+            named = {"tcp": tcp, "elbow": origins[:, min(ELBOW_FRAME, self.n_joints) - 1] if "elbow" in self.points else None}
+            points = torch.stack([named[name] for name in self.points], 1)  # (B, K, 3)
+            lever = points.unsqueeze(2) - origins.unsqueeze(1)  # (B, K, N, 3)
+            ax, ay = axes[..., 0].unsqueeze(1), axes[..., 1].unsqueeze(1)  # (B, 1, N)
+            torque = ay * lever[..., 0] - ax * lever[..., 1]  # (B, K, N), m per unit weight
+            dq = (torque * self.gravity_coefficients).sum(1)
+        slope = None
+        if self.has_harmonics:
+            sin, cos = torch.sin(q), torch.cos(q)
+            harmonic = self.harmonic_sin * sin + self.harmonic_cos * cos
+            dq = harmonic if dq is None else dq + harmonic
+            slope = self.harmonic_sin * cos - self.harmonic_cos * sin
+        return dq, slope
