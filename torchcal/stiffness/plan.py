@@ -1,8 +1,9 @@
 """Loading plan for a force rig: which poses to load, and with which wrench (experiment design).
 
 Random wrenches at random poses waste most of the rig: a random moment direction puts on
-average only a third of its square about the tool axis, which is all that joint 6's own spring
-(``k_j6_rz``) feels, and it is seen mainly through the probe's rotations. The plan instead picks,
+average a third of its square about the tool axis, and with magnitudes uniform in 0.2..1 of the
+limit joint 6's own spring (``k_j6_rz``) gets about 1/7 of the rig's mean-square moment; it is
+seen mainly through the probe's rotations, so its sigma suffers most. The plan instead picks,
 greedily from candidate poses within the joint limits, one pose at a time and for it one wrench
 at the rig's limits (full force, full moment) from a set of ``tool``-frame directions.
 
