@@ -1,12 +1,13 @@
 """Stiffness through the command line and the exported compensator, on the loading-rig twin.
 
-For each seed: ``torchcal simulate instrument=stiffness`` (120 training, 200 test poses),
+For each seed: ``torchcal simulate instrument=stiffness`` (120 training, 200 test poses; the
+default ``plan=optimal`` loading, or ``--plan random``),
 ``torchcal fit``, ``torchcal evaluate``, ``torchcal export``; then the exported compensator
 (onnxruntime runner, float64 and float32) corrects 300 regular poses under random wrenches and
 the true loaded robot (exact deformed chain) is measured against the target. Prints a Markdown
 table and writes ``docs/stiffness_cli.json``.
 
-    python scripts/bench_stiffness_cli.py [--seeds 0 1 2]
+    python scripts/bench_stiffness_cli.py [--seeds 0 1 2] [--plan optimal|random]
 """
 
 from __future__ import annotations
@@ -21,13 +22,15 @@ import torch
 
 from torchcal.cli import main
 from torchcal.compensate.runtime import CompensatorRuntime
+from torchcal.io import atomic_write_text
 from torchcal.sim.stiffness_case import StiffnessCaseConfig
 from torchcal.sim.stiffness_twin import StiffnessTwin
 
 
-def one_seed(seed: int, root: Path) -> dict:
+def one_seed(seed: int, root: Path, plan: str = "optimal") -> dict:
+    """Simulate, fit, evaluate, export and compensate one twin seed under the loading ``plan``."""
     case, model, exported = root / "case", root / "model", root / "exported"
-    main(["simulate", "instrument=stiffness", "--out", str(case), f"seed={seed}", "n_train=120", "n_test=200"])
+    main(["simulate", "instrument=stiffness", "--out", str(case), f"seed={seed}", "n_train=120", "n_test=200", f"plan={plan}"])
     main(["fit", "--robot", str(case / "robot.yaml"), "--data", str(case / "stiffness_train.csv"), "--out", str(model)])
     main(["evaluate", "--model", str(model), "--data", str(case / "stiffness_test.csv"), "--json", str(root / "e.json")])
     main(["export", "--model", str(model), "--out", str(exported)])
@@ -57,8 +60,11 @@ def one_seed(seed: int, root: Path) -> dict:
     manifest = json.loads((exported / "manifest.json").read_text())
     return {
         "seed": seed,
+        "plan": plan,
         "max_abs_rel_error_identified": max(abs(v) for v in rel.values()),
         "relative_errors": rel,
+        "reported_relative_std": {n: p["relative_std"] for n, p in meta["parameters"].items()},
+        "status": {n: p["status"] for n, p in meta["parameters"].items()},
         "unobservable": meta["unobservable"],
         "deflection_rms_mm": metrics["deflection_rms_mm"],
         "deflection_measured_rms_mm": metrics["deflection_measured_rms_mm"],
@@ -71,13 +77,14 @@ def one_seed(seed: int, root: Path) -> dict:
 def main_bench() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
+    parser.add_argument("--plan", choices=("optimal", "random"), default="optimal")
     parser.add_argument("--out", default=str(Path(__file__).resolve().parents[1] / "docs" / "stiffness_cli.json"))
     args = parser.parse_args()
     rows = []
     for seed in args.seeds:
         with tempfile.TemporaryDirectory() as tmp:
-            rows.append(one_seed(seed, Path(tmp)))
-    Path(args.out).write_text(json.dumps(rows, indent=2) + "\n")
+            rows.append(one_seed(seed, Path(tmp), args.plan))
+    atomic_write_text(args.out, json.dumps(rows, indent=2) + "\n")
     print("| seed | max rel. error (identified) | deflection RMS mm (error / measured) | loaded TCP RMS mm: before -> f64 / f32 | reduction | rotation RMS deg: before -> f64 |")
     print("| --- | --- | --- | --- | --- | --- |")
     for r in rows:

@@ -15,7 +15,7 @@ from torchcal.compensate.runtime import CompensatorRuntime
 from torchcal.data.stiffness import load_stiffness
 from torchcal.errors import IdentifiabilityWarning
 from torchcal.model_store import load_model
-from torchcal.sim.stiffness_twin import StiffnessTwin, StiffnessTwinConfig, write_stiffness_csv
+from torchcal.sim.stiffness_twin import StiffnessTwin, StiffnessTwinConfig, write_stiffness_case, write_stiffness_csv
 from torchcal.sim.twin import Twin, TwinConfig, write_twin_case
 
 
@@ -42,6 +42,25 @@ def test_simulate_writes_the_case_files(case):
     # the truth is the twin's for that seed
     twin = StiffnessTwin(StiffnessTwinConfig(seed=3))
     assert truth["joint_stiffness_nm_per_rad"]["k_j3_rz"] == float(twin.joint_stiffness[2])
+
+
+def test_simulate_loads_by_plan(case, tmp_path, capsys):
+    """Default plan=optimal: rig-limit wrenches, predicted sigma in the truth; plan=random: earlier files."""
+    plan = json.loads((case / "stiffness_truth.json").read_text())["loading_plan"]
+    assert plan["plan"] == "optimal" and plan["candidate_poses"] == 160
+    wrench = load_stiffness(case / "stiffness_train.csv", n_joints=6).wrench
+    assert wrench[:, :3].norm(dim=-1).tolist() == pytest.approx([300.0] * 80, rel=1e-9)
+    assert wrench[:, 3:].norm(dim=-1).tolist() == pytest.approx([30.0] * 80, rel=1e-9)
+    out = tmp_path / "random"
+    assert main(["simulate", "instrument=stiffness", "--out", str(out), "plan=random", "n_train=10", "n_test=5", "seed=3"]) == 0
+    expected = write_stiffness_case(tmp_path / "expected", StiffnessTwinConfig(seed=3), n_train=10, n_test=5, plan="random")
+    for name, path in expected.items():
+        assert (out / name).read_bytes() == path.read_bytes(), name
+    assert "loading_plan" not in json.loads((out / "stiffness_truth.json").read_text())
+    assert main(["simulate", "instrument=stiffness", "--out", str(tmp_path / "b"), "plan=best"]) == 2
+    assert main(["simulate", "instrument=stiffness", "--out", str(tmp_path / "c"), "n_train=10", "plan_candidates=5"]) == 2
+    err = capsys.readouterr().err
+    assert "plan must be 'optimal' or 'random'" in err and "plan_candidates (5)" in err
 
 
 def test_simulate_sets_the_true_stiffness(tmp_path):

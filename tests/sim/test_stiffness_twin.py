@@ -5,17 +5,18 @@ from __future__ import annotations
 import json
 import math
 
+import pytest
 import torch
 
 from torchcal.data.stiffness import load_stiffness
 from torchcal.kinematics import transforms as tf
 from torchcal.kinematics.joint_jacobian import geometric_jacobian
-from torchcal.sim.stiffness_twin import StiffnessTwin, StiffnessTwinConfig, write_stiffness_case
+from torchcal.sim.stiffness_twin import StiffnessTwin, StiffnessTwinConfig, stiffness_csv_text, write_stiffness_case
 from torchcal.stiffness.vjm import deflection
 
 
 def test_case_files_are_contract_files(tmp_path):
-    paths = write_stiffness_case(tmp_path, StiffnessTwinConfig(seed=4), n_train=12, n_test=5)
+    paths = write_stiffness_case(tmp_path, StiffnessTwinConfig(seed=4), n_train=12, n_test=5, plan="random")
     header = paths["stiffness_train.csv"].read_text().splitlines()[0]
     assert header == "q1,q2,q3,q4,q5,q6,fx,fy,fz,tx,ty,tz,dx,dy,dz,drx,dry,drz,x,y,z"
     assert len(load_stiffness(paths["stiffness_train.csv"], n_joints=6)) == 12
@@ -67,3 +68,33 @@ def test_without_unloaded_points_the_instrument_is_the_base():
     assert torch.equal(twin.T_instrument_base, torch.eye(4, dtype=torch.float64))
     data = twin.sample(4, torch.Generator().manual_seed(0))
     assert data.unloaded is None and data.rotation is None
+
+
+def test_random_plan_writes_the_files_of_earlier_versions(tmp_path):
+    """plan=random: one generator, random training sample then random test sample, truth as before."""
+    cfg = StiffnessTwinConfig(seed=3)
+    paths = write_stiffness_case(tmp_path, cfg, n_train=15, n_test=6, plan="random")
+    twin = StiffnessTwin(cfg)
+    gen = torch.Generator().manual_seed(3 + 104729)
+    assert paths["stiffness_train.csv"].read_text() == stiffness_csv_text(twin.sample(15, gen))
+    assert paths["stiffness_test.csv"].read_text() == stiffness_csv_text(twin.sample(6, gen))
+    assert paths["stiffness_truth.json"].read_text() == json.dumps(twin.truth_dict(), indent=2) + "\n"
+
+
+def test_optimal_plan_loads_at_the_rig_limits_and_reports_sigma(tmp_path):
+    cfg = StiffnessTwinConfig(seed=5, max_force_n=200.0, max_torque_nm=25.0)
+    paths = write_stiffness_case(tmp_path, cfg, n_train=20, n_test=8, plan_candidates=50)
+    data = load_stiffness(paths["stiffness_train.csv"], n_joints=6)
+    assert len(data) == 20
+    assert torch.allclose(data.wrench[:, :3].norm(dim=-1), torch.full((20,), 200.0, dtype=torch.float64), rtol=1e-9)
+    assert torch.allclose(data.wrench[:, 3:].norm(dim=-1), torch.full((20,), 25.0, dtype=torch.float64), rtol=1e-9)
+    assert bool(StiffnessTwin(cfg).robot.within_limits(data.q).all())
+    test = load_stiffness(paths["stiffness_test.csv"], n_joints=6)
+    assert float(test.wrench[:, :3].norm(dim=-1).min()) < 200.0  # the test poses stay randomly loaded
+    plan = json.loads(paths["stiffness_truth.json"].read_text())["loading_plan"]
+    assert plan["plan"] == "optimal" and plan["candidate_poses"] == 50 and plan["n_poses"] == 20
+    sigma = plan["predicted_relative_std_at_truth"]
+    assert sorted(sigma) == [f"k_j{i}_rz" for i in range(1, 7)]
+    assert all(0 < v < 1 for v in sigma.values())
+    # the design point is the middle of the prior ranges, not the truth
+    assert plan["design_stiffness"]["k_j6_rz"] == pytest.approx(math.sqrt(1e4 * 5e4), rel=1e-12)

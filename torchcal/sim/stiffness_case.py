@@ -27,6 +27,10 @@ class StiffnessCaseConfig:
         n_train / n_test: loaded poses in ``stiffness_train.csv`` / ``stiffness_test.csv``.
         joint_stiffness_nm_per_rad: true stiffness about each joint axis, N m/rad (default:
             sampled per ``seed``, 1e5..5e5 for axes 1-3 and 1e4..5e4 for the wrist).
+        plan: ``optimal`` (default: the training poses and rig-limit wrenches of an A-optimal
+            loading plan designed at the middle of those ranges) or ``random`` (random poses and
+            wrenches: the files of earlier versions, unchanged).
+        plan_candidates: random candidate poses the plan chooses from (default ``2 n_train``).
         The other fields are those of :class:`~torchcal.sim.stiffness_twin.StiffnessTwinConfig`.
     """
 
@@ -34,6 +38,8 @@ class StiffnessCaseConfig:
     n_train: int = 120
     n_test: int = 200
     joint_stiffness_nm_per_rad: list[float] | None = None
+    plan: str = "optimal"
+    plan_candidates: int | None = None
     seed: int = 0
     max_force_n: float = 300.0
     max_torque_nm: float = 30.0
@@ -56,6 +62,10 @@ def write_stiffness_twin_case(out: str | Path, config: StiffnessCaseConfig) -> d
     """Write ``robot.yaml`` and the stiffness case files of ``config`` to ``out``."""
     if config.n_train < 1 or config.n_test < 1:
         raise TorchcalError(f"n_train and n_test must be positive, got {config.n_train} and {config.n_test}")
+    if config.plan not in ("optimal", "random"):
+        raise TorchcalError(f"plan must be 'optimal' or 'random', got {config.plan!r}")
+    if config.plan_candidates is not None and config.plan_candidates < config.n_train:
+        raise TorchcalError(f"plan_candidates ({config.plan_candidates}) must be at least n_train ({config.n_train})")
     out = Path(out)
     robot = load_robot(config.robot or default_robot_path())
     compliance = None
@@ -69,6 +79,13 @@ def write_stiffness_twin_case(out: str | Path, config: StiffnessCaseConfig) -> d
     robot_path = out / "robot.yaml"
     atomic_write_text(robot_path, robot_to_yaml(robot))
     paths = write_stiffness_case(
-        out, config.twin_config(), n_train=config.n_train, n_test=config.n_test, robot=robot, compliance=compliance
+        out,
+        config.twin_config(),
+        n_train=config.n_train,
+        n_test=config.n_test,
+        robot=robot,
+        compliance=compliance,
+        plan=config.plan,
+        plan_candidates=config.plan_candidates,
     )
     return {"robot.yaml": robot_path, **paths}

@@ -1,8 +1,11 @@
-"""Digital twin of a stiffness loading rig: known joint springs, random wrenches, a tracker.
+"""Digital twin of a stiffness loading rig: known joint springs, planned or random wrenches, a tracker.
 
-At each random pose within the joint limits the rig measures the unloaded TCP, applies a random
-wrench at the TCP (force and moment up to set magnitudes, along random directions of the
-``tool`` frame, as the F/T sensor reports them) and measures the loaded TCP. The truth is the
+At each pose within the joint limits the rig measures the unloaded TCP, applies a wrench at the
+TCP (force and moment in the ``tool`` frame, as the F/T sensor reports them) and measures the
+loaded TCP. The poses and wrenches are either random (random poses; random directions, magnitudes
+up to the rig's limits) or those of a loading plan (:mod:`torchcal.stiffness.plan`: poses chosen
+from random candidates, wrenches at the rig's limits), designed at the middle of the prior
+stiffness range, not at the truth. The truth is the
 deformed chain of :mod:`torchcal.stiffness.deformed` with the spring equilibrium re-evaluated on
 the deformed structure (not the first-order VJM law that identification uses), so the model is
 checked against something it does not contain by construction. Tracker noise is added to both
@@ -25,6 +28,8 @@ from torchcal.kinematics.error_model import ErrorModel
 from torchcal.kinematics.joint_jacobian import geometric_jacobian
 from torchcal.kinematics.robot import RobotModel, default_robot_path, load_robot
 from torchcal.stiffness.deformed import loaded_tcp_pose
+from torchcal.stiffness.identify import DEFAULT_SIGMA_POSITION_M, DEFAULT_SIGMA_ROTATION_RAD, classic_names
+from torchcal.stiffness.plan import LoadingPlan, log_stiffness_jacobian, plan_loading, predicted_relative_std
 from torchcal.stiffness.vjm import classic_compliance
 
 MAIN_AXIS_RANGE_NM_PER_RAD = (1e5, 5e5)
@@ -69,6 +74,16 @@ def sample_joint_stiffness(n_joints: int, generator: torch.Generator) -> torch.T
     hi = torch.tensor([MAIN_AXIS_RANGE_NM_PER_RAD[1]] * 3 + [WRIST_RANGE_NM_PER_RAD[1]] * (n_joints - 3))
     u = torch.rand(n_joints, generator=generator, dtype=torch.float64)
     return torch.exp(torch.log(lo.double()) + u * (torch.log(hi.double()) - torch.log(lo.double())))
+
+
+def prior_middle_stiffness(n_joints: int) -> torch.Tensor:
+    """Geometric middle ``(N,)`` N m/rad of the ranges :func:`sample_joint_stiffness` draws from.
+
+    What a rig engineer would assume before the experiment: the loading plan is designed here.
+    """
+    lo = [MAIN_AXIS_RANGE_NM_PER_RAD[0]] * 3 + [WRIST_RANGE_NM_PER_RAD[0]] * (n_joints - 3)
+    hi = [MAIN_AXIS_RANGE_NM_PER_RAD[1]] * 3 + [WRIST_RANGE_NM_PER_RAD[1]] * (n_joints - 3)
+    return torch.tensor([math.sqrt(a * b) for a, b in zip(lo, hi)], dtype=torch.float64)
 
 
 def _random_directions(n: int, generator: torch.Generator) -> torch.Tensor:
@@ -193,6 +208,64 @@ class StiffnessTwin:
         q = self.sample_poses(n, generator)
         return self.measure(q, self.sample_wrenches(n, generator), generator)
 
+    def difference_sigmas(self) -> tuple[float, float]:
+        """Noise std of one loaded-minus-unloaded component: position (m), rotation (rad).
+
+        Both measurements are noisy, hence ``sqrt(2)``; a noise-free rig falls back to the
+        identification's default weights (the plan needs finite weights).
+        """
+        c = self.config
+        sigma_p = c.noise_mm * 1e-3 * math.sqrt(2.0) or DEFAULT_SIGMA_POSITION_M
+        sigma_r = math.radians(c.rotation_noise_deg) * math.sqrt(2.0) or DEFAULT_SIGMA_ROTATION_RAD
+        return sigma_p, sigma_r
+
+    def plan(self, n: int, candidates_q: torch.Tensor) -> LoadingPlan:
+        """A-optimal loading plan of ``n`` of the candidate poses ``(C, N)`` rad, at the rig's limits.
+
+        Designed on the nominal robot at :func:`prior_middle_stiffness` with the rig's noise,
+        for the classic model (one spring per joint axis); the truth is not used.
+        """
+        c = self.config
+        sigma_p, sigma_r = self.difference_sigmas()
+        return plan_loading(
+            ErrorModel(self.robot, device=self.device),
+            candidates_q,
+            n,
+            prior_middle_stiffness(self.robot.dof),
+            max_force_n=c.max_force_n,
+            max_torque_nm=c.max_torque_nm,
+            with_rotation=c.with_rotation,
+            sigma_position_m=sigma_p,
+            sigma_rotation_rad=sigma_r,
+        )
+
+    def sample_planned(
+        self, n: int, generator: torch.Generator, n_candidates: int | None = None
+    ) -> tuple[StiffnessData, LoadingPlan]:
+        """``n`` loaded poses of the loading plan chosen from ``n_candidates`` (default ``2 n``)
+        random regular poses (see :meth:`sample_poses`), measured by the rig."""
+        n_candidates = 2 * n if n_candidates is None else n_candidates
+        plan = self.plan(n, self.sample_poses(n_candidates, generator))
+        return self.measure(plan.q, plan.wrench, generator), plan
+
+    def predicted_relative_std(self, q: torch.Tensor, wrench: torch.Tensor) -> dict[str, float]:
+        """Relative std of each ``k_j{i}_rz`` the fit can expect from poses ``q`` and tool-frame
+        ``wrench`` at the true stiffness and geometry (the rig's noise, classic model)."""
+        sigma_p, sigma_r = self.difference_sigmas()
+        names = classic_names(self.robot.dof)
+        jac = log_stiffness_jacobian(
+            self.model,
+            q.to(self.device, torch.float64),
+            self.x_true,
+            wrench.to(self.device, torch.float64),
+            names,
+            self.joint_stiffness,
+            with_rotation=self.config.with_rotation,
+            sigma_position_m=sigma_p,
+            sigma_rotation_rad=sigma_r,
+        )
+        return {name: float(v) for name, v in zip(names, predicted_relative_std(jac))}
+
     def noise_floor_mm(self) -> float:
         """RMS 3-D norm of the deflection noise (loaded and unloaded points both noisy), mm."""
         return math.sqrt(2.0 * 3.0) * self.config.noise_mm
@@ -248,16 +321,36 @@ def write_stiffness_case(
     n_test: int = 200,
     robot: RobotModel | None = None,
     compliance: torch.Tensor | None = None,
+    plan: str = "optimal",
+    plan_candidates: int | None = None,
 ) -> dict[str, Path]:
     """Write ``stiffness_train.csv``, ``stiffness_test.csv`` and ``stiffness_truth.json`` to ``out``.
 
     ``robot`` and ``compliance`` are handed to :class:`StiffnessTwin` (defaults: twin-kr6, sampled).
+    ``plan="optimal"`` loads the training poses as :meth:`StiffnessTwin.sample_planned` does (from
+    ``plan_candidates`` random poses, default ``2 n_train``) and reports the plan and the predicted
+    relative std of every stiffness in the truth file; ``plan="random"`` writes the random
+    loading of earlier versions, file for file. The test poses are randomly loaded in both.
     """
+    if plan not in ("optimal", "random"):
+        raise ValueError(f"plan must be 'optimal' or 'random', got {plan!r}")
     out = Path(out)
     twin = StiffnessTwin(config, robot=robot, compliance=compliance)
     gen = torch.Generator().manual_seed(config.seed + 104729)
     paths = {name: out / name for name in ("stiffness_train.csv", "stiffness_test.csv", "stiffness_truth.json")}
-    write_stiffness_csv(paths["stiffness_train.csv"], twin.sample(n_train, gen))
+    truth = twin.truth_dict()
+    if plan == "random":  # the stream of earlier versions: train, then test, from one generator
+        train = twin.sample(n_train, gen)
+    else:
+        candidates = 2 * n_train if plan_candidates is None else plan_candidates
+        train, loading = twin.sample_planned(n_train, gen, candidates)
+        truth["loading_plan"] = {
+            "plan": "optimal",
+            "candidate_poses": candidates,
+            **loading.as_dict(),
+            "predicted_relative_std_at_truth": twin.predicted_relative_std(train.q, train.wrench),
+        }
+    write_stiffness_csv(paths["stiffness_train.csv"], train)
     write_stiffness_csv(paths["stiffness_test.csv"], twin.sample(n_test, gen))
-    atomic_write_text(paths["stiffness_truth.json"], json.dumps(twin.truth_dict(), indent=2) + "\n")
+    atomic_write_text(paths["stiffness_truth.json"], json.dumps(truth, indent=2) + "\n")
     return paths

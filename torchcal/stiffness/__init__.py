@@ -1,4 +1,4 @@
-"""Joint stiffness: virtual joint method, identification, deformed kinematics, compensation.
+"""Joint stiffness: virtual joint method, identification, loading plan, deformed kinematics, compensation.
 
 Frames: spring deformations live in each MDH joint frame; deflections, Jacobians and wrenches
 handed to :func:`deflection` are in the ``instrument`` frame (the ``base`` frame when no
@@ -18,6 +18,7 @@ from torchcal.stiffness.identify import (
     identify_stiffness,
     instrument_model,
 )
+from torchcal.stiffness.plan import LoadingPlan, plan_loading, rig_wrenches
 from torchcal.stiffness.vjm import (
     SPRING_COMPONENTS,
     cartesian_compliance,
@@ -33,6 +34,7 @@ __all__ = [
     "SPRING_COMPONENTS",
     "DeflectionCompensation",
     "DeflectionCompensator",
+    "LoadingPlan",
     "StiffnessEstimate",
     "cartesian_compliance",
     "classic_compliance",
@@ -46,7 +48,9 @@ __all__ = [
     "instrument_model",
     "joint_deformations",
     "loaded_tcp_pose",
+    "plan_loading",
     "rederive_parameters",
+    "rig_wrenches",
     "spring_names",
     "virtual_joint_jacobian",
 ]
