@@ -12,6 +12,7 @@ from torchcal.identify.calibrate import calibrate
 from torchcal.identify.compliance import GravityCompliance, fit_with_compliance, gravity_torque_basis
 from torchcal.identify.joint_fit import JointErrorProblem, predicted_positions
 from torchcal.kinematics.error_model import ErrorModel
+from fd_jacobian import central_difference_jacobian
 
 
 def _synthetic(robot, generator, n, coefficients, points=("elbow", "tcp"), noise_mm=0.0):
@@ -53,14 +54,7 @@ def test_compliant_jacobian_matches_finite_differences(robot, generator):
     problem = JointErrorProblem(geometric.model, data, basis, free, cols)
     xe = torch.cat([geometric.x, torch.tensor([1e-3, 2e-3, -1e-3, 5e-3], dtype=torch.float64)])
     _, jac = problem.jacobian(xe)
-    numeric = []
-    for i in free.tolist():
-        h = 1e-7
-        plus, minus = xe.clone(), xe.clone()
-        plus[i] += h
-        minus[i] -= h
-        numeric.append((problem.residuals(plus) - problem.residuals(minus)) / (2 * h))
-    numeric = torch.stack(numeric, -1)
+    numeric = central_difference_jacobian(problem.residuals, xe, free.tolist())
     assert torch.allclose(jac, numeric, rtol=1e-5, atol=1e-9)
 
 

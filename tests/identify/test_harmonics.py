@@ -15,6 +15,7 @@ from torchcal.identify.joint_fit import JointErrorProblem, fit_joint_errors, pre
 from torchcal.pipeline import FitConfig, fit, held_out_errors, save_fit
 from torchcal.model_store import load_model
 from torchcal.sim.twin import Twin, TwinConfig
+from fd_jacobian import central_difference_jacobian
 
 
 def _twin_with_first_harmonics(amplitude_deg: float, seed: int = 4, last_joint: bool = False) -> Twin:
@@ -59,14 +60,7 @@ def test_joint_error_jacobian_matches_central_finite_differences(robot, generato
     problem = JointErrorProblem(geometric.model, data, basis, free, cols)
     xe = torch.cat([geometric.x, torch.tensor([1e-3, -2e-3, 4e-4, -3e-4, 2e-4, 5e-4], dtype=torch.float64)])
     _, jac = problem.jacobian(xe)
-    numeric = []
-    for i in free.tolist():
-        h = 1e-7
-        plus, minus = xe.clone(), xe.clone()
-        plus[i] += h
-        minus[i] -= h
-        numeric.append((problem.residuals(plus) - problem.residuals(minus)) / (2 * h))
-    numeric = torch.stack(numeric, -1)
+    numeric = central_difference_jacobian(problem.residuals, xe, free.tolist())
     assert jac[:, 6:].abs().max() > 1e-3  # the harmonic columns are not trivially zero
     assert torch.allclose(jac, numeric, rtol=1e-5, atol=1e-9)
 

@@ -1,0 +1,19 @@
+"""Central finite differences of a residual function: the independent check of analytic Jacobians."""
+
+from __future__ import annotations
+
+from typing import Callable, Iterable
+
+import torch
+
+
+def central_difference_jacobian(residuals: Callable[[torch.Tensor], torch.Tensor], x: torch.Tensor,
+                                columns: Iterable[int], step: float = 1e-7) -> torch.Tensor:
+    """``d residuals / d x[columns]`` ``(M, len(columns))`` by central differences of ``step``."""
+    out = []
+    for i in columns:
+        plus, minus = x.clone(), x.clone()
+        plus[i] += step
+        minus[i] -= step
+        out.append((residuals(plus) - residuals(minus)) / (2 * step))
+    return torch.stack(out, -1)
