@@ -87,7 +87,13 @@ def main() -> None:
     parser.add_argument("--out", default=str(Path(__file__).resolve().parents[1] / "docs"))
     parser.add_argument("--no-residual", action="store_true", help="skip the learned residual stage")
     parser.add_argument("--only", default=None, help="run only this data set")
+    parser.add_argument("--threads", type=int, default=1,
+                        help="torch intra-op threads (default 1: the fits are many small problems, and on a shared "
+                             "2-core machine more threads contend instead of helping)")
     args = parser.parse_args()
+    import torch
+
+    torch.set_num_threads(max(1, args.threads))
     root = Path(args.data_root)
     console = Console()
     results = []

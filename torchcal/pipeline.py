@@ -103,12 +103,21 @@ def with_tool(robot: RobotModel, config: FitConfig) -> RobotModel:
 
 
 def fit(robot: RobotModel, data: Measurements, config: FitConfig, *, progress=None) -> CalibrationResult:
-    """Geometric identification with the configured identifier."""
+    """Geometric identification with the configured identifier, plus the configured joint-space errors.
+
+    ``auto`` in ``gravity_compliance`` or ``joint_harmonics`` runs one 5-fold CV on ``data`` over
+    the allowed combinations (:func:`~torchcal.identify.joint_fit.choose_joint_errors_by_cv`).
+    """
     if config.method not in IDENTIFIERS:
         raise DataError(f"unknown method '{config.method}'; choose one of {sorted(IDENTIFIERS)}")
     from torchcal.identify.compliance import POINT_SETS
     from torchcal.identify.harmonics import HARMONIC_SETS
-    from torchcal.identify.joint_fit import choose_joint_errors_by_cv, fit_joint_errors, joint_error_options
+    from torchcal.identify.joint_fit import (
+        choose_joint_errors_by_cv,
+        fit_joint_errors,
+        joint_error_options,
+        option_label,
+    )
 
     sets = {"gravity_compliance": POINT_SETS, "joint_harmonics": HARMONIC_SETS}
     for key, allowed in sets.items():
@@ -126,8 +135,6 @@ def fit(robot: RobotModel, data: Measurements, config: FitConfig, *, progress=No
     gravity, harmonics = options[0]
     if len(options) > 1:
         (gravity, harmonics), scores = choose_joint_errors_by_cv(robot, data, geometry, options, seed=config.seed)
-        from torchcal.identify.joint_fit import option_label
-
         note = ("joint-space errors chosen by 5-fold CV on the fit's poses: "
                 + ", ".join(f"{k} {v:.4f} mm" for k, v in scores.items()) + f" -> {option_label(gravity, harmonics)}")
     result = fit_joint_errors(robot, data, geometry(data), POINT_SETS[gravity], HARMONIC_SETS[harmonics])

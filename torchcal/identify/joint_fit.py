@@ -126,7 +126,8 @@ def fit_joint_errors(robot: RobotModel, data: Measurements, geometric, points: t
     dropped = [n for n in names if n in report.dependent]
     notes = list(geometric.notes)
     if dropped:
-        msg = (f"{len(dropped)} joint-space coefficient(s) cannot be separated from the geometry and stay at zero: "
+        msg = (f"{len(dropped)} joint-space coefficient(s) cannot be separated from the geometry or the terms "
+               "before them and stay at zero: "
                + "; ".join(f"{n} (confounded with {', '.join(p for p, _ in report.dependent[n][:2]) or 'nothing'})"
                            for n in dropped))
         notes.append(msg)
