@@ -56,8 +56,8 @@ class FitConfig:
             joint but the last, identified with the geometry (:mod:`torchcal.identify.harmonics`):
             ``none``, ``first`` or ``auto``. With ``auto`` (here or in ``gravity_compliance``)
             the 5-fold CV on the fit's own poses chooses both together and keeps the simplest
-            option within 1 % of the best CV RMS. The exported compensator carries no
-            joint-space errors, so export refuses such models.
+            option within 1 % of the best CV RMS. The exported compensator carries both terms
+            (:mod:`torchcal.compensate.joint_error_graph`).
     """
 
     method: str = "lm"
