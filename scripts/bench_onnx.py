@@ -188,9 +188,22 @@ def main(argv: list[str] | None = None) -> int:
         rng = np.random.default_rng(0)
         limits = stored.robot.joint_limits.numpy()
         q_one = limits[:, 0] + rng.random((1, stored.robot.dof)) * (limits[:, 1] - limits[:, 0])
-        results, single_calls = {}, {}
+        # Latency first, before any multi-threaded work: thread pools that have just run (torch's
+        # OpenMP, onnxruntime's intra-op) keep spinning for a while and inflate single calls.
+        torch_threads = torch.get_num_threads()
+        torch.set_num_threads(1)
+        single_calls = {}
         floor = _session(tmp / "floor.onnx", threads=1)
         single_calls["one-node graph (call floor)"] = lambda: floor.run(None, {"q_nominal": q_one})
+        for key, (options, graph_key, _) in VARIANTS.items():
+            tag = "-".join(f"{k}{v}" for k, v in sorted(options.items())) or "default"
+            name, dtype, input_name, _ = GRAPHS[graph_key]
+            q1 = np.ascontiguousarray(q_one.astype(np.float64 if dtype == torch.float64 else np.float32))
+            single_calls[key] = (lambda s, n, x: lambda: s.run(None, {n: x}))(_session(folders[tag] / name, threads=1), input_name, q1)
+        console.log("single-sample latency, all graphs round-robin, one thread")
+        latency = _interleaved_latency(single_calls, calls)
+        del single_calls
+        results = {}
         for key, (options, graph_key, description) in VARIANTS.items():
             tag = "-".join(f"{k}{v}" for k, v in sorted(options.items())) or "default"
             name, dtype, input_name, _ = GRAPHS[graph_key]
@@ -206,24 +219,19 @@ def main(argv: list[str] | None = None) -> int:
             many = _session(path, threads=None)
             module = graphs[tag][graph_key]
             t1, tb = torch.from_numpy(q1), torch.from_numpy(qb)
-            single_calls[key] = (lambda s, n, x: lambda: s.run(None, {n: x}))(one, input_name, q1)
             entry = {
                 "description": description,
                 "operators": _operators(path),
                 "ort_batch_1thread": _throughput(lambda: one.run(None, {input_name: qb}), batch, repeats),
                 "ort_batch_all_threads": _throughput(lambda: many.run(None, {input_name: qb}), batch, repeats),
             }
-            torch_threads = torch.get_num_threads()
             with torch.inference_mode():
                 torch.set_num_threads(1)
                 entry["torch_single_1thread"] = _latency(lambda: module(t1), max(200, calls // 5))
                 torch.set_num_threads(torch_threads)
                 entry["torch_batch_all_threads"] = _throughput(lambda: module(tb), batch, repeats)
+            entry["ort_single_1thread"] = latency[key]
             results[key] = entry
-        console.log("single-sample latency, all graphs round-robin")
-        latency = _interleaved_latency(single_calls, calls)
-        for key in results:
-            results[key]["ort_single_1thread"] = latency[key]
         with console.status("[bold]convergence against iteration count"):
             conv = convergence(stored, 2000 if args.quick else 10_000)
     report = {
@@ -256,7 +264,7 @@ def markdown(report: dict) -> str:
         f"Model: {report['model']['folder']} (residual head: {'yes' if report['model']['residual_head'] else 'no'}). "
         f"A one-node graph costs {report['call_floor']['median_us']:.1f} / {report['call_floor']['p99_us']:.1f} us "
         "(median / p99) per call: the floor of any graph called from Python. Single-sample latencies of all graphs "
-        "are measured round-robin, so they share the same load.",
+        "are measured round-robin, so they share the same load, before any multi-threaded work in the process.",
         "",
         "| graph | what | operators | ORT 1 thread median / p99 (us) | torch 1 thread median / p99 (us) | ORT 1 thread (poses/s) | ORT all threads (poses/s) | torch all threads (poses/s) |",
         "| --- | --- | --- | --- | --- | --- | --- | --- |",
