@@ -76,7 +76,8 @@ def test_compensator_parity_on_10k_poses(exported, stored, graphs):
     by 1/sigma (max over all poses ~1e-9 mm). float32 is bounded where the fixed iteration count
     has converged (float64 residual below 1e-9 m, > 80 % of uniform poses); where it has not
     (near singularities) the partial iterate itself is rounding-sensitive (measured over all poses
-    with the float64 solve: p99 ~2e-4 mm, max ~5e-3 mm; the export's manifest reports these numbers).
+    with the float64 solve, default run's model: p99 ~2e-4 mm, max ~5e-3 mm; every export's manifest
+    reports its own).
     """
     folder, _ = exported
     q = stored.robot.sample_joints(10_000, torch.Generator().manual_seed(22))
