@@ -160,3 +160,16 @@ def test_compensation_with_joint_space_errors_on_the_true_twin(sagging):
         miss = (twin.true_positions(rigid["compensator"](q)) - target).norm(dim=-1) * 1e3
         full = (twin.true_positions(build_graphs(stored)["compensator"](q)) - target).norm(dim=-1) * 1e3
     assert float(full.median()) < float(miss.median())
+
+
+def test_from_stored_keeps_the_joint_space_errors(sagging):
+    """Graphs built from a model folder directly carry the same terms as the exported ones."""
+    _, folder, _, _ = sagging
+    stored = load_model(folder)
+    graphs = build_graphs(stored)
+    q = stored.robot.sample_joints(200, torch.Generator().manual_seed(10))
+    with torch.no_grad():
+        assert torch.equal(CompensatorGraph.from_stored(stored)(q), graphs["compensator"](q))
+        assert torch.equal(MonitorGraph.from_stored(stored)(q), graphs["monitor"](q))
+        rigid = MonitorGraph(stored.model, stored.x)(q)  # without the terms: a different prediction
+    assert float((rigid - graphs["monitor"](q)).norm(dim=-1).max()) > 1e-5

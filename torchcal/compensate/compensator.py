@@ -28,8 +28,8 @@ Gauss-Jordan of standard operators (``solver="gauss_jordan"``; :mod:`torchcal.co
 It runs in float64 in every variant: a float32 graph casts ``J`` and ``e`` up for the solve and the
 step back down. In float32, ``J^T J`` loses the small singular values of a near-singular pose to
 rounding (~1e-7 relative), so a float32 solve there returns steps of the wrong size or NaN; the
-two casts cost two nodes. The damping follows the error, ``lambda^2 = c |e|^2 + lambda_0^2`` (``c = 10``, ``lambda_0 = 1e-5``;
-Sugihara's rule): large while the error is large, so a step near a singularity stays bounded,
+two casts cost two nodes. The damping follows the error, ``lambda^2 = c |e|^2 + lambda_0^2``
+(``c = 10``, ``lambda_0 = 1e-5``; Sugihara's rule): large while the error is large, so a step near a singularity stays bounded,
 and vanishing as the error does, so regular poses converge quadratically. The residual's own
 Jacobian is left out of the step: a learned error of ~0.1 mm varies by ~1e-4 m/rad against
 ~1 m/rad for the arm, so it only slows the contraction by ~1e-4 per step.
@@ -86,6 +86,13 @@ def _residual_copy(residual: nn.Module | None, dtype: torch.dtype, device) -> nn
     for p in module.parameters():
         p.requires_grad_(False)
     return module
+
+
+def stored_parts(stored) -> dict:
+    """Keyword arguments of the graphs from a :class:`~torchcal.model_store.StoredModel`: its
+    residual head and its joint-space errors (so that no constructor can drop either)."""
+    residual = stored.residual.to_torch_module() if stored.residual is not None else None
+    return {"residual": residual, "joint_errors": JointSpaceErrors.from_metadata(stored.metadata)}
 
 
 def command_jacobian_t(pose: torch.Tensor, joint_frames: torch.Tensor, slope: torch.Tensor | None) -> torch.Tensor:
@@ -201,9 +208,8 @@ class CompensatorGraph(nn.Module):
 
     @classmethod
     def from_stored(cls, stored, **options) -> "CompensatorGraph":
-        """Build from a :class:`torchcal.model_store.StoredModel` (residual head included)."""
-        residual = stored.residual.to_torch_module() if stored.residual is not None else None
-        return cls(stored.model, stored.x, residual, **options)
+        """Build from a :class:`torchcal.model_store.StoredModel` (residual head and joint-space errors included)."""
+        return cls(stored.model, stored.x, **stored_parts(stored), **options)
 
     def forward(self, q_nominal: torch.Tensor) -> torch.Tensor:
         return self.solve(q_nominal)
@@ -268,8 +274,7 @@ class MonitorGraph(nn.Module):
 
     @classmethod
     def from_stored(cls, stored, **options) -> "MonitorGraph":
-        residual = stored.residual.to_torch_module() if stored.residual is not None else None
-        return cls(stored.model, stored.x, residual, **options)
+        return cls(stored.model, stored.x, **stored_parts(stored), **options)
 
     def forward(self, q: torch.Tensor) -> torch.Tensor:
         if self.models.joint_errors is None:  # the fast path: positions only, no link tensors
@@ -313,8 +318,7 @@ class LoadedCompensatorGraph(CompensatorGraph):
     @classmethod
     def from_stored(cls, stored, **options) -> "LoadedCompensatorGraph":
         """Build from a :class:`torchcal.model_store.StoredModel` with a stiffness stage."""
-        residual = stored.residual.to_torch_module() if stored.residual is not None else None
-        return cls(stored.model, stored.x, stored.stiffness.compliance, residual, **options)
+        return cls(stored.model, stored.x, stored.stiffness.compliance, **stored_parts(stored), **options)
 
     def forward(self, q_nominal: torch.Tensor, wrench: torch.Tensor) -> torch.Tensor:  # type: ignore[override]
         return self.solve(q_nominal, wrench)
@@ -351,8 +355,7 @@ class LoadedMonitorGraph(MonitorGraph):
 
     @classmethod
     def from_stored(cls, stored, **options) -> "LoadedMonitorGraph":
-        residual = stored.residual.to_torch_module() if stored.residual is not None else None
-        return cls(stored.model, stored.x, stored.stiffness.compliance, residual, **options)
+        return cls(stored.model, stored.x, stored.stiffness.compliance, **stored_parts(stored), **options)
 
     def forward(self, q: torch.Tensor, wrench: torch.Tensor) -> torch.Tensor:  # type: ignore[override]
         nominal, pose, frames, _ = self.models.nominal_and_calibrated(q)

@@ -26,7 +26,14 @@ from pathlib import Path
 
 import torch
 
-from torchcal.compensate.compensator import DEFAULT_ITERATIONS, CompensatorGraph, LoadedCompensatorGraph, LoadedMonitorGraph, MonitorGraph
+from torchcal.compensate.compensator import (
+    DEFAULT_ITERATIONS,
+    CompensatorGraph,
+    LoadedCompensatorGraph,
+    LoadedMonitorGraph,
+    MonitorGraph,
+    stored_parts,
+)
 from torchcal.compensate.linalg import CONTRIB_DOMAIN
 from torchcal.io import atomic_write_bytes, atomic_write_json, atomic_write_text
 
@@ -106,12 +113,11 @@ def build_graphs(
     :data:`SOLVER_PORTABLE`).
     """
     solve = {"iterations": iterations, "solver": SOLVER_PORTABLE if portable else SOLVER_DEFAULT}
-    from torchcal.identify.joint_errors import JointSpaceErrors
-
-    if residual is None and use_stored_residual and stored.residual is not None:
-        residual = stored.residual.to_torch_module()
+    parts = stored_parts(stored)
+    if residual is None and use_stored_residual:
+        residual = parts["residual"]
     stiffness = getattr(stored, "stiffness", None)
-    joint_errors = JointSpaceErrors.from_metadata(stored.metadata)
+    joint_errors = parts["joint_errors"]
     graphs = {}
     for key, (_, dtype, _, _) in GRAPHS.items():
         if stiffness is None:
