@@ -399,7 +399,9 @@ def readme_text(manifest: dict) -> str:
     joints = ", ".join(manifest["joint_names"])
     residual = "yes" if manifest["stages"]["residual"] else "no"
     stiffness = "yes" if manifest["stages"]["stiffness"] else "no"
-    joint = ", ".join(k.replace("_", " ") for k in ("gravity_compliance", "joint_harmonics") if manifest["stages"].get(k)) or "none"
+    from torchcal.identify.joint_errors import METADATA_KEYS
+
+    joint = ", ".join(k.replace("_", " ") for k in METADATA_KEYS.values() if manifest["stages"].get(k)) or "none"
     wrench = manifest.get("wrench")
     n = manifest["n_joints"]
     if wrench:
