@@ -5,13 +5,10 @@ Kept apart from :mod:`torchcal.cli` so that the same steps are callable from Pyt
 
 from __future__ import annotations
 
-import json
-import math
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 
-import numpy as np
 import torch
 
 from torchcal.data.measurements import Measurements, load_measurements
@@ -308,20 +305,15 @@ def run(config: RunConfig, console=None) -> dict:
         from torchcal.compensate.export import export_and_check
 
         export_dir = Path(config.export_dir) / config.name
-        summary["export"] = export_and_check(model_dir, export_dir, test, console=console)
-        summary["export"]["compensation_on_twin"] = _compensation_on_twin(stored, export_dir, test, twin, console)
+        summary["export"] = export_and_check(model_dir, export_dir, test, console=console, true_positions=twin.true_positions)
+        _log_compensation_on_twin(summary["export"]["compensation_on_true_robot"], console)
     summary["elapsed_s"] = time.perf_counter() - started
     atomic_write_json(folder / "metrics.json", summary)
     return summary
 
 
-def _compensation_on_twin(stored, export_dir: Path, test: Measurements, twin: Twin, console) -> dict:
-    """The exported compensator's commands at the test poses, sent to the true twin (and torch's)."""
-    from torchcal.compensate.export import build_graphs
-    from torchcal.compensate.true_robot_check import compensation_on_true_robot
-
-    manifest = json.loads((export_dir / "manifest.json").read_text())
-    result = compensation_on_true_robot(stored, build_graphs(stored), export_dir, manifest, test.q, twin.true_positions)
+def _log_compensation_on_twin(result: dict, console) -> None:
+    """One line on the exported compensator's commands sent to the true twin, one on the poses it left unsolved."""
     console.log(
         "compensated on the true twin ({n} test poses, RMS): uncompensated {u:.4f} mm, torch {t:.4f} mm, "
         "onnxruntime float64 {o:.4f} mm ({r64:.4f}x torch), float32 {o32:.4f} mm ({r32:.4f}x)".format(
@@ -334,7 +326,6 @@ def _compensation_on_twin(stored, export_dir: Path, test: Measurements, twin: Tw
             f"  {100 * result['solved_share']:.1f} % of the test poses solved to 1 um: RMS {result['torch_on_solved']['position_rms_mm']:.4f} mm "
             f"there; the rest lie near a singularity (RMS {result['torch_on_unsolved']['position_rms_mm']:.4f} mm, partial correction)"
         )
-    return result
 
 
 def simulate(out: str | Path, config: TwinConfig) -> dict[str, Path]:

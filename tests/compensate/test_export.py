@@ -116,8 +116,11 @@ def test_onnx_compensation_on_the_true_twin(exported, twin, stored, graphs):
 def test_export_and_check_reports_parity(model_dir, twin, tmp_path):
     gen = torch.Generator().manual_seed(24)
     test = twin.sample(200, gen)
-    result = export_and_check(model_dir, tmp_path / "out", test)
+    result = export_and_check(model_dir, tmp_path / "out", test, true_positions=twin.true_positions)
     assert result["compensator_tcp_max_mm"] <= 1e-9
+    on_twin = result["compensation_on_true_robot"]  # the exported commands sent to the true twin
+    assert on_twin["n_poses"] == 200 and on_twin["onnx_float64_over_torch"] <= 1.05
+    assert on_twin["torch"]["position_rms_mm"] < 0.1 * on_twin["uncompensated"]["position_rms_mm"]
     assert result["monitor_max_mm"] <= 1e-9
     assert result["n_poses"] == 200
     # the exported monitor predicts the held-out tracker points to the noise level of the twin

@@ -227,6 +227,17 @@ def float32_budget(graphs: dict[str, torch.nn.Module], out_dir: Path, stored, n_
     return budget
 
 
+def unsolved_distance_m(graphs: dict[str, torch.nn.Module], robot, q_target: torch.Tensor, q_command: torch.Tensor,
+                        wrench: torch.Tensor | None = None) -> torch.Tensor:
+    """``|p_nom(q_c) + monitor(q_c) - p_nom(q_t)|`` ``(B,)``, m: how far the model's predicted real
+    TCP at the command ``q_c`` lies from the nominal target of ``q_t`` (what the fixed number of
+    Newton steps left unsolved; ``wrench`` for graphs with a stiffness stage)."""
+    extra = () if wrench is None else (wrench,)
+    with torch.no_grad():
+        landed = robot.tcp_position(q_command) + graphs["monitor"](q_command, *extra)
+    return (landed - robot.tcp_position(q_target)).norm(dim=-1)
+
+
 def convergence_report(graphs: dict[str, torch.nn.Module], stored, n_poses: int = BUDGET_POSES, seed: int = 1) -> dict:
     """Where the float64 compensator's command puts the predicted real TCP, against the nominal target.
 
@@ -237,12 +248,10 @@ def convergence_report(graphs: dict[str, torch.nn.Module], stored, n_poses: int 
     """
     gen = torch.Generator().manual_seed(seed)
     q = stored.robot.sample_joints(n_poses, gen)
-    loaded = has_wrench_input(graphs)
-    extra = (budget_wrenches(stored, n_poses, gen),) if loaded else ()
+    wrench = budget_wrenches(stored, n_poses, gen) if has_wrench_input(graphs) else None
     with torch.no_grad():
-        q_c = graphs["compensator"](q, *extra)
-        landed = stored.robot.tcp_position(q_c) + graphs["monitor"](q_c, *extra)
-    miss = (landed - stored.robot.tcp_position(q)).norm(dim=-1) * 1e3
+        q_c = graphs["compensator"](q, *(() if wrench is None else (wrench,)))
+    miss = unsolved_distance_m(graphs, stored.robot, q, q_c, wrench) * 1e3
     return {
         "n_poses": n_poses,
         "sampling": "uniform within joint limits, seed %d" % seed,
@@ -459,11 +468,14 @@ graph: compensated TCP within {budget['compensator_tcp_mm']['max']:.2e} mm (max)
 """
 
 
-def export_and_check(model_dir: str | Path, out_dir: str | Path, test, console=None) -> dict:
+def export_and_check(model_dir: str | Path, out_dir: str | Path, test, console=None, true_positions=None) -> dict:
     """Export, then run the exported graphs with onnxruntime on the test poses.
 
     Returns parity numbers (ORT against the torch graphs, mm and rad) and the held-out position
-    error of the exported monitor graph (instrument frame, mm, no re-registration).
+    error of the exported monitor graph (instrument frame, mm, no re-registration). With
+    ``true_positions`` (``q -> (B, 3)`` true TCP in the instrument frame, m: a twin's truth), also
+    ``compensation_on_true_robot``: the commands of torch and of both exported files at the test
+    poses, sent to that robot (:func:`~torchcal.compensate.true_robot_check.compensation_on_true_robot`).
     """
     from torchcal.metrics import position_metrics
     from torchcal.model_store import load_model
@@ -502,6 +514,11 @@ def export_and_check(model_dir: str | Path, out_dir: str | Path, test, console=N
         "held_out_monitor": held_out,
         "sha256_compensator": manifest["sha256"]["compensator"],
     }
+    if true_positions is not None:
+        from torchcal.compensate.true_robot_check import compensation_on_true_robot
+
+        result["compensation_on_true_robot"] = compensation_on_true_robot(
+            stored, graphs, out_dir, manifest, q, true_positions, wrench)
     if console is not None:
         console.log(
             f"export: {out_dir} (compensator ORT vs torch {result['compensator_tcp_max_mm']:.1e} mm, "

@@ -19,10 +19,6 @@ import torch
 from torchcal.metrics import position_metrics
 
 
-def _rms_mm(distance_m: torch.Tensor) -> float:
-    return float(distance_m.pow(2).mean().sqrt() * 1e3)
-
-
 def compensation_on_true_robot(
     stored,
     graphs: dict[str, torch.nn.Module],
@@ -51,13 +47,14 @@ def compensation_on_true_robot(
         whose command puts the model's predicted TCP within 1 um of the target, and
         ``torch_on_solved`` / ``torch_on_unsolved``: the torch metrics on either part.
     """
-    from torchcal.compensate.export import _feeds, _session
+    from torchcal.compensate.export import _feeds, _session, unsolved_distance_m
 
     out_dir = Path(out_dir)
     q = q_target.to(torch.float64)
     T = stored.model.instrument_from_base(stored.x).detach().cpu()
     target = stored.robot.tcp_position(q) @ T[:3, :3].T + T[:3, 3]
-    args = (q,) if wrench is None else (q, wrench.to(torch.float64))
+    wrench = None if wrench is None else wrench.to(torch.float64)
+    args = (q,) if wrench is None else (q, wrench)
     w = None if wrench is None else wrench.numpy()
     with torch.no_grad():
         commands = {"uncompensated": q, "torch": graphs["compensator"](*args)}
@@ -66,22 +63,18 @@ def compensation_on_true_robot(
         out = session.run(None, _feeds(session, q.numpy().astype(dtype), w))[0]
         commands["onnx_float64" if dtype == np.float64 else "onnx_float32"] = torch.from_numpy(out).to(torch.float64)
     result: dict = {"n_poses": int(q.shape[0])}
-    rms = {}
     with torch.no_grad():
-        for name, q_c in commands.items():
-            error = true_positions(q_c) - target
-            result[name] = position_metrics(error)
-            rms[name] = _rms_mm(error.norm(dim=-1))
-    result["onnx_float64_over_torch"] = rms["onnx_float64"] / rms["torch"]
-    result["onnx_float32_over_torch"] = rms["onnx_float32"] / rms["torch"]
+        errors = {name: true_positions(q_c) - target for name, q_c in commands.items()}
+    for name, error in errors.items():
+        result[name] = position_metrics(error)
+    torch_rms = result["torch"]["position_rms_mm"]
+    result["onnx_float64_over_torch"] = result["onnx_float64"]["position_rms_mm"] / torch_rms
+    result["onnx_float32_over_torch"] = result["onnx_float32"]["position_rms_mm"] / torch_rms
     # Split the poses by whether the fixed Newton steps solved the model's own equations (the
     # predicted real TCP within 1 um of the target): the rest lie near a singularity, where the
     # damped steps correct only part of the error, and they make the tail of the torch numbers.
-    with torch.no_grad():
-        q_c = commands["torch"]
-        landed = stored.robot.tcp_position(q_c) + graphs["monitor"](q_c, *args[1:])
-        solved = (landed - stored.robot.tcp_position(q)).norm(dim=-1) <= 1e-6
-        error = true_positions(q_c) - target
+    solved = unsolved_distance_m(graphs, stored.robot, q, commands["torch"], wrench) <= 1e-6
+    error = errors["torch"]
     result["solved_share"] = float(solved.double().mean())
     result["torch_on_solved"] = position_metrics(error[solved]) if bool(solved.any()) else None
     result["torch_on_unsolved"] = position_metrics(error[~solved]) if bool((~solved).any()) else None
