@@ -34,6 +34,8 @@ import torch
 
 from torchcal.data.measurements import Measurements, load_measurements
 from torchcal.errors import IdentifiabilityWarning
+from torchcal.identify.compliance import POINT_SETS
+from torchcal.identify.joint_fit import option_label
 from torchcal.kinematics.robot import load_robot
 from torchcal.kinematics.transforms import rigid_registration
 from torchcal.metrics import position_metrics
@@ -119,10 +121,10 @@ def _coverage(stored, test: Measurements, errors: torch.Tensor, sigma_m: float) 
 
 
 def _choice_label(result) -> str:
-    """The joint-space terms a fit kept, as in the CV notes: ``wrist``, ``elbow+wrist+harmonics``..."""
-    points = result.compliance.points if result.compliance is not None else ()
-    parts = ["wrist" if p == "tcp" else p for p in points] + (["harmonics"] if result.harmonics is not None else [])
-    return "+".join(parts) or "none"
+    """The joint-space terms a fit kept, named as in the CV notes (:func:`option_label`)."""
+    points = tuple(result.compliance.points) if result.compliance is not None else ()
+    gravity = next(name for name, members in POINT_SETS.items() if members == points)
+    return option_label(gravity, "first" if result.harmonics is not None else "none")
 
 
 def _fit_and_score(robot, train: Measurements, test: Measurements, protocol: Protocol, config, folder: Path,
