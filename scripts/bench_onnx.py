@@ -141,6 +141,11 @@ def _interleaved_latency(calls_by_name: dict, calls: int, warmup: int = 200) -> 
             for name, t in times.items()}
 
 
+def _export_tag(options: dict) -> str:
+    """Folder name of one export's options (variants with the same options share the export)."""
+    return "-".join(f"{k}{v}" for k, v in sorted(options.items())) or "default"
+
+
 VARIANTS = {
     # key: (export options, graph key inside that export, description)
     "compensator": ({}, "compensator", "float64, 3 Newton steps, onnxruntime Inverse (default)"),
@@ -179,7 +184,7 @@ def main(argv: list[str] | None = None) -> int:
             stored = load_model(model_dir)
             folders, graphs = {}, {}
             for options, _, _ in VARIANTS.values():
-                tag = "-".join(f"{k}{v}" for k, v in sorted(options.items())) or "default"
+                tag = _export_tag(options)
                 if tag not in folders:
                     folders[tag] = tmp / tag
                     export_model(model_dir, folders[tag], **options)
@@ -197,7 +202,7 @@ def main(argv: list[str] | None = None) -> int:
         single_calls["one-node graph (call floor)"] = lambda: floor.run(None, {"q_nominal": q_one})
         floor_alone = _latency(single_calls["one-node graph (call floor)"], calls)  # before anything else runs
         for key, (options, graph_key, _) in VARIANTS.items():
-            tag = "-".join(f"{k}{v}" for k, v in sorted(options.items())) or "default"
+            tag = _export_tag(options)
             name, dtype, input_name, _ = GRAPHS[graph_key]
             q1 = np.ascontiguousarray(q_one.astype(np.float64 if dtype == torch.float64 else np.float32))
             single_calls[key] = (lambda s, n, x: lambda: s.run(None, {n: x}))(_session(folders[tag] / name, threads=1), input_name, q1)
@@ -218,7 +223,7 @@ def main(argv: list[str] | None = None) -> int:
         del single_calls
         results = {}
         for key, (options, graph_key, description) in VARIANTS.items():
-            tag = "-".join(f"{k}{v}" for k, v in sorted(options.items())) or "default"
+            tag = _export_tag(options)
             name, dtype, input_name, _ = GRAPHS[graph_key]
             console.log(f"benchmarking {key} ({description})")
             # the compensator is ~30x the work of the monitor: a smaller batch keeps the run short
