@@ -61,7 +61,7 @@ def _cmd_fit(args) -> int:
 
     from torchcal.data.measurements import load_measurements
     from torchcal.kinematics.robot import load_robot
-    from torchcal.pipeline import FitConfig, fit, nominal_errors, save_fit, with_tool
+    from torchcal.pipeline import fit_with_selection, nominal_errors, save_fit, with_tool
     from torchcal.metrics import position_metrics
 
     from torchcal.config.compose import compose_fit_config
@@ -70,8 +70,8 @@ def _cmd_fit(args) -> int:
     console = Console(stderr=True)
     robot = with_tool(load_robot(args.robot, base_link=args.base_link, end_link=args.end_link), config)
     data = load_measurements(args.data, robot, joint_unit=config.joint_unit, length_unit=config.length_unit)
-    with console.status(f"identifying {robot.name} from {len(data)} poses"):
-        result = fit(robot, data, config)
+    with console.status(f"identifying {robot.name} from {len(data)} poses") as status:
+        result, structure = fit_with_selection(robot, data, config, progress=status.update)
     before = position_metrics(nominal_errors(robot, data))
     from torchcal.identify.joint_fit import predicted_positions
 
@@ -80,16 +80,38 @@ def _cmd_fit(args) -> int:
     from torchcal.config import save_resolved_config
 
     save_resolved_config(folder / "config.yaml", config)
+    console.print(result.identifiability.summary())
+    console.print(
+        f"training RMS {before['position_rms_mm']:.4f} mm (nominal, registered) -> {after['position_rms_mm']:.4f} mm "
+        f"({_structure_name(result)}, on the poses it was fitted to)"
+    )
     if config.residual != "none":
         from torchcal.residual_stage import fit_residual_stage
 
-        fit_residual_stage(folder, data, config, console=console)
-    console.print(result.identifiability.summary())
-    console.print(
-        f"training RMS {before['position_rms_mm']:.4f} mm (nominal, registered) -> {after['position_rms_mm']:.4f} mm (geometric)"
-    )
+        with console.status("cross-validating residual heads") as status:
+            summary = fit_residual_stage(folder, data, config, structure=structure)
+        console.print(_table(summary))
+        console.print(summary["decision"])
+    elif structure is not None:
+        from torchcal.residual_stage import write_selection
+
+        write_selection(folder, structure.comparison, "residual=none: no head considered")
+        console.print(structure.comparison.format_table())
     print(f"model: {folder}")
     return 0
+
+
+def _structure_name(result) -> str:
+    terms = [t for t, present in (("gravity compliance", result.compliance is not None),
+                                  ("joint harmonics", result.harmonics is not None)) if present]
+    return "geometry" + "".join(f" + {t}" for t in terms)
+
+
+def _table(summary: dict) -> str:
+    from torchcal.model_selection.compare import Comparison
+
+    comparison = summary["comparison"]
+    return Comparison(comparison["protocol"], comparison["candidates"], comparison["chosen"], comparison["reason"]).format_table()
 
 
 def _cmd_evaluate(args) -> int:
@@ -109,6 +131,11 @@ def _cmd_evaluate(args) -> int:
     metrics = evaluate(args.model, args.data, register=args.register, config=_apply_overrides(FitConfig(), args.overrides))
     if args.json:
         atomic_write_json(args.json, metrics)
+    if "leakage" in metrics:
+        from torchcal.model_selection.leakage import LeakageReport
+
+        report = LeakageReport(**metrics["leakage"])
+        print(f"torchcal: {'warning: ' if report.warning else ''}{report.summary()}", file=sys.stderr)
     print(json.dumps({k: v for k, v in metrics.items() if k.startswith(("n_", "position_"))}, indent=2))
     return 0
 

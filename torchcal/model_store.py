@@ -4,10 +4,12 @@ A model folder holds:
 
 * ``robot.yaml`` or ``robot.urdf``: the nominal robot it was calibrated from;
 * ``calibration.safetensors``: tensors ``x`` (full parameter vector, SI), ``T_reference``
-  (instrument-from-base, 4x4), ``free`` (estimated parameter indices), ``covariance``;
+  (instrument-from-base, 4x4), ``free`` (estimated parameter indices), ``covariance`` and,
+  for fits from measured poses, ``training_q`` (their commanded joints, rad);
 * ``calibration.json``: metadata (parameter names, units, identifiability, data hash, metrics);
 * ``calibrated_robot.yaml``: the calibrated MDH table in the contract's units, for people;
 * optionally ``residual.safetensors`` + ``residual.json``: a learned residual head;
+* optionally ``model_selection.json``: the cross-validated comparison the fit chose by;
 * optionally ``stiffness.safetensors`` + ``stiffness.json``: joint stiffness
   (:mod:`torchcal.stiffness_store`).
 """
@@ -42,6 +44,7 @@ class StoredModel:
     residual: object | None = None
     stiffness: object | None = None
     extras: dict = field(default_factory=dict)
+    training_q: torch.Tensor | None = None
 
     @property
     def free_names(self) -> list[str]:
@@ -56,8 +59,14 @@ def save_model(
     free: torch.Tensor,
     cov: torch.Tensor,
     metadata: dict,
+    training_q: torch.Tensor | None = None,
 ) -> Path:
-    """Write a model folder; every file is written atomically."""
+    """Write a model folder; every file is written atomically.
+
+    ``training_q`` ``(n, N)`` rad: the commanded joints of the poses fitted, kept so that
+    ``evaluate`` can say how close scored poses sit to them
+    (:mod:`torchcal.model_selection.leakage`).
+    """
     from safetensors.torch import save
 
     folder = Path(folder)
@@ -74,6 +83,8 @@ def save_model(
         "free": free.detach().cpu().contiguous(),
         "covariance": cov.detach().cpu().contiguous(),
     }
+    if training_q is not None:
+        tensors["training_q"] = training_q.detach().to("cpu", torch.float64).contiguous()
     atomic_write_bytes(folder / "calibration.safetensors", save(tensors))
     table = model.table(x.cpu())
     scale = model.layout.unit_scale()
@@ -126,6 +137,7 @@ def load_model(folder: str | Path, device: str | torch.device = "cpu") -> Stored
     stored = StoredModel(
         robot=robot, model=model, x=tensors["x"].to(device), free=tensors["free"],
         covariance=tensors["covariance"].to(device), metadata=meta, folder=folder,
+        training_q=tensors.get("training_q"),
     )
     if (folder / "residual.json").is_file():
         from torchcal.residual_store import load_residual

@@ -9,6 +9,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from torchcal.data.measurements import Measurements, load_measurements
@@ -34,27 +35,32 @@ class FitConfig:
         method: identifier: ``lm`` (default), ``gn`` or ``lasso``.
         parallel_threshold_deg: Hayati switch (see :mod:`torchcal.kinematics.error_model`).
         joint_unit / length_unit: units of the measurement file.
-        residual: learned residual stage: ``auto`` (fit candidates, keep one only if it beats
-            geometry on validation), ``none``, or a head name.
-        validation_fraction: share of poses held out to select the residual head.
+        residual: learned residual stage: ``auto`` (cross-validate every candidate head on top
+            of the chosen structure, keep one only where it beats it beyond noise), ``none``, or
+            head names joined by ``+``.
+        split: how the cross-validation behind every choice forms its folds
+            (:mod:`torchcal.model_selection.folds`): ``grouped`` (default; near-twin
+            configurations in one fold), ``blocks`` (contiguous blocks of the file's row order,
+            for data that drifts while measured) or ``random`` (rows; for comparison only).
+        cv_folds: folds of that cross-validation.
+        cv_groups: configuration regions (k-means clusters) of ``split=grouped``.
         device: ``cpu`` or a torch device string.
-        seed: seed of the validation split and of stochastic heads.
+        seed: seed of the folds and of stochastic heads.
         tool_mm: nominal TCP in the flange frame (mm) replacing the robot file's (a URDF has none).
         residual_hidden: hidden units of ELM heads.
         mayfly_population / mayfly_iterations: MMA search of the ELM hidden layer.
-        residual_margin: a head must lower the validation RMS by this fraction to be kept.
-        residual_refit: refit a kept head on the training and validation poses together once the
-            gate has decided (the reported validation RMS is the one measured before).
-        progress: show progress bars of long steps.
+        residual_margin: a head must lower the CV RMS by this fraction (and with a paired gain
+            beyond chance over configuration groups) to be kept.
+        progress: show progress of long steps.
         gravity_compliance: joint compliance under the arm's own weight, identified with the
             geometry (:mod:`torchcal.identify.compliance`): ``none``, ``wrist``, ``elbow+wrist``
-            or ``auto`` (chosen by 5-fold CV on the fit's own poses, with the harmonics).
+            or ``auto`` (default: chosen by the cross-validation, with the harmonics).
         joint_harmonics: first-harmonic joint errors ``a_j sin q_j + b_j cos q_j`` (rad), every
             joint but the last, identified with the geometry (:mod:`torchcal.identify.harmonics`):
-            ``none``, ``first`` or ``auto``. With ``auto`` (here or in ``gravity_compliance``)
-            the 5-fold CV on the fit's own poses chooses both together and keeps the simplest
-            option within 1 % of the best CV RMS. The exported compensator carries both terms
-            (:mod:`torchcal.compensate.joint_error_graph`).
+            ``none``, ``first`` or ``auto`` (default). With ``auto`` (here or in
+            ``gravity_compliance``) the cross-validation compares the options and keeps the
+            simplest within noise of the best (:mod:`torchcal.model_selection.compare`). The
+            exported compensator carries both terms (:mod:`torchcal.compensate.joint_error_graph`).
     """
 
     method: str = "lm"
@@ -62,7 +68,9 @@ class FitConfig:
     joint_unit: str = "deg"
     length_unit: str = "mm"
     residual: str = "auto"
-    validation_fraction: float = 0.2
+    split: str = "grouped"
+    cv_folds: int = 5
+    cv_groups: int = 20
     device: str = "cpu"
     seed: int = 0
     tool_mm: list[float] | None = None
@@ -70,10 +78,9 @@ class FitConfig:
     mayfly_population: int = 20
     mayfly_iterations: int = 50
     residual_margin: float = 0.05
-    residual_refit: bool = True
     progress: bool = True
-    gravity_compliance: str = "none"
-    joint_harmonics: str = "none"
+    gravity_compliance: str = "auto"
+    joint_harmonics: str = "auto"
 
 
 def registered_errors(predicted_base: torch.Tensor, measured: torch.Tensor) -> torch.Tensor:
@@ -99,45 +106,99 @@ def with_tool(robot: RobotModel, config: FitConfig) -> RobotModel:
     return replace(robot, tool=torch.tensor(config.tool_mm, dtype=torch.float64) * 1e-3)
 
 
-def fit(robot: RobotModel, data: Measurements, config: FitConfig, *, progress=None) -> CalibrationResult:
-    """Geometric identification with the configured identifier, plus the configured joint-space errors.
+def make_config_folds(robot: RobotModel, data: Measurements, config: FitConfig):
+    """The folds every data-driven choice of this fit is judged on (``config.split``)."""
+    from torchcal.model_selection.folds import make_folds
 
-    ``auto`` in ``gravity_compliance`` or ``joint_harmonics`` runs one 5-fold CV on ``data`` over
-    the allowed combinations (:func:`~torchcal.identify.joint_fit.choose_joint_errors_by_cv`).
-    """
-    if config.method not in IDENTIFIERS:
-        raise DataError(f"unknown method '{config.method}'; choose one of {sorted(IDENTIFIERS)}")
+    order = np.asarray(data.line_numbers) if data.line_numbers else None
+    return make_folds(config.split, robot, data.q, k=config.cv_folds, seed=config.seed, order=order,
+                      groups=config.cv_groups)
+
+
+def _geometry_fitter(robot: RobotModel, config: FitConfig):
+    def geometry(train: Measurements) -> CalibrationResult:
+        return calibrate(robot, train, identifier=IDENTIFIERS[config.method](**_identifier_options(robot, config)),
+                         parallel_threshold_deg=config.parallel_threshold_deg, device=config.device)
+
+    return geometry
+
+
+def _identifier_options(robot: RobotModel, config: FitConfig) -> dict:
+    """LASSO's penalty is chosen by the same kind of folds as every other choice."""
+    if config.method != "lasso":
+        return {}
+    return {"folds": config.cv_folds, "seed": config.seed, "split": config.split, "robot": robot}
+
+
+def _structure_options(config: FitConfig) -> list[tuple[str, str]]:
     from torchcal.identify.compliance import POINT_SETS
     from torchcal.identify.harmonics import HARMONIC_SETS
-    from torchcal.identify.joint_fit import (
-        choose_joint_errors_by_cv,
-        fit_joint_errors,
-        joint_error_options,
-        option_label,
-    )
+    from torchcal.identify.joint_fit import joint_error_options
 
     sets = {"gravity_compliance": POINT_SETS, "joint_harmonics": HARMONIC_SETS}
     for key, allowed in sets.items():
         value = getattr(config, key)
         if value not in allowed and value != "auto":
             raise DataError(f"unknown {key} '{value}'; choose auto or one of {sorted(allowed)}")
-    options = joint_error_options(*(tuple(allowed) if getattr(config, key) == "auto" else (getattr(config, key),)
-                                    for key, allowed in sets.items()))
+    return joint_error_options(*(tuple(allowed) if getattr(config, key) == "auto" else (getattr(config, key),)
+                                 for key, allowed in sets.items()))
 
-    def geometry(train: Measurements) -> CalibrationResult:
-        return calibrate(robot, train, identifier=IDENTIFIERS[config.method](),
-                         parallel_threshold_deg=config.parallel_threshold_deg, device=config.device)
 
-    note = None
+def fit_with_selection(robot: RobotModel, data: Measurements, config: FitConfig, *, progress=None):
+    """Identify the geometry and the joint-space terms the cross-validation supports.
+
+    Returns ``(result, structure_cv)``. The cross-validation (folds of ``config.split``) runs
+    when there is something to choose: several joint-space options (``auto``) or residual heads
+    to judge later (``structure_cv`` carries the per-fold fits they learn on); otherwise
+    ``structure_cv`` is ``None``. ``progress(text)`` is called before long steps.
+    """
+    from torchcal.identify.compliance import POINT_SETS
+    from torchcal.identify.harmonics import HARMONIC_SETS
+    from torchcal.identify.joint_fit import fit_joint_errors
+    from torchcal.model_selection.structure import cross_validate_structures, structure_label
+
+    if config.method not in IDENTIFIERS:
+        raise DataError(f"unknown method '{config.method}'; choose one of {sorted(IDENTIFIERS)}")
+    if config.residual != "none":
+        from torchcal.residual_stage import head_names
+
+        head_names(config.residual)  # an unknown head is refused before anything is fitted
+    options = _structure_options(config)
+    geometry = _geometry_fitter(robot, config)
+    structure = None
     gravity, harmonics = options[0]
-    if len(options) > 1:
-        (gravity, harmonics), scores = choose_joint_errors_by_cv(robot, data, geometry, options, seed=config.seed)
-        note = ("joint-space errors chosen by 5-fold CV on the fit's poses: "
-                + ", ".join(f"{k} {v:.4f} mm" for k, v in scores.items()) + f" -> {option_label(gravity, harmonics)}")
+    if len(options) > 1 or config.residual != "none":
+        folds = make_config_folds(robot, data, config)
+        structure = cross_validate_structures(robot, data, geometry, options, folds, progress=progress)
+        gravity, harmonics = structure.chosen
+    if progress is not None:
+        progress("fitting the chosen structure on all poses")
     result = fit_joint_errors(robot, data, geometry(data), POINT_SETS[gravity], HARMONIC_SETS[harmonics])
-    if note:
-        result.notes.append(note)
-    return result
+    if structure is not None and len(options) > 1:
+        comparison = structure.comparison
+        result.notes.append(f"structure chosen by {comparison.protocol}: "
+                            + ", ".join(f"{r['name']} {r['cv_rms_mm']:.4f} mm" for r in comparison.rows)
+                            + f" -> {structure_label(gravity, harmonics)} ({comparison.reason})")
+    return result, structure
+
+
+def fit(robot: RobotModel, data: Measurements, config: FitConfig, *, progress=None) -> CalibrationResult:
+    """Geometric identification plus the joint-space errors chosen by cross-validation (:func:`fit_with_selection`)."""
+    return fit_with_selection(robot, data, config, progress=progress)[0]
+
+
+def cross_validate_stored_structure(stored: StoredModel, data: Measurements, config: FitConfig):
+    """The structure of a model folder alone, cross-validated on ``config``'s folds (for its heads)."""
+    from torchcal.identify.compliance import POINT_SETS
+    from torchcal.model_selection.structure import cross_validate_structures
+
+    terms = JointSpaceErrors.from_metadata(stored.metadata)
+    points = tuple(terms.compliance.points) if terms.compliance is not None else ()
+    gravity = next(name for name, members in POINT_SETS.items() if members == points)
+    harmonics = "first" if terms.harmonics is not None else "none"
+    folds = make_config_folds(stored.robot, data, config)
+    return cross_validate_structures(stored.robot, data, _geometry_fitter(stored.robot, config), [(gravity, harmonics)],
+                                     folds)
 
 
 def save_fit(folder: Path, robot: RobotModel, data: Measurements, result: CalibrationResult, extra: dict) -> Path:
@@ -159,7 +220,11 @@ def save_fit(folder: Path, robot: RobotModel, data: Measurements, result: Calibr
         **extra,
     }
     meta.update(JointSpaceErrors.of(result).to_metadata())
-    return save_model(folder, robot, result.model, result.x, result.free, result.covariance, meta)
+    folder = Path(folder)
+    # a new fit invalidates what an earlier fit into this folder learned on top of its geometry
+    for stale in ("residual.safetensors", "residual.json", "model_selection.json"):
+        (folder / stale).unlink(missing_ok=True)
+    return save_model(folder, robot, result.model, result.x, result.free, result.covariance, meta, training_q=data.q)
 
 
 def model_joints(stored: StoredModel, q: torch.Tensor) -> torch.Tensor:
@@ -207,6 +272,10 @@ def evaluate(model_dir: str | Path, data_path: str | Path, *, register: bool = F
     data = load_measurements(data_path, stored.robot, joint_unit=config.joint_unit, length_unit=config.length_unit)
     metrics = position_metrics(held_out_errors(stored, data, register=register))
     metrics.update({"model": str(model_dir), "data": str(data_path), "registered": register})
+    if stored.training_q is not None:
+        from torchcal.model_selection.leakage import leakage_report
+
+        metrics["leakage"] = leakage_report(stored.robot, stored.training_q, data.q).to_dict()
     return metrics
 
 
@@ -258,7 +327,7 @@ def run(config: RunConfig, console=None) -> dict:
         test = load_measurements(case["test.csv"], robot)
         console.log(f"twin: {len(train)} training and {len(test)} test poses, noise floor {config.twin.noise_floor_rms_mm:.4f} mm RMS")
         status.update("[bold]identifying geometry")
-        result = fit(robot, train, config.fit)
+        result, structure = fit_with_selection(robot, train, config.fit, progress=status.update)
         console.log(
             f"geometry: {len(result.free)} parameters identified by {result.method} in {result.solve.iterations} iterations; "
             f"residual sigma {result.sigma_residual_m * 1e6:.1f} um"
@@ -272,7 +341,7 @@ def run(config: RunConfig, console=None) -> dict:
             status.update("[bold]learning the residual")
             from torchcal.residual_stage import fit_residual_stage
 
-            residual_summary = fit_residual_stage(model_dir, train, config.fit, console=console)
+            residual_summary = fit_residual_stage(model_dir, train, config.fit, console=console, structure=structure)
         status.update("[bold]evaluating on held-out poses")
         stored = load_model(model_dir)
         err_nominal = nominal_errors(robot, test)

@@ -1,10 +1,13 @@
-"""The learned-residual stage of ``fit``: targets, split, candidate heads, gate, storage.
+"""The learned-residual stage of ``fit``: candidate heads judged by grouped cross-validation.
 
-Targets are the training poses' position errors left by the geometric model, rotated into the
-``base`` frame (so a head is independent of where the tracker stood) and scaled to mm. The
-training poses are split once (seeded) into a part the heads are fitted on and a validation part
-that decides: a head is kept only if it lowers the validation RMS by ``residual_margin``
-compared with predicting zero; otherwise the model stays geometric and the run says so.
+Targets are the poses' position errors left by the chosen structure (geometry, with its
+joint-space terms), rotated into the ``base`` frame (so a head is independent of where the
+tracker stood) and scaled to mm. Every candidate head is cross-validated on the folds of
+:mod:`torchcal.model_selection` (configuration groups by default, never a random row split): on
+each fold it learns the errors of that fold's structure fit and predicts the held-out poses. A
+head is kept only where it beats the structure by ``residual_margin`` in CV RMS with a paired
+gain beyond chance over configuration groups; the kept head is then fitted on all poses. The
+comparison table (structures and heads) is written to ``model_selection.json``.
 """
 
 from __future__ import annotations
@@ -12,28 +15,39 @@ from __future__ import annotations
 import torch
 
 from torchcal.data.measurements import Measurements
+from torchcal.errors import TorchcalError
+from torchcal.io import atomic_write_json
+from torchcal.model_selection.compare import Comparison, compare_candidates
+from torchcal.model_selection.heads import cross_validate_heads, make_features
+from torchcal.model_selection.structure import StructureCV
 from torchcal.residual import HEADS
-from torchcal.residual.features import JointFeatures
-from torchcal.residual.selection import Selection, refit_on_all, select_head
+from torchcal.residual.selection import fit_before_gate
 
 AUTO_HEADS = ("mma-elm", "mlp")
+SELECTION_FILE = "model_selection.json"
+
+
+def head_names(residual: str) -> tuple[str, ...]:
+    """Head names of a ``residual`` option (``auto``, ``none``, a name or names joined by ``+``)."""
+    if residual == "none":
+        return ()
+    names = AUTO_HEADS if residual == "auto" else tuple(n.strip() for n in residual.split("+"))
+    for name in names:
+        if name not in HEADS:
+            raise TorchcalError(f"unknown residual head '{name}'; choose auto, none or any of {sorted(HEADS)} (joined by +)")
+    return names
 
 
 def _candidates(config) -> list:
-    names = AUTO_HEADS if config.residual == "auto" else tuple(n.strip() for n in config.residual.split("+"))
     heads = []
-    for name in names:
-        if name not in HEADS:
-            from torchcal.errors import TorchcalError
-
-            raise TorchcalError(f"unknown residual head '{name}'; choose auto, none or any of {sorted(HEADS)} (joined by +)")
+    for name in head_names(config.residual):
         if name == "mma-elm":
             heads.append(HEADS[name](hidden=config.residual_hidden, population=config.mayfly_population,
-                                     iterations=config.mayfly_iterations, seed=config.seed, progress=config.progress))
+                                     iterations=config.mayfly_iterations, seed=config.seed, progress=False))
         elif name == "elm":
             heads.append(HEADS[name](hidden=config.residual_hidden, seed=config.seed))
         else:
-            heads.append(HEADS[name](seed=config.seed, progress=config.progress))
+            heads.append(HEADS[name](seed=config.seed, progress=False))
     return heads
 
 
@@ -47,64 +61,73 @@ def residual_targets_mm(model, x, data: Measurements, joints: torch.Tensor | Non
     return error @ model.T_reference[:3, :3].to(error) * 1e3
 
 
-def split(n: int, fraction: float, seed: int) -> tuple[torch.Tensor, torch.Tensor]:
-    perm = torch.randperm(n, generator=torch.Generator().manual_seed(seed))
-    n_val = max(1, int(round(fraction * n)))
-    return perm[n_val:], perm[:n_val]
+def select_with_heads(robot, data: Measurements, structure: StructureCV, config, progress=None) -> Comparison:
+    """The final comparison: the structures of ``structure`` and every head on the chosen one."""
+    assert structure.comparison is not None
+    parent = structure.comparison.chosen
+    heads = cross_validate_heads(robot, data, structure, parent, lambda: _candidates(config),
+                                 margin=config.residual_margin, seed=config.seed, progress=progress)
+    comparison = compare_candidates(structure.candidates + heads.candidates, structure.folds.units(),
+                                    structure.folds.description, tolerance=structure_tolerance())
+    head_rows = {c.name for c in heads.candidates}
+    if comparison.chosen not in head_rows and comparison.chosen != parent:
+        # the structures were decided without heads; heads only add rows on top of that choice
+        comparison.chosen, comparison.reason = parent, structure.comparison.reason
+    for name, why in heads.stopped.items():
+        comparison.rows.append({"name": f"{parent}+{name}", "cv_rms_mm": float("nan"), "vs_best_pct": float("nan"),
+                                "se_pct": float("nan"), "verdict": why, "detail": ""})
+    return comparison
 
 
-def choose_residual(model, x, robot, data: Measurements, config, joints: torch.Tensor | None = None) -> tuple[Selection, JointFeatures]:
-    temperature = None
-    if data.temperature is not None:
-        t = data.temperature
-        temperature = (float(t.mean()), float(t.std().clamp_min(1e-6)))
-    features = JointFeatures(robot.joint_limits.to(torch.float64), temperature)
-    feats = features(data.q, data.temperature)
-    targets = residual_targets_mm(model, x, data, joints)
-    train, val = split(len(data), config.validation_fraction, config.seed)
-    selection = select_head(_candidates(config), feats[train], targets[train], feats[val], targets[val], seed=config.seed,
-                            margin=config.residual_margin)
-    if selection.head is not None and getattr(config, "residual_refit", True):
-        refit_on_all(selection.head, feats[train], targets[train], feats[val], targets[val], seed=config.seed)
-        selection.decision += "; refitted on all training poses"
-    return selection, features
+def structure_tolerance() -> float:
+    from torchcal.identify.joint_fit import CV_TOLERANCE
+
+    return CV_TOLERANCE
 
 
-def fit_residual_stage(model_dir, data: Measurements, config, console=None) -> dict:
-    """Fit and gate the residual for a saved geometric model; writes the head when kept."""
+def fit_residual_stage(model_dir, data: Measurements, config, console=None, structure: StructureCV | None = None) -> dict:
+    """Cross-validate the heads on top of a saved model's structure; fit and write the kept one.
+
+    ``structure``: the structure CV of the fit that wrote ``model_dir`` (its folds and fold
+    fits); without it the stored structure is cross-validated alone on ``config``'s folds.
+    Returns ``decision``, ``kept`` (head name or ``None``) and ``comparison`` (its dict).
+    """
     from torchcal.model_store import load_model
+    from torchcal.pipeline import cross_validate_stored_structure, model_joints
     from torchcal.residual_store import StoredResidual, save_residual
 
-    from torchcal.pipeline import model_joints
-
     stored = load_model(model_dir)
-    selection, features = choose_residual(stored.model, stored.x, stored.robot, data, config, model_joints(stored, data.q))
-    summary = {"decision": selection.decision, "validation_rms_mm": selection.validation_rms,
-               "geometric_validation_rms_mm": selection.baseline_rms, "kept": selection.head.name if selection.head else None}
-    if selection.head is not None:
-        save_residual(model_dir, StoredResidual(selection.head, features, {"decision": selection.decision,
-                                                                           "validation_rms_mm": selection.validation_rms,
-                                                                           "geometric_validation_rms_mm": selection.baseline_rms}))
+    if structure is None:
+        structure = cross_validate_stored_structure(stored, data, config)
+    progress = (lambda text: console.log(text)) if console is not None and config.progress else None
+    comparison = select_with_heads(stored.robot, data, structure, config, progress=progress)
+    kept = None
+    parent = structure.comparison.chosen if structure.comparison else ""
+    if comparison.chosen != parent:
+        kept = comparison.chosen.split("+")[-1]
+        head = next(h for h in _candidates(config) if h.name == kept)
+        features = make_features(stored.robot, data)
+        targets = residual_targets_mm(stored.model, stored.x, data, model_joints(stored, data.q))
+        fit_before_gate(head, features(data.q, data.temperature), targets, seed=config.seed)
+        row = next(r for r in comparison.rows if r["name"] == comparison.chosen)
+        decision = (f"residual head '{kept}' kept: {comparison.reason}; CV RMS {row['cv_rms_mm']:.4f} mm; "
+                    "fitted on all training poses")
+        save_residual(model_dir, StoredResidual(head, features, {"decision": decision, "cv_rms_mm": row["cv_rms_mm"],
+                                                                 "protocol": comparison.protocol}))
+    else:
+        rejected = [r for r in comparison.rows if r["name"].startswith(parent + "+")]
+        why = "; ".join(f"{r['name']}: {r['verdict']}" for r in rejected) or "no head candidates"
+        decision = f"no residual head kept ({why})"
+    write_selection(model_dir, comparison, decision)
     if console is not None:
-        console.log(selection.decision)
-    return summary
+        console.print(comparison.format_table())
+        console.log(decision)
+    return {"decision": decision, "kept": kept, "comparison": comparison.to_dict()}
 
 
-def residual_for_validation(result, train: Measurements, test: Measurements, *, register_test: bool, seed: int, config=None) -> dict:
-    """Held-out errors of geometry + gated residual (geometry alone where the gate says no)."""
-    from torchcal.pipeline import FitConfig, registered_errors
+def write_selection(model_dir, comparison: Comparison, decision: str) -> None:
+    """``model_selection.json``: the comparison table and the residual decision."""
+    from pathlib import Path
 
-    from torchcal.identify.joint_errors import JointSpaceErrors
-    from torchcal.identify.joint_fit import predicted_positions
-
-    config = config or FitConfig(seed=seed)
-    joint_errors = JointSpaceErrors.of(result)
-    joints = None if joint_errors.empty else joint_errors.effective_joints(result.model.robot, train.q)
-    selection, features = choose_residual(result.model, result.x, result.model.robot, train, config, joints)
-    predicted = predicted_positions(result, test.q)
-    if selection.head is not None:
-        with torch.no_grad():
-            base_err_mm = selection.head.predict(features(test.q, test.temperature))
-        predicted = predicted + (base_err_mm * 1e-3) @ result.model.T_reference[:3, :3].T.to(predicted)
-    errors = registered_errors(predicted, test.position) if register_test else test.position - predicted
-    return {"errors": errors, "decision": selection.decision}
+    atomic_write_json(Path(model_dir) / SELECTION_FILE, {**comparison.to_dict(), "residual_decision": decision,
+                                                         "table": comparison.format_table()})

@@ -6,6 +6,16 @@ and writes a model folder: the robot's nominal geometry with the stiffness stage
 kinematics are used for the Jacobians), so that geometry and stiffness form one model folder
 that ``torchcal export`` turns into one compensator.
 
+The parameterization (``parameters``) is ``classic`` (one spring about each joint axis),
+``full`` (observable part of the 6-D diagonal per joint) or ``auto`` (default): K-fold
+cross-validation over the file's poses (configuration groups by default,
+:mod:`torchcal.model_selection.folds`) fits both on each training part, scores the 3-D position
+deflection error (mm) of the held-out poses, and keeps the simpler ``classic`` unless ``full`` is
+better beyond noise (:func:`~torchcal.model_selection.compare.compare_candidates`); the chosen
+one is then fitted on all poses. The comparison goes to ``stiffness.json`` (``model_selection``)
+and, under ``"stiffness"``, to the folder's ``model_selection.json`` (next to a geometry fit's
+comparison when the folder has one).
+
 ``evaluate`` predicts the deflection of every row of a stiffness file and reports
 ``deflection_rms_mm`` (RMS 3-D distance between measured and predicted deflection) and
 ``deflection_measured_rms_mm`` (RMS 3-D norm of the measured deflection), mm, instrument frame.
@@ -16,25 +26,36 @@ them, the robot ``base`` otherwise (the data contract), so ``--register`` change
 from __future__ import annotations
 
 import hashlib
+import json
 import math
 import sys
 import warnings
 from dataclasses import dataclass, fields
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from torchcal.data.stiffness import StiffnessData, load_stiffness
-from torchcal.errors import DataError, TorchcalError
+from torchcal.errors import DataError, IdentifiabilityWarning, TorchcalError
+from torchcal.io import atomic_write_json
 from torchcal.kinematics.error_model import ErrorModel
+from torchcal.kinematics.robot import RobotModel
+from torchcal.model_selection.compare import Candidate, Comparison, compare_candidates
+from torchcal.model_selection.folds import SPLITS, Folds, make_folds
 from torchcal.stiffness.identify import (
     DEFAULT_SIGMA_POSITION_M,
     DEFAULT_SIGMA_ROTATION_RAD,
+    StiffnessEstimate,
     deflection_metrics,
     identify_stiffness,
     instrument_model,
 )
 from torchcal.stiffness.vjm import deflection
+
+PARAMETERS = ("auto", "classic", "full")
+"""Values of ``parameters``; the fitted candidates of ``auto`` are the others, simplest first."""
+SELECTION_FILE = "model_selection.json"
 
 
 @dataclass
@@ -46,8 +67,15 @@ class StiffnessFitConfig:
             ``d*``, ``x, y, z`` (``mm`` | ``m``).
         model: calibrated model folder whose geometry the stiffness is added to (default: the
             nominal robot of ``--robot``).
-        parameters: ``classic`` (one spring about each joint axis) or ``full`` (observable part
-            of the 6-D diagonal per joint).
+        parameters: ``auto`` (default: the one of ``classic`` and ``full`` chosen by
+            cross-validation, see the module docstring), ``classic`` (one spring about each
+            joint axis) or ``full`` (observable part of the 6-D diagonal per joint).
+        split: folds of that cross-validation (:func:`~torchcal.model_selection.folds.make_folds`):
+            ``grouped`` (default; near-twin configurations in one fold), ``blocks`` (contiguous
+            blocks of the file's row order) or ``random`` (rows; for comparison only).
+        cv_folds: number of folds.
+        cv_groups: configuration regions (k-means clusters) of ``split=grouped``.
+        seed: seed of the folds.
         use_rotation: fit the ``drx, dry, drz`` columns too (default: when the file has them).
         sigma_position_mm / sigma_rotation_deg: noise of one deflection component (weights and
             covariance).
@@ -61,7 +89,11 @@ class StiffnessFitConfig:
     joint_unit: str = "deg"
     length_unit: str = "mm"
     model: str | None = None
-    parameters: str = "classic"
+    parameters: str = "auto"
+    split: str = "grouped"
+    cv_folds: int = 5
+    cv_groups: int = 20
+    seed: int = 0
     use_rotation: bool | None = None
     sigma_position_mm: float = DEFAULT_SIGMA_POSITION_M * 1e3
     sigma_rotation_deg: float = math.degrees(DEFAULT_SIGMA_ROTATION_RAD)
@@ -88,8 +120,14 @@ def stiffness_config(overrides: list[str]) -> StiffnessFitConfig:
     config = _apply_overrides(StiffnessFitConfig(), kept)
     if config.wrench_frame not in ("tool", "instrument"):
         raise TorchcalError(f"wrench_frame must be 'tool' or 'instrument', got {config.wrench_frame!r}")
-    if config.parameters not in ("classic", "full"):
-        raise TorchcalError(f"parameters must be 'classic' or 'full', got {config.parameters!r}")
+    if config.parameters not in PARAMETERS:
+        raise TorchcalError(f"parameters must be one of {', '.join(PARAMETERS)}, got {config.parameters!r}")
+    if config.split not in SPLITS:
+        raise TorchcalError(f"split must be one of {', '.join(SPLITS)}, got {config.split!r}")
+    if config.cv_folds < 2:
+        raise TorchcalError(f"cv_folds must be at least 2, got {config.cv_folds}")
+    if config.cv_groups < 2:
+        raise TorchcalError(f"cv_groups must be at least 2, got {config.cv_groups}")
     return config
 
 
@@ -103,6 +141,87 @@ def _load(path, n_joints: int, config: StiffnessFitConfig) -> StiffnessData:
     )
 
 
+def _identify(
+    geometry: RobotModel | ErrorModel,
+    data: StiffnessData,
+    config: StiffnessFitConfig,
+    parameters: str,
+    x: torch.Tensor | None,
+) -> StiffnessEstimate:
+    """:func:`identify_stiffness` with the options of ``config`` and the given ``parameters``."""
+    return identify_stiffness(
+        geometry,
+        data,
+        x=x,
+        parameters=parameters,
+        use_rotation=config.use_rotation,
+        sigma_position_m=config.sigma_position_mm * 1e-3,
+        sigma_rotation_rad=math.radians(config.sigma_rotation_deg),
+        wrench_frame=config.wrench_frame,  # type: ignore[arg-type]
+        rank_tol=config.rank_tol,
+        poor_relative_std=config.poor_relative_std,
+        device=config.device,
+    )
+
+
+def parameter_folds(geometry: RobotModel | ErrorModel, data: StiffnessData, config: StiffnessFitConfig) -> Folds:
+    """Folds of ``config.split`` over the poses of ``data`` (lever arms of the nominal robot)."""
+    robot = geometry.robot if isinstance(geometry, ErrorModel) else geometry
+    return make_folds(
+        config.split, robot, data.q.cpu(), k=config.cv_folds, seed=config.seed, groups=config.cv_groups
+    )
+
+
+def cross_validate_parameters(
+    geometry: RobotModel | ErrorModel,
+    data: StiffnessData,
+    folds: Folds,
+    config: StiffnessFitConfig,
+    *,
+    x: torch.Tensor | None = None,
+) -> Comparison:
+    """Held-out deflection of ``classic`` and ``full`` over ``folds``, and the choice between them.
+
+    On each fold both are identified on the training poses (as the final fit is, with
+    ``geometry`` and ``x``) and predict the held-out poses with their own instrument frame
+    (registered on the training poses: one set-up). Per-pose error: 3-D distance between
+    measured and predicted position deflection, mm, instrument frame. Identifiability warnings
+    of the fold fits are silenced: the final fit on all poses reports its own.
+    """
+    errors = {name: np.empty(len(data)) for name in PARAMETERS[1:]}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", IdentifiabilityWarning)
+        for train, test in folds.splits():
+            fitted = data.subset(torch.as_tensor(train, device=data.q.device))
+            held_out = data.subset(torch.as_tensor(test, device=data.q.device))
+            for name, per_pose in errors.items():
+                estimate = _identify(geometry, fitted, config, name, x)
+                device = estimate.x.device
+                predicted = estimate.predict(held_out.q.to(device), held_out.wrench.to(device))[:, :3]
+                per_pose[test] = ((predicted - held_out.deflection.to(predicted)).norm(dim=-1) * 1e3).cpu().numpy()
+    candidates = [
+        Candidate("classic", errors["classic"], detail="one spring about each joint axis"),
+        Candidate("full", errors["full"], detail="observable part of the 6-D diagonal per joint"),
+    ]
+    return compare_candidates(candidates, folds.units(), f"held-out TCP deflection, {folds.description}")
+
+
+def _write_selection(folder: Path, selection: dict | None) -> None:
+    """Put ``selection`` under ``"stiffness"`` in the folder's ``model_selection.json`` (``None``: remove it).
+
+    The rest of the file (a geometry fit's comparison, copied with ``model=``) is kept.
+    """
+    path = folder / SELECTION_FILE
+    content = json.loads(path.read_text()) if path.is_file() else {}
+    content.pop("stiffness", None)
+    if selection is not None:
+        content["stiffness"] = selection
+    if content:
+        atomic_write_json(path, content)
+    else:
+        path.unlink(missing_ok=True)
+
+
 def fit_stiffness(
     robot_path: str | Path,
     data_path: str | Path,
@@ -112,7 +231,7 @@ def fit_stiffness(
     base_link: str | None = None,
     end_link: str | None = None,
 ) -> Path:
-    """``torchcal fit`` on a stiffness file: identify, then write the model folder ``out_dir``."""
+    """``torchcal fit`` on a stiffness file: choose the parameterization, identify, write ``out_dir``."""
     from torchcal.kinematics.robot import load_robot
     from torchcal.model_store import copy_model, load_model, save_model
     from torchcal.pipeline import with_tool
@@ -129,19 +248,20 @@ def fit_stiffness(
         if config.tool_mm is not None:
             warnings.warn("tool_mm is ignored with model=: the calibrated tool of the model is used", stacklevel=2)
     data = _load(data_path, robot.dof, config)
-    estimate = identify_stiffness(
-        stored.model if stored is not None else robot,
-        data,
-        x=stored.x if stored is not None else None,
-        parameters=config.parameters,
-        use_rotation=config.use_rotation,
-        sigma_position_m=config.sigma_position_mm * 1e-3,
-        sigma_rotation_rad=math.radians(config.sigma_rotation_deg),
-        wrench_frame=config.wrench_frame,  # type: ignore[arg-type]
-        rank_tol=config.rank_tol,
-        poor_relative_std=config.poor_relative_std,
-        device=config.device,
-    )
+    geometry = stored.model if stored is not None else robot
+    x = stored.x if stored is not None else None
+    parameters, selection, comparison = config.parameters, None, None
+    if parameters == "auto":
+        try:
+            folds = parameter_folds(geometry, data, config)
+        except DataError as err:
+            parameters = "classic"
+            selection = {"chosen": parameters, "reason": f"no cross-validation ({err}): the simpler model"}
+            warnings.warn(f"parameters=auto: {err}; fitting parameters=classic", stacklevel=2)
+        else:
+            comparison = cross_validate_parameters(geometry, data, folds, config, x=x)
+            parameters, selection = comparison.chosen, comparison.to_dict()
+    estimate = _identify(geometry, data, config, parameters, x)
     wrench = data.wrench
     meta = {
         "data": {
@@ -158,6 +278,8 @@ def fit_stiffness(
         "geometry": {"source": "calibrated model", "model": str(config.model)} if stored else {"source": "nominal robot", "robot": str(robot_path)},
         "fit_metrics": deflection_metrics(estimate, data),
     }
+    if selection is not None:
+        meta["model_selection"] = selection
     if stored is not None:
         if out.resolve() != Path(config.model).resolve():
             copy_model(config.model, out)
@@ -174,6 +296,11 @@ def fit_stiffness(
             },
         )
     save_stiffness(out, estimate, meta)
+    if comparison is not None:
+        table = comparison.format_table()
+        selection = {**selection, "table": table}
+        print(table, file=sys.stderr)
+    _write_selection(out, selection)
     _summary(estimate, meta["fit_metrics"])
     return out
 

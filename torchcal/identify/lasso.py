@@ -6,7 +6,9 @@
 3. The kinematic columns are standardized (mean 0, unit length) and ``r`` is centred, so the L1
    bound treats a degree and a millimetre alike by their effect on the TCP.
 4. The L1 bound (equivalently the penalty ``alpha`` on the same path) is chosen by K-fold
-   cross-validation over poses (scikit-learn's ``LassoCV``; all rows of a pose stay in one fold).
+   cross-validation over poses (scikit-learn's ``LassoCV``; all rows of a pose stay in one fold),
+   the folds of :mod:`torchcal.model_selection.folds`: configuration groups by default, so that a
+   near-twin of a held-out pose never sits in the training part and favours a weak penalty.
 5. The selected support plus the frame parameters is refitted without penalty by
    Levenberg-Marquardt, which removes the shrinkage bias of the L1 estimate.
 """
@@ -31,12 +33,17 @@ class LassoIdentifier(Identifier):
         n_alphas: points on the regularization path.
         seed: fold assignment seed.
         selection_threshold: a standardized coefficient counts as selected above this.
+        split: ``grouped`` (configuration groups of the problem's nominal robot), ``blocks``
+            (row order) or ``random`` (:func:`~torchcal.model_selection.folds.make_folds`).
+        robot: nominal robot for grouped folds (default: the problem's).
     """
 
     name = "lasso"
 
-    def __init__(self, folds: int = 5, n_alphas: int = 60, seed: int = 0, selection_threshold: float = 1e-12) -> None:
+    def __init__(self, folds: int = 5, n_alphas: int = 60, seed: int = 0, selection_threshold: float = 1e-12,
+                 split: str = "grouped", robot=None) -> None:
         self.folds = folds
+        self.split, self.robot = split, robot
         self.n_alphas = n_alphas
         self.seed = seed
         self.selection_threshold = selection_threshold
@@ -62,8 +69,10 @@ class LassoIdentifier(Identifier):
         y = y - y.mean()
         rows = problem.rows_per_pose
         n_poses = len(y) // rows
-        rng = np.random.default_rng(self.seed)
-        fold_of_pose = rng.permutation(n_poses) % self.folds
+        from torchcal.model_selection.folds import make_folds
+
+        robot = self.robot if self.robot is not None else problem.model.robot
+        fold_of_pose = make_folds(self.split, robot, problem.data.q[:n_poses].cpu(), k=self.folds, seed=self.seed).fold
         fold_of_row = np.repeat(fold_of_pose, rows)
         splits = [(np.flatnonzero(fold_of_row != k), np.flatnonzero(fold_of_row == k)) for k in range(self.folds)]
         model = LassoCV(alphas=self.n_alphas, cv=splits, fit_intercept=False, max_iter=20000, tol=1e-8)

@@ -31,6 +31,9 @@ class StiffnessCaseConfig:
             loading plan designed at the middle of those ranges) or ``random`` (random poses and
             wrenches: the files of earlier versions, unchanged).
         plan_candidates: random candidate poses the plan chooses from (default ``2 n_train``).
+        off_axis: off-axis compliance of every joint as a fraction of its on-axis compliance
+            (default 0: the joints yield only about their axes; see
+            :func:`~torchcal.sim.stiffness_twin.with_off_axis`).
         The other fields are those of :class:`~torchcal.sim.stiffness_twin.StiffnessTwinConfig`.
     """
 
@@ -51,6 +54,7 @@ class StiffnessCaseConfig:
     margin_deg: float = 5.0
     min_singular_value: float = 0.02
     equilibrium_iterations: int = 4
+    off_axis: float = 0.0
 
     def twin_config(self) -> StiffnessTwinConfig:
         """The rig settings as the (frozen) twin configuration."""
@@ -64,6 +68,8 @@ def write_stiffness_twin_case(out: str | Path, config: StiffnessCaseConfig) -> d
         raise TorchcalError(f"n_train and n_test must be positive, got {config.n_train} and {config.n_test}")
     if config.plan not in ("optimal", "random"):
         raise TorchcalError(f"plan must be 'optimal' or 'random', got {config.plan!r}")
+    if config.off_axis < 0:
+        raise TorchcalError(f"off_axis must be >= 0 (a fraction of the on-axis compliance), got {config.off_axis}")
     if config.plan_candidates is not None and config.plan_candidates < config.n_train:
         raise TorchcalError(f"plan_candidates ({config.plan_candidates}) must be at least n_train ({config.n_train})")
     out = Path(out)

@@ -10,6 +10,10 @@ deformed chain of :mod:`torchcal.stiffness.deformed` with the spring equilibrium
 the deformed structure (not the first-order VJM law that identification uses), so the model is
 checked against something it does not contain by construction. Tracker noise is added to both
 the loaded and the unloaded measurement (positions, and orientations of a 6-DoF probe).
+
+By default the joints yield only about their axes (the classic model). With ``off_axis > 0``
+they also yield off them, as gearboxes, bearings and links do: every diagonal entry of a joint's
+6-D compliance (:mod:`torchcal.stiffness.vjm`) is then non-zero (:func:`with_off_axis`).
 """
 
 from __future__ import annotations
@@ -34,6 +38,8 @@ from torchcal.stiffness.vjm import classic_compliance
 
 MAIN_AXIS_RANGE_NM_PER_RAD = (1e5, 5e5)
 WRIST_RANGE_NM_PER_RAD = (1e4, 5e4)
+OFF_AXIS_LEVER_M = 0.1
+"""Lever (m) of a joint's off-axis translational compliance: ``c_t = off_axis c_rz L^2``."""
 
 
 @dataclass(frozen=True)
@@ -53,6 +59,8 @@ class StiffnessTwinConfig:
             value below this are not used, as a loading plan avoids singular poses (there the
             compensating IK is ill-posed).
         equilibrium_iterations: fixed-point iterations of the spring equilibrium.
+        off_axis: off-axis compliance of every joint as a fraction of its on-axis compliance
+            (0: the joints yield only about their axes; see :func:`with_off_axis`).
     """
 
     seed: int = 0
@@ -66,6 +74,27 @@ class StiffnessTwinConfig:
     margin_deg: float = 5.0
     min_singular_value: float = 0.02
     equilibrium_iterations: int = 4
+    off_axis: float = 0.0
+
+
+def with_off_axis(compliance: torch.Tensor, off_axis: float) -> torch.Tensor:
+    """Joint compliance ``(N, 6, 6)`` (SI, joint frames) that also yields off each joint's axis.
+
+    From each joint's on-axis compliance ``c_rz`` (rad/(N m), entry ``[5, 5]``) the other five
+    diagonal entries (the 6-D diagonal that ``parameters=full`` fits) are set to
+    ``off_axis c_rz`` for the bending rotations ``rx, ry`` (rad/(N m)) and to
+    ``off_axis c_rz L^2`` for the translations ``tx, ty, tz`` (m/N), ``L`` =
+    :data:`OFF_AXIS_LEVER_M`: a point ``L`` from the joint moves by the same fraction of what the
+    on-axis spring would let it. A rigid joint (``c_rz = 0``) stays rigid.
+    """
+    if off_axis < 0:
+        raise ValueError(f"off_axis must be >= 0, got {off_axis}")
+    c = compliance.to(torch.float64).clone()
+    on_axis = c[..., 5, 5]
+    scale = torch.tensor([OFF_AXIS_LEVER_M**2] * 3 + [1.0, 1.0], dtype=torch.float64, device=c.device)
+    index = torch.arange(5, device=c.device)
+    c[..., index, index] = off_axis * on_axis.unsqueeze(-1) * scale
+    return c
 
 
 def sample_joint_stiffness(n_joints: int, generator: torch.Generator) -> torch.Tensor:
@@ -97,7 +126,8 @@ class StiffnessTwin:
     Args:
         config: rig settings.
         robot: nominal robot (default: the embedded twin-kr6).
-        compliance: true ``(N, 6, 6)`` joint compliance (default: classic, sampled stiffness).
+        compliance: true ``(N, 6, 6)`` joint compliance (default: classic, sampled stiffness);
+            with ``config.off_axis > 0`` its off-axis diagonal is set by :func:`with_off_axis`.
         x_true: true geometry (error-layer vector, base part ignored); nominal by default.
         device: where tensors are created.
     """
@@ -120,6 +150,8 @@ class StiffnessTwin:
             compliance = classic_compliance(self.joint_stiffness)
         else:  # the truth file reports the given springs about the joint axes (inf: rigid)
             self.joint_stiffness = 1.0 / compliance[..., 5, 5].to(self.device, torch.float64)
+        if config.off_axis:
+            compliance = with_off_axis(compliance, config.off_axis)
         self.compliance = compliance.to(self.device, torch.float64)
         # The tracker a few metres away, arbitrarily rotated about a near-vertical axis.
         T = torch.eye(4, dtype=torch.float64)
@@ -273,6 +305,9 @@ class StiffnessTwin:
     def truth_dict(self) -> dict:
         """Known truth, JSON-ready: stiffness (N m/rad), compliance, instrument frame, noise."""
         names = [f"k_j{i}_rz" for i in range(1, self.robot.dof + 1)]
+        config = asdict(self.config)
+        if not self.config.off_axis:  # twins that yield only about their axes: truth files as before
+            del config["off_axis"]
         return {
             "robot": self.robot.name,
             "units": {"stiffness": "N m/rad (rotations), N/m (translations)", "compliance": "SI", "lengths": "mm"},
@@ -283,7 +318,7 @@ class StiffnessTwin:
                 "translation_mm": (self.T_instrument_base[:3, 3] * 1e3).tolist(),
             },
             "deflection_noise_floor_rms_mm": self.noise_floor_mm(),
-            "config": asdict(self.config),
+            "config": config,
         }
 
 

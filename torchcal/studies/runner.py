@@ -183,16 +183,17 @@ def _refit_best_on_files(run_config, config: StudyConfig, best, study_dir: Path,
     from torchcal.config import save_resolved_config
     from torchcal.data.measurements import load_measurements
     from torchcal.kinematics.robot import load_robot
-    from torchcal.pipeline import evaluate, fit, save_fit, with_tool
+    from torchcal.pipeline import evaluate, fit_with_selection, save_fit, with_tool
     from torchcal.residual_stage import fit_residual_stage
 
     fit_config = run_config.fit
     units = {"joint_unit": fit_config.joint_unit, "length_unit": fit_config.length_unit}
     robot = with_tool(load_robot(config.robot), fit_config)
     train = load_measurements(config.train, robot, **units)
-    folder = save_fit(study_dir / "best" / "model", robot, train, fit(robot, train, fit_config), {})
+    result, structure = fit_with_selection(robot, train, fit_config)
+    folder = save_fit(study_dir / "best" / "model", robot, train, result, {})
     save_resolved_config(folder / "config.yaml", fit_config)
-    residual = fit_residual_stage(folder, train, fit_config, console=console) if fit_config.residual != "none" else None
+    residual = fit_residual_stage(folder, train, fit_config, console=console, structure=structure) if fit_config.residual != "none" else None
     out = {"trial": best.number, "params": dict(best.params), "run_folder": str(folder), "residual": residual}
     if config.test:
         metrics = evaluate(folder, config.test, config=fit_config)

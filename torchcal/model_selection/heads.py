@@ -1,0 +1,87 @@
+"""Cross-validation of learned residual heads on top of the chosen structure.
+
+On every fold the head learns the errors that fold's structure fit leaves on its training part
+(each head's own tuning, Mayfly search or early stopping, on a slice of that training part) and
+predicts the held-out part. Its candidate row is the held-out error after its correction; its
+parent is the structure, and it is eligible only with ``residual_margin`` gain and a paired
+z above 2 over configuration groups (:mod:`~torchcal.model_selection.compare`).
+
+Heads are the expensive part of a fit. A head is stopped early (futility) when, after at least
+two folds, its pooled held-out RMS is no better than the structure's on the same poses: it could
+only pass the gate by gaining more than ``residual_margin`` on the remaining folds after losing
+on these. A stopped head is reported as such.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from torchcal.data.measurements import Measurements
+from torchcal.model_selection.compare import Candidate
+from torchcal.model_selection.structure import StructureCV, fold_targets
+from torchcal.residual.features import JointFeatures
+from torchcal.residual.selection import fit_before_gate
+
+FUTILITY_AFTER_FOLDS = 2
+
+
+@dataclass
+class HeadCV:
+    """Head candidates with full out-of-fold errors, and heads stopped for futility (with why)."""
+
+    candidates: list[Candidate] = field(default_factory=list)
+    stopped: dict[str, str] = field(default_factory=dict)
+
+
+def make_features(robot, data: Measurements) -> JointFeatures:
+    """Head features for ``data`` (temperature centred and scaled on ``data`` when it has any)."""
+    temperature = None
+    if data.temperature is not None:
+        t = data.temperature
+        temperature = (float(t.mean()), float(t.std().clamp_min(1e-6)))
+    return JointFeatures(robot.joint_limits.to(torch.float64), temperature)
+
+
+def cross_validate_heads(robot, data: Measurements, structure: StructureCV, parent: str, make_heads, *,
+                         margin: float, seed: int = 0, progress=None) -> HeadCV:
+    """Out-of-fold errors (mm) of each head from ``make_heads() -> [ResidualHead]`` on ``parent``'s fold fits."""
+    folds = structure.folds
+    parent_errors = next(c.errors_mm for c in structure.candidates if c.name == parent)
+    names = [h.name for h in make_heads()]
+    errors = {name: np.full(len(data), np.nan) for name in names}
+    active = list(names)
+    out = HeadCV()
+    for f, (train_idx, test_idx) in enumerate(folds.splits()):
+        if not active:
+            break
+        if progress is not None:
+            progress(f"cross-validating residual heads ({', '.join(active)}): fold {f + 1} of {folds.k}")
+        result = structure.fold_results[parent][f]
+        features = make_features(robot, data.subset(train_idx))
+        train, test = data.subset(train_idx), data.subset(test_idx)
+        y_train = fold_targets(result, data, train_idx)
+        y_test = fold_targets(result, data, test_idx)
+        x_train, x_test = features(train.q, train.temperature), features(test.q, test.temperature)
+        for head in make_heads():
+            if head.name not in active:
+                continue
+            fit_before_gate(head, x_train, y_train, seed=seed)
+            with torch.no_grad():
+                predicted = head.predict(x_test)
+            errors[head.name][test_idx] = (y_test - predicted).norm(dim=-1).cpu().numpy()
+        done = np.flatnonzero(np.isin(folds.fold, np.arange(f + 1)))
+        if f + 1 >= FUTILITY_AFTER_FOLDS and f + 1 < folds.k:
+            base = float(np.sqrt(np.mean(np.square(parent_errors[done]))))
+            for name in list(active):
+                rms = float(np.sqrt(np.mean(np.square(errors[name][done]))))
+                if rms >= base:
+                    active.remove(name)
+                    out.stopped[name] = (f"stopped after {f + 1} of {folds.k} folds: held-out RMS {rms:.4f} mm "
+                                         f"vs {base:.4f} mm without it on those poses (no gain)")
+    for name in names:
+        if name not in out.stopped:
+            out.candidates.append(Candidate(f"{parent}+{name}", errors[name], parent=parent, min_gain=margin))
+    return out

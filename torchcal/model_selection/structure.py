@@ -1,0 +1,92 @@
+"""Cross-validation of a fit's structures: geometry alone, geometry with joint-space error terms.
+
+For every fold (:mod:`~torchcal.model_selection.folds`), geometry is identified once on the
+training part and every joint-space option (gravity compliance, first harmonics) refines it
+there; the held-out part scores each. The per-fold fits are kept: the residual-head stage
+(:mod:`~torchcal.model_selection.heads`) learns on their residuals, so a head is judged on top
+of exactly the structure that will carry it, with the same folds.
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from torchcal.data.measurements import Measurements
+from torchcal.errors import IdentifiabilityWarning
+from torchcal.identify.compliance import POINT_SETS
+from torchcal.identify.harmonics import HARMONIC_SETS
+from torchcal.identify.joint_fit import fit_joint_errors, option_label, predicted_positions
+from torchcal.model_selection.compare import Candidate, Comparison, compare_candidates
+from torchcal.model_selection.folds import Folds
+
+
+@dataclass
+class StructureCV:
+    """Folds, per-pose out-of-fold errors per option, the per-fold fits and the decision.
+
+    Attributes:
+        folds: the folds used.
+        options: ``(gravity set, harmonic set)`` pairs, simplest first.
+        candidates: one :class:`~torchcal.model_selection.compare.Candidate` per option.
+        fold_results: ``label -> [result of fold 0, 1, ...]`` (fits on each training part).
+        comparison: the decision among options.
+    """
+
+    folds: Folds
+    options: list[tuple[str, str]]
+    candidates: list[Candidate]
+    fold_results: dict[str, list] = field(default_factory=dict)
+    comparison: Comparison | None = None
+
+    @property
+    def chosen(self) -> tuple[str, str]:
+        assert self.comparison is not None
+        return next(o for o in self.options if structure_label(*o) == self.comparison.chosen)
+
+
+def structure_label(gravity: str, harmonics: str) -> str:
+    """``geometry``, ``geometry+wrist``, ``geometry+harmonics``, ... (table names)."""
+    option = option_label(gravity, harmonics)
+    return "geometry" if option == "none" else f"geometry+{option}"
+
+
+def cross_validate_structures(robot, data: Measurements, fit_geometry, options: list[tuple[str, str]], folds: Folds,
+                              *, tolerance: float = 0.01, progress=None) -> StructureCV:
+    """Score every option on ``folds``; ``fit_geometry(train) -> CalibrationResult``.
+
+    ``progress(step: str)``, if given, is called before each fold.
+    """
+    n = len(data)
+    errors = {structure_label(*o): np.zeros(n) for o in options}
+    fold_results: dict[str, list] = {structure_label(*o): [] for o in options}
+    with warnings.catch_warnings():
+        # a fold's fit repeats the identifiability warnings of the full fit, which is reported once
+        warnings.simplefilter("ignore", IdentifiabilityWarning)
+        for f, (train_idx, test_idx) in enumerate(folds.splits()):
+            if progress is not None:
+                progress(f"cross-validating structures: fold {f + 1} of {folds.k}")
+            train, test = data.subset(train_idx), data.subset(test_idx)
+            geometry = fit_geometry(train)
+            for gravity, harmonics in options:
+                label = structure_label(gravity, harmonics)
+                result = fit_joint_errors(robot, train, geometry, POINT_SETS[gravity], HARMONIC_SETS[harmonics])
+                held_out = test.position - predicted_positions(result, test.q)
+                errors[label][test_idx] = held_out.norm(dim=-1).detach().cpu().numpy() * 1e3
+                fold_results[label].append(result)
+    candidates = [Candidate(label, err) for label, err in errors.items()]
+    comparison = compare_candidates(candidates, folds.units(), folds.description, tolerance=tolerance)
+    return StructureCV(folds, options, candidates, fold_results, comparison)
+
+
+def fold_targets(result, data: Measurements, index: np.ndarray) -> torch.Tensor:
+    """Errors (base frame, mm ``(k, 3)``) that ``result`` leaves at poses ``index`` of ``data``."""
+    from torchcal.identify.joint_errors import JointSpaceErrors
+
+    part = data.subset(index)
+    joints = JointSpaceErrors.of(result).effective_joints(result.model.robot, part.q)
+    error = part.position - result.model.tcp_position(joints, result.x)
+    return error @ result.model.T_reference[:3, :3].to(error) * 1e3
