@@ -76,7 +76,7 @@ def _model_dir(tmp: Path) -> Path:
 
     twin = Twin.create(TwinConfig(seed=0))
     train = twin.sample(300, torch.Generator().manual_seed(1))
-    result = fit(twin.robot, train, FitConfig(residual="none"))
+    result = fit(twin.robot, train, FitConfig(residual="none", gravity_compliance="none", joint_harmonics="none"))
     return save_fit(tmp / "model", twin.robot, train, result, {})
 
 

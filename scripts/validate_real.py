@@ -33,10 +33,9 @@ def table(results: list[dict]) -> str:
     ]
     for r in results:
         first = True
-        for stage in STAGES:
-            m = r["stages"][stage]
+        for stage, m in r["stages"].items():
             head = (f"{r['dataset']}", r["protocol"]) if first else ("", "")
-            published = r["published"] if stage == STAGES[-1] else ""  # the sources' results are hybrids
+            published = r["published"] if stage.startswith(STAGES[-1]) else ""  # the sources' results are hybrids
             if "position_mean_mm" not in m:
                 lines.append(f"| {head[0]} | {head[1]} | {stage} | | | | | | | {published} | {m['status']} |")
                 first = False

@@ -61,7 +61,7 @@ def _cmd_fit(args) -> int:
 
     from torchcal.data.measurements import load_measurements
     from torchcal.kinematics.robot import load_robot
-    from torchcal.pipeline import fit_with_selection, nominal_errors, save_fit, with_tool
+    from torchcal.pipeline import describe_structure, fit_with_selection, nominal_errors, save_fit, with_tool
     from torchcal.metrics import position_metrics
 
     from torchcal.config.compose import compose_fit_config
@@ -83,7 +83,7 @@ def _cmd_fit(args) -> int:
     console.print(result.identifiability.summary())
     console.print(
         f"training RMS {before['position_rms_mm']:.4f} mm (nominal, registered) -> {after['position_rms_mm']:.4f} mm "
-        f"({_structure_name(result)}, on the poses it was fitted to)"
+        f"({describe_structure(result)}, on the poses it was fitted to)"
     )
     if config.residual != "none":
         from torchcal.residual_stage import fit_residual_stage
@@ -99,12 +99,6 @@ def _cmd_fit(args) -> int:
         console.print(structure.comparison.format_table())
     print(f"model: {folder}")
     return 0
-
-
-def _structure_name(result) -> str:
-    terms = [t for t, present in (("gravity compliance", result.compliance is not None),
-                                  ("joint harmonics", result.harmonics is not None)) if present]
-    return "geometry" + "".join(f" + {t}" for t in terms)
 
 
 def _table(summary: dict) -> str:
@@ -160,7 +154,8 @@ def _cmd_run(args) -> int:
     config, _ = compose_run_config(args.overrides)
     summary = run(config)
     final = summary["test"][summary["final_stage"]]
-    print(f"{summary['name']}: held-out RMS {final['position_rms_mm']:.4f} mm ({summary['final_stage']}); "
+    print(f"{summary['name']}: held-out RMS {final['position_rms_mm']:.4f} mm on {final['n_poses']} new twin poses "
+          f"({summary['model']}, chosen by grouped CV on the training poses); "
           f"report in {Path(config.out) / config.name / 'report.md'}")
     return 0
 

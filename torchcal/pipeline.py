@@ -44,6 +44,11 @@ class FitConfig:
             for data that drifts while measured) or ``random`` (rows; for comparison only).
         cv_folds: folds of that cross-validation.
         cv_groups: configuration regions (k-means clusters) of ``split=grouped``.
+        harmonic_min_range_deg: first harmonics only on joints whose range in the data spans at
+            least this (deg): over a shorter arc a harmonic is an offset and a slope that
+            extrapolates wildly (:func:`~torchcal.identify.joint_fit.fit_joint_errors`).
+        head_time_check: a head that passes the CV must pass again on contiguous blocks of the
+            file's row order (measurement order), so that one that learned a drift is refused.
         device: ``cpu`` or a torch device string.
         seed: seed of the folds and of stochastic heads.
         tool_mm: nominal TCP in the flange frame (mm) replacing the robot file's (a URDF has none).
@@ -71,6 +76,8 @@ class FitConfig:
     split: str = "grouped"
     cv_folds: int = 5
     cv_groups: int = 20
+    head_time_check: bool = True
+    harmonic_min_range_deg: float = 180.0
     device: str = "cpu"
     seed: int = 0
     tool_mm: list[float] | None = None
@@ -106,6 +113,13 @@ def with_tool(robot: RobotModel, config: FitConfig) -> RobotModel:
     return replace(robot, tool=torch.tensor(config.tool_mm, dtype=torch.float64) * 1e-3)
 
 
+def describe_structure(result: CalibrationResult) -> str:
+    """``geometry``, ``geometry + gravity compliance + joint harmonics``, ... of a fit result."""
+    terms = [t for t, present in (("gravity compliance", result.compliance is not None),
+                                  ("joint harmonics", result.harmonics is not None)) if present]
+    return "geometry" + "".join(f" + {t}" for t in terms)
+
+
 def make_config_folds(robot: RobotModel, data: Measurements, config: FitConfig):
     """The folds every data-driven choice of this fit is judged on (``config.split``)."""
     from torchcal.model_selection.folds import make_folds
@@ -115,7 +129,7 @@ def make_config_folds(robot: RobotModel, data: Measurements, config: FitConfig):
                       groups=config.cv_groups)
 
 
-def _geometry_fitter(robot: RobotModel, config: FitConfig):
+def geometry_fitter(robot: RobotModel, config: FitConfig):
     def geometry(train: Measurements) -> CalibrationResult:
         return calibrate(robot, train, identifier=IDENTIFIERS[config.method](**_identifier_options(robot, config)),
                          parallel_threshold_deg=config.parallel_threshold_deg, device=config.device)
@@ -164,16 +178,18 @@ def fit_with_selection(robot: RobotModel, data: Measurements, config: FitConfig,
 
         head_names(config.residual)  # an unknown head is refused before anything is fitted
     options = _structure_options(config)
-    geometry = _geometry_fitter(robot, config)
+    geometry = geometry_fitter(robot, config)
     structure = None
     gravity, harmonics = options[0]
     if len(options) > 1 or config.residual != "none":
         folds = make_config_folds(robot, data, config)
-        structure = cross_validate_structures(robot, data, geometry, options, folds, progress=progress)
+        structure = cross_validate_structures(robot, data, geometry, options, folds, progress=progress,
+                                              harmonic_min_range_deg=config.harmonic_min_range_deg)
         gravity, harmonics = structure.chosen
     if progress is not None:
         progress("fitting the chosen structure on all poses")
-    result = fit_joint_errors(robot, data, geometry(data), POINT_SETS[gravity], HARMONIC_SETS[harmonics])
+    result = fit_joint_errors(robot, data, geometry(data), POINT_SETS[gravity], HARMONIC_SETS[harmonics],
+                              config.harmonic_min_range_deg)
     if structure is not None and len(options) > 1:
         comparison = structure.comparison
         result.notes.append(f"structure chosen by {comparison.protocol}: "
@@ -197,8 +213,8 @@ def cross_validate_stored_structure(stored: StoredModel, data: Measurements, con
     gravity = next(name for name, members in POINT_SETS.items() if members == points)
     harmonics = "first" if terms.harmonics is not None else "none"
     folds = make_config_folds(stored.robot, data, config)
-    return cross_validate_structures(stored.robot, data, _geometry_fitter(stored.robot, config), [(gravity, harmonics)],
-                                     folds)
+    return cross_validate_structures(stored.robot, data, geometry_fitter(stored.robot, config), [(gravity, harmonics)],
+                                     folds, harmonic_min_range_deg=config.harmonic_min_range_deg)
 
 
 def save_fit(folder: Path, robot: RobotModel, data: Measurements, result: CalibrationResult, extra: dict) -> Path:
@@ -366,6 +382,8 @@ def run(config: RunConfig, console=None) -> dict:
         },
         "identifiability": result.identifiability.summary(),
         "residual": residual_summary,
+        "model": describe_structure(result) + (f" + {residual_summary['kept']} head"
+                                               if residual_summary and residual_summary["kept"] else ""),
         "elapsed_s": None,
     }
     write_run_report(folder, robot, result, stages, summary, truth_x, console=console)

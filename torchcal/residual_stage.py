@@ -62,7 +62,14 @@ def residual_targets_mm(model, x, data: Measurements, joints: torch.Tensor | Non
 
 
 def select_with_heads(robot, data: Measurements, structure: StructureCV, config, progress=None) -> Comparison:
-    """The final comparison: the structures of ``structure`` and every head on the chosen one."""
+    """The final comparison: the structures of ``structure`` and every head on the chosen one.
+
+    A head that passes on ``structure``'s folds must pass again on contiguous blocks of row
+    (measurement) order when ``config.head_time_check`` is on and the folds were not blocks
+    already: a head can learn what drifts while a series is measured (tracker, temperature),
+    which configuration folds cannot tell from a robot property when neighbouring
+    configurations were measured minutes apart. Requiring both is never less strict than either.
+    """
     assert structure.comparison is not None
     parent = structure.comparison.chosen
     heads = cross_validate_heads(robot, data, structure, parent, lambda: _candidates(config),
@@ -74,9 +81,45 @@ def select_with_heads(robot, data: Measurements, structure: StructureCV, config,
         # the structures were decided without heads; heads only add rows on top of that choice
         comparison.chosen, comparison.reason = parent, structure.comparison.reason
     for name, why in heads.stopped.items():
-        comparison.rows.append({"name": f"{parent}+{name}", "cv_rms_mm": float("nan"), "vs_best_pct": float("nan"),
-                                "se_pct": float("nan"), "verdict": why, "detail": ""})
+        comparison.rows.append(_stopped_row(f"{parent}+{name}", why))
+    if comparison.chosen in head_rows and config.head_time_check and structure.folds.kind != "blocks":
+        _check_on_time_blocks(robot, data, structure, comparison, config, progress)
     return comparison
+
+
+def _stopped_row(name: str, why: str) -> dict:
+    nan = float("nan")
+    return {"name": name, "cv_rms_mm": nan, "vs_best_pct": nan, "se_pct": nan, "verdict": why, "detail": ""}
+
+
+def _check_on_time_blocks(robot, data: Measurements, structure: StructureCV, comparison: Comparison, config,
+                          progress) -> None:
+    """Repeat the chosen head's CV on blocks of row order; revert to the structure if it fails there."""
+    from torchcal.model_selection.folds import make_folds
+    from torchcal.model_selection.structure import cross_validate_structures
+    from torchcal.pipeline import geometry_fitter
+
+    parent = structure.comparison.chosen
+    head_name = comparison.chosen.split("+")[-1]
+    order = torch.as_tensor(data.line_numbers).numpy() if data.line_numbers else None
+    blocks = make_folds("blocks", robot, data.q, k=config.cv_folds, order=order)
+    timed = cross_validate_structures(robot, data, geometry_fitter(robot, config), [structure.chosen], blocks,
+                                      harmonic_min_range_deg=config.harmonic_min_range_deg,
+                                      progress=progress)
+    heads = cross_validate_heads(robot, data, timed, parent,
+                                 lambda: [h for h in _candidates(config) if h.name == head_name],
+                                 margin=config.residual_margin, seed=config.seed, progress=progress)
+    check = compare_candidates(timed.candidates + heads.candidates, blocks.units(), blocks.description)
+    for row in check.rows:
+        comparison.rows.append({**row, "name": f"{row['name']} [time blocks]"})
+    for name, why in heads.stopped.items():
+        comparison.rows.append(_stopped_row(f"{parent}+{name} [time blocks]", why))
+    comparison.protocol += f"; a kept head also checked by {blocks.description}"
+    if check.chosen != comparison.chosen:
+        comparison.chosen = parent
+        comparison.reason = (f"{structure.comparison.reason}; head '{head_name}' passed on configuration regions but "
+                             "not on blocks of measurement order: it learned what changed while the series was "
+                             "measured, not the robot")
 
 
 def structure_tolerance() -> float:

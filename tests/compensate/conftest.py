@@ -18,7 +18,7 @@ def twin() -> Twin:
 def model_dir(twin, tmp_path_factory):
     gen = torch.Generator().manual_seed(11)
     train = twin.sample(150, gen)
-    result = fit(twin.robot, train, FitConfig(residual="none"))
+    result = fit(twin.robot, train, FitConfig(residual="none", gravity_compliance="none", joint_harmonics="none"))
     return save_fit(tmp_path_factory.mktemp("model") / "model", twin.robot, train, result, {})
 
 

@@ -40,7 +40,7 @@ def _errors(kind: str, n: int, scale: float = 1.0) -> JointSpaceErrors:
 def calibrated(twin):
     """A geometric fit of the compensate fixtures' twin: model and parameters to attach terms to."""
     train = twin.sample(150, torch.Generator().manual_seed(11))
-    result = fit(twin.robot, train, FitConfig(residual="none", progress=False))
+    result = fit(twin.robot, train, FitConfig(residual="none", gravity_compliance="none", joint_harmonics="none", progress=False))
     return result.model, result.x
 
 

@@ -78,7 +78,7 @@ def test_injected_first_harmonic_is_recovered_within_its_sigma(generator):
     z = ((estimate - truth)[identified] / sigma[identified]).abs()
     assert float(z.max()) < 4.0  # 10 coefficients: all within 4 sigma, most within 2
     assert float((z < 2.0).double().mean()) >= 0.7
-    geometric = fit(twin.robot, data, FitConfig(residual="none", progress=False))
+    geometric = fit(twin.robot, data, FitConfig(residual="none", gravity_compliance="none", joint_harmonics="none", progress=False))
     rms = {name: float((data.position - predicted_positions(r, data.q)).norm(dim=-1).pow(2).mean().sqrt())
            for name, r in (("geometric", geometric), ("harmonics", result))}
     floor = twin.config.noise_floor_rms_mm * 1e-3

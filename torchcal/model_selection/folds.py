@@ -21,6 +21,7 @@ interpolating its neighbours, and the score says nothing about new poses. So fol
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -135,11 +136,15 @@ def grouped_folds(robot, q: torch.Tensor, k: int = 5, *, seed: int = 0, groups: 
                   twin_radius_mm: float = 2.0) -> Folds:
     """Folds of configuration groups (see the module docstring); at most ``n / 2`` groups."""
     from sklearn.cluster import KMeans
+    from sklearn.exceptions import ConvergenceWarning
 
     n = len(q)
     points = pose_embedding(robot, q)
     n_clusters = int(max(k, min(groups, n // 2)))
-    labels = KMeans(n_clusters=n_clusters, n_init=1, random_state=seed).fit_predict(points)
+    with warnings.catch_warnings():
+        # fewer distinct configurations than clusters: refused below with a message that says so
+        warnings.simplefilter("ignore", ConvergenceWarning)
+        labels = KMeans(n_clusters=n_clusters, n_init=1, random_state=seed).fit_predict(points)
     groups = _merge_twins(labels, points, twin_radius_mm * 1e-3)
     n_groups = int(groups.max()) + 1
     if n_groups < k:

@@ -55,7 +55,8 @@ def structure_label(gravity: str, harmonics: str) -> str:
 
 
 def cross_validate_structures(robot, data: Measurements, fit_geometry, options: list[tuple[str, str]], folds: Folds,
-                              *, tolerance: float = 0.01, progress=None) -> StructureCV:
+                              *, tolerance: float = 0.01, harmonic_min_range_deg: float = 0.0,
+                              progress=None) -> StructureCV:
     """Score every option on ``folds``; ``fit_geometry(train) -> CalibrationResult``.
 
     ``progress(step: str)``, if given, is called before each fold.
@@ -73,7 +74,8 @@ def cross_validate_structures(robot, data: Measurements, fit_geometry, options: 
             geometry = fit_geometry(train)
             for gravity, harmonics in options:
                 label = structure_label(gravity, harmonics)
-                result = fit_joint_errors(robot, train, geometry, POINT_SETS[gravity], HARMONIC_SETS[harmonics])
+                result = fit_joint_errors(robot, train, geometry, POINT_SETS[gravity], HARMONIC_SETS[harmonics],
+                                          harmonic_min_range_deg)
                 held_out = test.position - predicted_positions(result, test.q)
                 errors[label][test_idx] = held_out.norm(dim=-1).detach().cpu().numpy() * 1e3
                 fold_results[label].append(result)

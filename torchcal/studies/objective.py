@@ -1,8 +1,10 @@
 """One trial of a study: the run configuration with the trial's values, scored on validation.
 
-The objective is the validation RMS (mm) of the residual head on the validation split of the
-*training* poses, the split the residual gate uses, with the head fitted exactly as before the
-gate (its own tuning on a slice of the training part, never on the validation poses). The twin's
+The objective is the validation RMS (mm) of the residual head on a held-out part of the
+*training* poses: one fold of the fit's own folds (:mod:`torchcal.model_selection.folds`,
+whole configuration regions by default, so that near-twins of validation poses never train the
+head), with the head fitted exactly as in the gate of ``fit`` (its own tuning on a slice of the
+training part, never on the validation poses). The twin's
 test poses are scored too but only recorded (``test_rms_mm``), so a study never selects on data
 it is judged by. Data and the
 geometric fit depend only on the twin and geometric settings, so they are computed once per
@@ -15,7 +17,7 @@ import hashlib
 import json
 import os
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -25,7 +27,8 @@ from torchcal.errors import TorchcalError
 from torchcal.studies.spec import StudyConfig, search_space
 
 # Fit settings that change the geometric stage; the others only change the residual head.
-GEOMETRIC_KEYS = ("method", "parallel_threshold_deg", "joint_unit", "length_unit", "device", "tool_mm")
+GEOMETRIC_KEYS = ("method", "parallel_threshold_deg", "joint_unit", "length_unit", "device", "tool_mm",
+                  "gravity_compliance", "joint_harmonics", "split", "cv_folds", "cv_groups")
 
 
 def apply_values(config, values: dict[str, Any]):
@@ -82,13 +85,14 @@ class StudyObjective:
         """Twin data and geometric fit for ``config``, computed once per distinct setting."""
         from torchcal.data.measurements import load_measurements
         from torchcal.kinematics.robot import load_robot
-        from torchcal.pipeline import fit, with_tool
+        from torchcal.identify.joint_errors import JointSpaceErrors
+        from torchcal.pipeline import fit, make_config_folds, with_tool
         from torchcal.residual.features import JointFeatures
-        from torchcal.residual_stage import residual_targets_mm, split
+        from torchcal.residual_stage import residual_targets_mm
 
         fit_geometry = {k: getattr(config.fit, k) for k in GEOMETRIC_KEYS}
         source = asdict(config.twin) if self.study.train is None else [self.study.robot, self.study.train, self.study.test]
-        key = _digest([source, fit_geometry, config.fit.validation_fraction, config.fit.seed])
+        key = _digest([source, fit_geometry, config.fit.seed])
         if key not in self._prepared:
             units = {"joint_unit": config.fit.joint_unit, "length_unit": config.fit.length_unit}
             if self.study.train is None:
@@ -100,14 +104,18 @@ class StudyObjective:
                 robot = with_tool(load_robot(self.study.robot), config.fit)
                 train = load_measurements(self.study.train, robot, **units)
                 test = load_measurements(self.study.test, robot, **units) if self.study.test else None
-            result = fit(robot, train, config.fit)
+            geometry_only = replace(config.fit, residual="none")
+            result = fit(robot, train, geometry_only)
             features = JointFeatures(robot.joint_limits.to(torch.float64), None)
-            idx_train, idx_val = split(len(train), config.fit.validation_fraction, config.fit.seed)
+            idx_train, idx_val = (torch.as_tensor(i) for i in make_config_folds(robot, train, geometry_only).splits()[0])
+            terms = JointSpaceErrors.of(result)
+
+            def targets(data):
+                return residual_targets_mm(result.model, result.x, data, terms.effective_joints(robot, data.q))
+
             self._prepared[key] = PreparedData(
-                robot, result, features,
-                features(train.q, None), residual_targets_mm(result.model, result.x, train), idx_train, idx_val,
-                features(test.q, None) if test is not None else None,
-                residual_targets_mm(result.model, result.x, test) if test is not None else None,
+                robot, result, features, features(train.q, None), targets(train), idx_train, idx_val,
+                features(test.q, None) if test is not None else None, targets(test) if test is not None else None,
             )
         return self._prepared[key]
 
