@@ -108,14 +108,28 @@ def test_model_folder_stores_and_applies_the_harmonics(tmp_path, generator):
 
 
 def test_auto_chooses_harmonics_only_when_the_cv_asks_for_them(generator):
-    config = FitConfig(residual="none", joint_harmonics="auto", progress=False)
+    config = FitConfig(residual="none", gravity_compliance="none", joint_harmonics="auto", progress=False)
     with_harmonics = _twin_with_first_harmonics(0.02).sample(200, generator)
     without = _twin_with_first_harmonics(0.0).sample(200, generator)
     chosen = fit(_twin_with_first_harmonics(0.0).robot, with_harmonics, config)
     assert chosen.harmonics is not None
-    assert any("chosen by 5-fold CV" in n and n.endswith("-> harmonics") for n in chosen.notes)
+    assert any(n.startswith("structure chosen by 5-fold CV") and "-> geometry+harmonics" in n for n in chosen.notes)
     plain = fit(_twin_with_first_harmonics(0.0).robot, without, config)
-    assert plain.harmonics is None  # nothing to gain: the simpler model within 1 % wins
+    assert plain.harmonics is None  # nothing to gain: the simpler model within noise wins
+
+
+def test_no_harmonics_on_a_joint_that_turned_through_less_than_the_minimum_range(generator):
+    twin = _twin_with_first_harmonics(0.02)
+    data = twin.sample(200, generator)
+    narrow = data.q.clone()
+    narrow[:, 1] = narrow[:, 1].mean() + 0.3 * (narrow[:, 1] - narrow[:, 1].mean()) / (narrow[:, 1].amax() - narrow[:, 1].amin())
+    data = type(data)(q=narrow, position=twin.measure(narrow, generator))
+    config = FitConfig(residual="none", gravity_compliance="none", joint_harmonics="first", progress=False,
+                       harmonic_min_range_deg=30.0)
+    result = fit(twin.robot, data, config)
+    assert float(result.harmonics.coefficients[:, 1].abs().max()) == 0.0  # joint 2 spans 17 deg < 30
+    assert float(result.harmonics.coefficients[:, 0].abs().max()) > 0.0
+    assert any("no first harmonics on joint(s) 2" in n for n in result.notes)
 
 
 def test_unknown_harmonic_option_is_a_clear_error(robot, generator):

@@ -15,13 +15,14 @@ WAM_PUBLISHED_MEAN_MM = 2.9178  # hybrid model of the source, on its 20 test pos
 
 
 def test_wam_cv_chooses_harmonics_and_beats_the_published_mean(tmp_path):
-    """Chosen by 5-fold CV on the 216 grid poses only; scored on the 20 test poses in the base frame."""
+    """Chosen by grouped 5-fold CV on the 216 grid poses only; scored on the 20 test poses in the base frame."""
     folder = REAL_DATA / "jacobi-wam-gts3800"
     model = tmp_path / "model"
     assert main(["fit", "--robot", str(folder / "robot.yaml"), "--data", str(folder / "poses_7dof.csv"), "--out", str(model),
                  "residual=none", "gravity_compliance=auto", "joint_harmonics=auto", "progress=false"]) == 0
     meta = json.loads((model / "calibration.json").read_text())
-    assert any("chosen by 5-fold CV" in n and "harmonics" in n.rsplit("->", 1)[1] for n in meta["notes"])
+    assert any(n.startswith("structure chosen by 5-fold CV") and "harmonics" in n.rsplit("->", 1)[1]
+               for n in meta["notes"])
     coefficients = meta["joint_harmonics"]["coefficients_rad"]
     assert all(row[-1] == 0.0 for row in coefficients)  # the last joint gets none
     out = tmp_path / "m.json"

@@ -69,7 +69,7 @@ def test_auto_chooses_by_grouped_cross_validation(fits):
     selection = meta["model_selection"]
     assert selection["chosen"] == EXPECTED[twin]
     assert [row["name"] for row in selection["candidates"]] == ["classic", "full"]
-    assert "configuration groups" in selection["protocol"]
+    assert "configuration regions" in selection["protocol"]
     assert json.loads((folders["auto"] / "model_selection.json").read_text())["stiffness"]["chosen"] == EXPECTED[twin]
     fitted = set(meta["parameters"]) | set(meta["unobservable"])
     assert (fitted == {f"k_j{i}_rz" for i in range(1, 7)}) == (EXPECTED[twin] == "classic")
