@@ -90,7 +90,7 @@ def _cmd_fit(args) -> int:
 
         with console.status("cross-validating residual heads") as status:
             summary = fit_residual_stage(folder, data, config, structure=structure)
-        console.print(_table(summary))
+        console.print(summary["table"])
         console.print(summary["decision"])
     elif structure is not None:
         from torchcal.residual_stage import write_selection
@@ -99,13 +99,6 @@ def _cmd_fit(args) -> int:
         console.print(structure.comparison.format_table())
     print(f"model: {folder}")
     return 0
-
-
-def _table(summary: dict) -> str:
-    from torchcal.model_selection.compare import Comparison
-
-    comparison = summary["comparison"]
-    return Comparison(comparison["protocol"], comparison["candidates"], comparison["chosen"], comparison["reason"]).format_table()
 
 
 def _cmd_evaluate(args) -> int:

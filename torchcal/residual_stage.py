@@ -165,7 +165,7 @@ def fit_residual_stage(model_dir, data: Measurements, config, console=None, stru
     if console is not None:
         console.print(comparison.format_table())
         console.log(decision)
-    return {"decision": decision, "kept": kept, "comparison": comparison.to_dict()}
+    return {"decision": decision, "kept": kept, "comparison": comparison.to_dict(), "table": comparison.format_table()}
 
 
 def write_selection(model_dir, comparison: Comparison, decision: str) -> None:

@@ -77,12 +77,16 @@ class Comparison:
 
     def format_table(self) -> str:
         """A plain-text table (fixed width) for the console and the report."""
+        width = max([len("candidate")] + [len(row["name"]) for row in self.rows])
         lines = [f"model selection: {self.protocol}",
-                 f"  {'candidate':<26} {'CV RMS mm':>10} {'vs best':>9} {'1 SE':>8}  verdict"]
+                 f"  {'candidate':<{width}} {'CV RMS mm':>10} {'vs best':>9} {'1 SE':>8}  verdict"]
         for row in self.rows:
             mark = "chosen" if row["name"] == self.chosen else row["verdict"]
-            lines.append(f"  {row['name']:<26} {row['cv_rms_mm']:>10.4f} {row['vs_best_pct']:>+8.1f}% "
-                         f"{row['se_pct']:>7.1f}%  {mark}")
+            if math.isfinite(row["cv_rms_mm"]):
+                numbers = f"{row['cv_rms_mm']:>10.4f} {row['vs_best_pct']:>+8.1f}% {row['se_pct']:>7.1f}%"
+            else:
+                numbers = f"{'-':>10} {'-':>9} {'-':>8}"
+            lines.append(f"  {row['name']:<{width}} {numbers}  {mark}")
         lines.append(f"  -> {self.chosen}: {self.reason}")
         return "\n".join(lines)
 

@@ -6,10 +6,10 @@ predicts the held-out part. Its candidate row is the held-out error after its co
 parent is the structure, and it is eligible only with ``residual_margin`` gain and a paired
 z above 2 over configuration groups (:mod:`~torchcal.model_selection.compare`).
 
-Heads are the expensive part of a fit. A head is stopped early (futility) when, after at least
-two folds, its pooled held-out RMS is no better than the structure's on the same poses: it could
-only pass the gate by gaining more than ``residual_margin`` on the remaining folds after losing
-on these. A stopped head is reported as such.
+Heads are the expensive part of a fit. A head is stopped early (futility) when, after two
+folds, its pooled held-out RMS is less than ``residual_margin / 2`` below the structure's on the
+same poses: to pass the gate it would then need well over ``residual_margin`` on the remaining
+folds. A stopped head is reported as such.
 """
 
 from __future__ import annotations
@@ -73,14 +73,14 @@ def cross_validate_heads(robot, data: Measurements, structure: StructureCV, pare
                 predicted = head.predict(x_test)
             errors[head.name][test_idx] = (y_test - predicted).norm(dim=-1).cpu().numpy()
         done = np.flatnonzero(np.isin(folds.fold, np.arange(f + 1)))
-        if f + 1 >= FUTILITY_AFTER_FOLDS and f + 1 < folds.k:
+        if f + 1 == FUTILITY_AFTER_FOLDS and f + 1 < folds.k:
             base = float(np.sqrt(np.mean(np.square(parent_errors[done]))))
             for name in list(active):
                 rms = float(np.sqrt(np.mean(np.square(errors[name][done]))))
-                if rms >= base:
+                if rms > (1.0 - margin / 2) * base:
                     active.remove(name)
                     out.stopped[name] = (f"stopped after {f + 1} of {folds.k} folds: held-out RMS {rms:.4f} mm "
-                                         f"vs {base:.4f} mm without it on those poses (no gain)")
+                                         f"vs {base:.4f} mm without it on those poses (gain below {100 * margin / 2:g} %)")
     for name in names:
         if name not in out.stopped:
             out.candidates.append(Candidate(f"{parent}+{name}", errors[name], parent=parent, min_gain=margin))

@@ -38,16 +38,17 @@ def write_run_report(folder: Path, robot: RobotModel, result: CalibrationResult,
     floor = summary.get("noise_floor_rms_mm")
     honest = []
     geo = summary["test"]["geometric"]["position_rms_mm"]
+    structure = summary.get("model", "geometry").split(" + mlp")[0].split(" + mma-elm")[0]
     if floor:
         ratio = geo / floor
         if ratio > 1.2:
             honest.append(
-                f"Geometry alone leaves {geo:.4f} mm RMS on held-out poses, {ratio:.1f}x the measurement noise floor "
-                f"({floor:.4f} mm): the rest is not geometric (joint compliance, gear errors, drift) and a kinematic "
-                "model cannot explain it."
+                f"The calibrated model ({structure}) leaves {geo:.4f} mm RMS on held-out poses, {ratio:.1f}x the "
+                f"measurement noise floor ({floor:.4f} mm): the rest is what this model cannot express."
             )
         else:
-            honest.append(f"Geometry reaches {geo:.4f} mm RMS, {ratio:.2f}x the noise floor {floor:.4f} mm: nothing systematic is left.")
+            honest.append(f"The calibrated model ({structure}) reaches {geo:.4f} mm RMS, {ratio:.2f}x the noise floor "
+                          f"{floor:.4f} mm: nothing systematic is left.")
     if summary.get("residual"):
         honest.append(str(summary["residual"].get("decision", "")))
     tc = summary.get("truth_check")
@@ -58,7 +59,11 @@ def write_run_report(folder: Path, robot: RobotModel, result: CalibrationResult,
             f"3 sigma of the twin's truth (projected onto the identified set; projection residual "
             f"{tc['projection_residual_rms_mm']:.2e} mm)."
         )
+    selection = summary.get("residual") or {}
+    table = selection.get("table")
     sections = [
+        ("Model selection (grouped cross-validation on the training poses)",
+         f"```\n{table}\n```" if table else "No choice to make: every structure option was set explicitly."),
         ("Accuracy on held-out poses", metrics_table(summary["test"]) + "\n\n![histogram](figures/error_histogram.png)\n\n![per pose](figures/per_pose_error.png)"),
         ("What is left", "\n\n".join(honest)),
         ("Identifiability", "```\n" + result.identifiability.summary() + "\n```"),
