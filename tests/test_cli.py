@@ -25,6 +25,15 @@ def test_simulate_fit_evaluate(tmp_path, capsys):
     truth = json.loads((case / "truth.json").read_text())
     assert metrics["n_poses"] == 100
     assert metrics["position_rms_mm"] < 1.2 * truth["noise_floor_rms_mm"]
+    # new poses: no twins of the training poses, no leakage warning
+    assert metrics["leakage"]["twin_share"] == 0.0 and not metrics["leakage"]["warning"]
+    selection = json.loads((model / "model_selection.json").read_text())
+    assert selection["chosen"].startswith("geometry") and "configuration regions" in selection["protocol"]
+    # scoring the training file itself: every pose is its own twin, and evaluate says so
+    capsys.readouterr()
+    assert main(["evaluate", "--model", str(model), "--data", str(case / "train.csv"), "--json", str(out)]) == 0
+    assert json.loads(out.read_text())["leakage"]["twin_share"] == 1.0
+    assert "warning:" in capsys.readouterr().err
 
 
 def test_evaluate_register_refits_only_the_frame(tmp_path):
