@@ -59,12 +59,17 @@ def _cmd_fit(args) -> int:
         return 0
     from rich.console import Console
 
+    from torchcal.config.compose import compose_fit_config
     from torchcal.data.measurements import load_measurements
     from torchcal.kinematics.robot import load_robot
-    from torchcal.pipeline import describe_structure, fit_with_selection, nominal_errors, save_fit, with_tool
     from torchcal.metrics import position_metrics
-
-    from torchcal.config.compose import compose_fit_config
+    from torchcal.pipeline import (
+        describe_structure,
+        fit_with_selection,
+        nominal_errors,
+        save_fit,
+        with_tool,
+    )
 
     config = compose_fit_config(args.overrides)
     console = Console(stderr=True)
@@ -223,9 +228,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from torchcal.errors import TorchcalError
-
     import warnings
+
+    from torchcal.errors import TorchcalError
 
     parser = build_parser()
     args, extra = parser.parse_known_args(argv)

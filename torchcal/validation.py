@@ -129,7 +129,7 @@ def _pairs(data: Measurements, protocol: Protocol, robot, folder: Path, seed: in
         return [(data, [data.subset(np.arange(protocol.in_sample_first))])]
     if protocol.fit_rows is not None or protocol.holdout is not None:
         perm = np.random.default_rng(0).permutation(n)
-        n_fit = protocol.fit_rows if protocol.fit_rows is not None else n - int(round(protocol.holdout * n))
+        n_fit = protocol.fit_rows if protocol.fit_rows is not None else n - round(protocol.holdout * n)
         train = data.subset(np.sort(perm[:n_fit]))
         if protocol.holdout is not None:
             return [(train, [data.subset(np.sort(perm[n_fit:]))])]

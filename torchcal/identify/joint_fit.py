@@ -17,12 +17,16 @@ from __future__ import annotations
 import warnings
 from dataclasses import replace
 
-import numpy as np
 import torch
 
 from torchcal.data.measurements import Measurements
 from torchcal.errors import IdentifiabilityWarning
-from torchcal.identify.compliance import _ZERO_COLUMN, POINT_SETS, GravityCompliance, gravity_torque_basis
+from torchcal.identify.compliance import (
+    _ZERO_COLUMN,
+    POINT_SETS,
+    GravityCompliance,
+    gravity_torque_basis,
+)
 from torchcal.identify.harmonics import HARMONIC_SETS, JointHarmonics, harmonic_basis
 from torchcal.identify.identifiability import analyze
 from torchcal.identify.joint_errors import JointSpaceErrors

@@ -84,8 +84,8 @@ class StudyObjective:
     def prepare(self, config) -> PreparedData:
         """Twin data and geometric fit for ``config``, computed once per distinct setting."""
         from torchcal.data.measurements import load_measurements
-        from torchcal.kinematics.robot import load_robot
         from torchcal.identify.joint_errors import JointSpaceErrors
+        from torchcal.kinematics.robot import load_robot
         from torchcal.pipeline import fit, make_config_folds, with_tool
         from torchcal.residual.features import JointFeatures
         from torchcal.residual_stage import residual_targets_mm
