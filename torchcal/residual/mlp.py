@@ -86,9 +86,8 @@ class MLPHead(ResidualHead):
 
             def training_step(self, batch, _):
                 x, y = batch
-                loss = torch.nn.functional.mse_loss(self.net(x), y)
-                self.log("train_loss", loss, prog_bar=True)
-                return loss
+                # not logged: nothing reads it, and a log call per step costs more than the step
+                return torch.nn.functional.mse_loss(self.net(x), y)
 
             def validation_step(self, batch, _):
                 x, y = batch
@@ -104,10 +103,15 @@ class MLPHead(ResidualHead):
             def train_dataloader(self):
                 ds = torch.utils.data.TensorDataset(x_train, y_train)
                 gen = torch.Generator().manual_seed(head.seed)
-                return torch.utils.data.DataLoader(ds, batch_size=head.batch_size, shuffle=True, generator=gen)
+                # the batches of shuffle=True, fetched as one index list per batch (``batch_size=None``):
+                # the same batches without a per-sample fetch and collate, which cost more than the step
+                batches = torch.utils.data.BatchSampler(torch.utils.data.RandomSampler(ds, generator=gen), head.batch_size, drop_last=False)
+                return torch.utils.data.DataLoader(ds, batch_size=None, sampler=batches)
 
             def val_dataloader(self):
-                return torch.utils.data.DataLoader(torch.utils.data.TensorDataset(x_val, y_val), batch_size=len(x_val))
+                ds = torch.utils.data.TensorDataset(x_val, y_val)
+                whole = torch.utils.data.BatchSampler(torch.utils.data.SequentialSampler(ds), len(ds), drop_last=False)
+                return torch.utils.data.DataLoader(ds, batch_size=None, sampler=whole)
 
         with tempfile.TemporaryDirectory() as tmp:
             checkpoint = ModelCheckpoint(dirpath=tmp, monitor="val_loss", mode="min", save_top_k=1, save_weights_only=True)
