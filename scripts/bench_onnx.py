@@ -80,32 +80,63 @@ def _model_dir(tmp: Path) -> Path:
     return save_fit(tmp / "model", twin.robot, train, result, {})
 
 
-def convergence(stored, n_poses: int, max_iterations: int = 5) -> list[dict]:
-    """TCP position / rotation residual of the float64 compensator against its iteration count."""
+def convergence(stored, n_poses: int, task: str, max_iterations: int = 8) -> list[dict]:
+    """TCP position / rotation residual of the float64 compensator against its iteration count.
+
+    Two strata of ``n_poses`` each: uniform within the joint limits, and the same with the
+    second-to-last joint within +-1 deg (the wrist singularity). Positions are scored on the
+    poses whose position Jacobian keeps a singular value above 1 mm/rad (the solvable ones).
+    """
+    import math
+
     import torch
 
     from torchcal.compensate.compensator import CompensatorGraph
+    from torchcal.compensate.export import SOLVABLE_ABOVE_M, singular_values
     from torchcal.kinematics.error_model import ErrorModel
     from torchcal.kinematics.ik import pose_error
 
-    q = stored.robot.sample_joints(n_poses, torch.Generator().manual_seed(5))
-    target = stored.robot.flange_pose(q).clone()
-    target[..., :3, 3] = target[..., :3, :3] @ stored.robot.tool + target[..., :3, 3]
+    gen = torch.Generator().manual_seed(5)
+    uniform = stored.robot.sample_joints(n_poses, gen)
+    wrist = stored.robot.sample_joints(n_poses, gen)
+    wrist[:, -2] = (torch.rand(n_poses, generator=gen, dtype=torch.float64) * 2 - 1) * math.radians(1.0)
     base_model = ErrorModel(stored.robot)
     rows = []
-    for n in range(1, max_iterations + 1):
-        with torch.no_grad():
-            q_c = CompensatorGraph(stored.model, stored.x, iterations=n)(q)
-        e = pose_error(target, base_model.tcp_pose(q_c, stored.x))
-        p, r = e[:, :3].norm(dim=-1), e[:, 3:].norm(dim=-1)
-        rows.append({
-            "iterations": n,
-            "position_p50_m": float(p.median()), "position_p99_m": float(p.quantile(0.99)), "position_max_m": float(p.max()),
-            "fraction_below_1nm": float((p < 1e-9).double().mean()),
-            "rotation_p99_rad": float(r.quantile(0.99)),
-            "joint_step_max_rad": float((q_c - q).abs().max()),
-        })
+    for stratum, q in (("uniform", uniform), ("|q_(N-1)| < 1 deg", wrist)):
+        target = stored.robot.flange_pose(q).clone()
+        target[..., :3, 3] = target[..., :3, :3] @ stored.robot.tool + target[..., :3, 3]
+        solvable = singular_values(stored.robot, q)[0] > SOLVABLE_ABOVE_M
+        for n in range(1, max_iterations + 1):
+            with torch.no_grad():
+                q_c = CompensatorGraph(stored.model, stored.x, task=task, iterations=n)(q)
+            e = pose_error(target, base_model.tcp_pose(q_c, stored.x))
+            p, r = e[:, :3].norm(dim=-1)[solvable], e[:, 3:].norm(dim=-1)
+            rows.append({
+                "task": task, "stratum": stratum, "iterations": n, "n_solvable": int(solvable.sum()),
+                "position_p50_m": float(p.median()), "position_p99_m": float(p.quantile(0.99)), "position_max_m": float(p.max()),
+                "fraction_below_1um": float((p < 1e-6).double().mean()),
+                "rotation_p99_rad": float(r.quantile(0.99)),
+                "joint_step_max_rad": float((q_c - q).abs().max()),
+            })
     return rows
+
+
+def _opt_level_sessions(path: Path) -> dict:
+    """The default compensator under each onnxruntime graph optimization level (one thread)."""
+    import onnxruntime as ort
+
+    levels = {"disable_all": ort.GraphOptimizationLevel.ORT_DISABLE_ALL, "basic": ort.GraphOptimizationLevel.ORT_ENABLE_BASIC,
+              "extended": ort.GraphOptimizationLevel.ORT_ENABLE_EXTENDED, "all": ort.GraphOptimizationLevel.ORT_ENABLE_ALL}
+    sessions = {}
+    for name, level in levels.items():
+        options = ort.SessionOptions()
+        options.log_severity_level = 3
+        options.graph_optimization_level = level
+        options.intra_op_num_threads = 1
+        options.inter_op_num_threads = 1
+        options.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+        sessions[name] = ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
+    return sessions
 
 
 def _floor_graph(path: Path, n_joints: int) -> None:
@@ -148,11 +179,12 @@ def _export_tag(options: dict) -> str:
 
 VARIANTS = {
     # key: (export options, graph key inside that export, description)
-    "compensator": ({}, "compensator", "float64, 3 Newton steps, onnxruntime Inverse (default)"),
-    "compensator_f32": ({}, "compensator_f32", "float32 in/out, float64 solve, 3 steps"),
-    "compensator_portable": ({"portable": True}, "compensator", "float64, 3 steps, unrolled Gauss-Jordan (standard operators)"),
-    "compensator_2_steps": ({"iterations": 2}, "compensator", "float64, 2 Newton steps"),
-    "compensator_1_step": ({"iterations": 1}, "compensator", "float64, 1 Newton step"),
+    "compensator": ({}, "compensator", "float64, position first, 6 steps, closed-form 3x3 solves (default)"),
+    "compensator_f32": ({}, "compensator_f32", "float32 in/out, float64 solves, position first, 6 steps"),
+    "compensator_position_4_steps": ({"iterations": 4}, "compensator", "float64, position first, 4 steps"),
+    "compensator_pose": ({"task": "pose"}, "compensator", "float64, full 6-D pose, 3 steps, onnxruntime Inverse"),
+    "compensator_pose_portable": ({"task": "pose", "portable": True}, "compensator",
+                                  "float64, full 6-D pose, 3 steps, unrolled Gauss-Jordan (standard operators)"),
     "monitor": ({}, "monitor", "float64"),
     "monitor_f32": ({}, "monitor_f32", "float32"),
 }
@@ -218,6 +250,9 @@ def main(argv: list[str] | None = None) -> int:
         binding.bind_cpu_input(GRAPHS["compensator"][2], np.ascontiguousarray(q_one))
         binding.bind_output(GRAPHS["compensator"][3])
         single_calls["compensator via run_with_iobinding"] = lambda: bound_session.run_with_iobinding(binding)
+        for level, session in _opt_level_sessions(folders["default"] / GRAPHS["compensator"][0]).items():
+            single_calls[f"compensator, graph optimization {level}"] = (
+                lambda s, x: lambda: s.run(None, {GRAPHS["compensator"][2]: x}))(session, np.ascontiguousarray(q_one))
         console.log("single-sample latency, all graphs round-robin, one thread")
         latency = _interleaved_latency(single_calls, calls)
         del single_calls
@@ -251,14 +286,16 @@ def main(argv: list[str] | None = None) -> int:
             entry["ort_single_1thread"] = latency[key]
             results[key] = entry
         with console.status("[bold]convergence against iteration count"):
-            conv = convergence(stored, 2000 if args.quick else 10_000)
+            n_conv = 1000 if args.quick else 4000
+            conv = convergence(stored, n_conv, "position") + convergence(stored, n_conv, "pose", max_iterations=5)
     report = {
         "machine": {"cpu": platform.processor() or platform.machine(), "cores": os.cpu_count(), "python": platform.python_version(),
                     "onnxruntime": ort.__version__, "torch": torch.__version__,
                     "load_average_1min": {"before": load_before[0], "after": os.getloadavg()[0]}},
         "model": {"folder": str(model_dir) if args.model else "twin seed 0, 300 poses, geometry only",
                   "residual_head": stored.residual is not None, "stiffness": getattr(stored, "stiffness", None) is not None},
-        "targets": {"single_sample_p99_us": 30.0, "monitor_batch_poses_per_s": 1e6},
+        "targets": {"runner_median_us": 150.0, "runner_p99_us": 300.0, "or_floor_multiple_median": 5.0, "or_floor_multiple_p99": 10.0,
+                    "monitor_f32_batch_poses_per_s": 1e6},
         "call_floor": latency["one-node graph (call floor)"],
         "call_floor_alone": floor_alone,
         "call_paths": {k: v for k, v in latency.items() if k.startswith("compensator via")},
@@ -269,6 +306,22 @@ def main(argv: list[str] | None = None) -> int:
     atomic_write_text(Path(args.out).with_suffix(".md"), markdown(report))
     console.print(markdown(report))
     return 0
+
+
+def _targets_line(report: dict) -> str:
+    """The latency target against this run's numbers: absolute, or relative to the one-node floor."""
+    t, floor = report["targets"], report["call_floor"]
+    runner = report["call_paths"]["compensator via CompensatorRuntime.correct"]
+    absolute = runner["median_us"] <= t["runner_median_us"] and runner["p99_us"] <= t["runner_p99_us"]
+    relative = (runner["median_us"] <= t["or_floor_multiple_median"] * floor["median_us"]
+                and runner["p99_us"] <= t["or_floor_multiple_p99"] * floor["p99_us"])
+    f32 = report["graphs"]["monitor_f32"]["ort_batch_all_threads"]["median_poses_per_s"]
+    return (f"Target: through the runner median <= {t['runner_median_us']:.0f} us and p99 <= {t['runner_p99_us']:.0f} us, or <= "
+            f"{t['or_floor_multiple_median']:.0f}x / {t['or_floor_multiple_p99']:.0f}x the one-node floor of the same run "
+            f"({floor['median_us']:.1f} / {floor['p99_us']:.1f} us). This run: {runner['median_us']:.1f} / {runner['p99_us']:.1f} us "
+            f"({runner['median_us'] / floor['median_us']:.1f}x / {runner['p99_us'] / floor['p99_us']:.1f}x the floor): "
+            f"absolute {'met' if absolute else 'missed'}, relative {'met' if relative else 'missed'}. "
+            f"Batch throughput of the float32 monitor, all threads: {f32:.3g} poses/s (target >= {t['monitor_f32_batch_poses_per_s']:.0e}).")
 
 
 def markdown(report: dict) -> str:
@@ -303,18 +356,17 @@ def markdown(report: dict) -> str:
         lines.append(f"| {key} | {v['median_us']:.1f} / {v['p99_us']:.1f} |")
     lines += [
         "",
-        f"Targets: single-sample p99 <= {report['targets']['single_sample_p99_us']:.0f} us on one core; monitor batch "
-        f">= {report['targets']['monitor_batch_poses_per_s']:.0e} poses/s.",
+        _targets_line(report),
         "",
-        "## Compensator convergence (float64, random poses within the joint limits)",
+        "## Compensator convergence (float64; positions over the solvable poses, position Jacobian sigma_min > 1 mm/rad)",
         "",
-        "| iterations | TCP residual median (m) | p99 (m) | max (m) | share below 1 nm | rotation p99 (rad) | largest joint step (rad) |",
-        "| --- | --- | --- | --- | --- | --- | --- |",
+        "| task | poses | iterations | solvable | TCP residual median (m) | p99 (m) | max (m) | share below 1 um | rotation p99 (rad) | largest joint move (rad) |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
     for r in report["convergence"]:
         lines.append(
-            f"| {r['iterations']} | {r['position_p50_m']:.1e} | {r['position_p99_m']:.1e} | {r['position_max_m']:.1e} | "
-            f"{r['fraction_below_1nm']:.3f} | {r['rotation_p99_rad']:.1e} | {r['joint_step_max_rad']:.2f} |"
+            f"| {r['task']} | {r['stratum']} | {r['iterations']} | {r['n_solvable']} | {r['position_p50_m']:.1e} | {r['position_p99_m']:.1e} | "
+            f"{r['position_max_m']:.1e} | {r['fraction_below_1um']:.4f} | {r['rotation_p99_rad']:.1e} | {r['joint_step_max_rad']:.2f} |"
         )
     return "\n".join(lines) + "\n"
 

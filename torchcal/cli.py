@@ -135,12 +135,16 @@ def _cmd_evaluate(args) -> int:
 def _cmd_export(args) -> int:
     from torchcal.compensate.export import export_model
 
-    manifest = export_model(args.model, args.out, iterations=args.iterations, portable=args.portable)
+    manifest = export_model(args.model, args.out, iterations=args.iterations, portable=args.portable, task=args.task)
     conv = manifest["convergence"]
+    wrist = conv["strata"]["wrist_singular"]
+    wrist_text = "" if not wrist.get("n_poses") else (
+        f"; near the wrist singularity {100 * wrist['share_within_1um']:.1f} % within 1 um, orientation deviation up to "
+        f"{wrist['orientation_deviation_rad']['max']:.1e} rad")
     print(
-        f"exported {manifest['files']['compensator']} (sha256 {manifest['sha256']['compensator'][:12]}...); "
-        f"{manifest['iterations']} Newton steps leave {100 * conv['share_within_1um']:.1f} % of random poses within 1 um, "
-        f"p99 {conv['unsolved_tcp_mm']['p99']:.2e} mm"
+        f"exported {manifest['files']['compensator']} (sha256 {manifest['sha256']['compensator'][:12]}...); task {conv['task']}, "
+        f"{manifest['iterations']} steps leave {100 * conv['share_within_1um']:.1f} % of random poses within 1 um "
+        f"(p99 {conv['unsolved_tcp_mm']['p99']:.2e} mm){wrist_text}"
     )
     return 0
 
@@ -219,8 +223,11 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("export", help="export the compensator to ONNX with a manifest")
     p.add_argument("--model", required=True)
     p.add_argument("--out", required=True)
-    p.add_argument("--iterations", type=int, default=3,
-                   help="damped Newton steps of the compensator (default 3; more for large corrections)")
+    p.add_argument("--task", choices=["position", "pose"], default="position",
+                   help="position: TCP position exactly, orientation as far as the position leaves room (default); "
+                        "pose: the full 6-D pose (partial near singularities)")
+    p.add_argument("--iterations", type=int, default=None,
+                   help="Newton steps of the compensator (default: 6 for position, 3 for pose)")
     p.add_argument("--portable", action="store_true",
                    help="standard ONNX operators only (no onnxruntime contrib Inverse): for other runtimes, slower")
     p.set_defaults(func=_cmd_export)

@@ -76,10 +76,10 @@ def test_monitor_graph_predicts_the_chain_at_the_deflected_joints(calibrated, ki
     assert torch.allclose(got, real - base.tcp_position(q, base.nominal_vector()), rtol=0, atol=1e-13)
 
 
-def _solve_residual(model, x, errors, q, iterations: int) -> torch.Tensor:
+def _solve_residual(model, x, errors, q, iterations: int | None, task: str = "pose") -> torch.Tensor:
     """Pose error (m, rad) of the real chain at the compensator's command against the nominal target."""
     with torch.no_grad():
-        q_c = CompensatorGraph(model, x, joint_errors=errors, iterations=iterations)(q)
+        q_c = CompensatorGraph(model, x, joint_errors=errors, iterations=iterations, task=task)(q)
     real = model.base_flange_pose(errors.effective_joints(model.robot, q_c), x) @ model.flange_from_tool(x)
     base = ErrorModel(model.robot)
     target = base.base_flange_pose(q, base.nominal_vector()) @ base.flange_from_tool(base.nominal_vector())
@@ -97,6 +97,8 @@ def test_compensator_solves_the_deflected_chain_and_needs_the_harmonic_slope(cal
     assert regular.double().mean() > 0.5
     solved = _solve_residual(model, x, errors, q, 5)[regular].norm(dim=-1)
     assert float(solved.max()) < 1e-11
+    position_first = _solve_residual(model, x, errors, q, None, task="position")[regular]
+    assert float(position_first[:, :3].norm(dim=-1).max()) < 1e-11  # the default task: position to rounding
     monkeypatch.setattr(compensator_module, "command_jacobian_t",
                         lambda pose, frames, slope: compensator_module.geometric_jacobian_t(pose, frames))
     without_slope = _solve_residual(model, x, errors, q, 5)[regular].norm(dim=-1)

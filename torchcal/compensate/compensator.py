@@ -6,11 +6,12 @@ in m.
 
 **What the compensator solves.** The controller believes the nominal model: for a nominal
 command ``q_t`` it expects the tool at ``T_t = T_nom(q_t)`` (nominal ``flange_pose(q_t) @ tool``).
-The calibrated model (geometry ``x`` plus the optional learned residual ``r(q)``, a TCP position
-error in ``base``, m) says where the tool really goes. The corrected command ``q_c`` is the one
-that puts the calibrated TCP on the believed target::
+The calibrated model (geometry ``x``, joint-space errors, and the optional learned residual
+``r(q)``, a TCP position error in ``base``, m) says where the tool really goes. The corrected
+command ``q_c`` is the one that puts the calibrated TCP on the believed target::
 
-    p_cal(q_c) + r(q_c) = p_t,      R_cal(q_c) = R_t.
+    p_cal(q_c) + r(q_c) = p_t            (position: always first)
+    R_cal(q_c) = R_t                     (orientation: as far as the position task leaves room)
 
 **Sign convention** (that of the compensation patents): the predicted error of a command is
 ``dT(q) = T_real(q) - T_nom(q)``, for positions ``dp(q) = p_cal(q) + r(q) - p_nom(q)`` (the
@@ -19,32 +20,37 @@ nominal inverse kinematics ``q_c = IK_nom(T_c)``. The patents evaluate ``dT`` on
 solving the equations above is the fixed point of that rule with ``dT`` taken at ``q_c`` itself,
 so that ``p_nom(q_c) = p_t - dp(q_c)`` holds exactly (tested).
 
-**Iterations.** Damped Newton (damped least squares) from ``q_t``: with the transposed
-geometric Jacobian ``J^T`` ``(N, 6)`` of the calibrated model, each step is
-``J^T (J J^T + lambda^2 I)^-1 e`` with ``e = [p_t - p_cal - r, vee(R_t R_cal^T)]`` (the vee of the
-skew part is ``sin(angle) axis``: it vanishes exactly where the rotation error does and needs no
-``acos``). The 6x6 solve is onnxruntime's one-node ``Inverse`` by default, or an unrolled
-Gauss-Jordan of standard operators (``solver="gauss_jordan"``; :mod:`torchcal.compensate.linalg`).
-It runs in float64 in every variant: a float32 graph casts ``J`` and ``e`` up for the solve and the
-step back down. In float32, ``J^T J`` loses the small singular values of a near-singular pose to
-rounding (~1e-7 relative), so a float32 solve there returns steps of the wrong size or NaN; the
-two casts cost two nodes. The damping follows the error, ``lambda^2 = c |e|^2 + lambda_0^2``
-(``c = 10``, ``lambda_0 = 1e-5``; Sugihara's rule): large while the error is large, so a step near a singularity stays bounded,
-and vanishing as the error does, so regular poses converge quadratically. The residual's own
-Jacobian is left out of the step: a learned error of ~0.1 mm varies by ~1e-4 m/rad against
-~1 m/rad for the arm, so it only slows the contraction by ~1e-4 per step.
+**Tasks** (:data:`TASKS`; :mod:`torchcal.compensate.steps` has the steps):
 
-Measured on the twin (``twin-kr6`` with 0.3 mm / 0.03 deg geometric errors, corrections of a few
-mm and mrad; 10,000 poses uniform within the joint limits; ``scripts/bench_onnx.py`` writes the
-table to ``docs/bench_onnx.md``), the median TCP residual after 1, 2, 3 steps is about
-``8e-6``, ``3e-10``, ``3e-16`` m and the share of poses below 1 nm 0 %, 58 %, 88 %; a fourth
-step adds 6 % of the poses for a third more time. Three steps are the default: float64 is then
-at rounding level wherever the Jacobian's smallest singular value exceeds ~0.01, and float32 at
-its own floor (~1e-7 m). The remaining ~12 % of uniform poses lie near a wrist, elbow or shoulder
-singularity, where an exact 6-D correction would need joint moves of tenths of a radian for a
-few mm; there the damped step gives a partial, bounded correction (largest joint step about
-0.25 rad in 3 steps; residual up to ~2 mm, below the uncompensated ~3 mm in these measurements). Position-only
-tasks or a working space away from singularities avoid that regime.
+* ``"position"`` (default): task-priority damped least squares. Each step solves the position
+  equations and moves the orientation only in what the position leaves free; the last
+  :data:`POSITION_ONLY_STEPS` steps are position-only, so that the second-order position change
+  of an orientation move is removed. The wrist singularity is a singularity of orientation only:
+  there the position is still solved to rounding, and the orientation deviation that the bounded
+  wrist motion cannot remove is an output of the graph (:data:`RESIDUAL_OUTPUT`).
+* ``"pose"``: damped least squares on the full 6-D pose (one 6x6 solve per step, float64,
+  onnxruntime's ``Inverse`` node or an unrolled Gauss-Jordan: :mod:`torchcal.compensate.linalg`).
+  For users who need the orientation exactly; near a wrist singularity its shared damping
+  corrects the position only partially.
+
+Every step is bounded (no joint moves more than ``max_step`` rad per step) and every iterate is
+kept inside the joint limits. The damping follows the error, ``lambda^2 = c |e|^2 + lambda_0^2``
+(Sugihara's rule): large while the error is large, vanishing as it does, so regular poses
+converge quadratically. The residual's own Jacobian is left out of the step: a learned error of
+~0.1 mm varies by ~1e-4 m/rad against ~1 m/rad for the arm, so it only slows the contraction by
+~1e-4 per step. The solves run in float64 in every variant: a float32 graph casts ``J`` and ``e``
+up and the step back down (in float32, ``J^T J`` loses the small singular values of a
+near-singular pose to rounding).
+
+**The second output** ``residual`` ``(B, 2)``: the model's remaining TCP position error (m) and
+orientation deviation (rad) at ``q_c``, through the kinematics once more after the last step (a
+first-order prediction from the last step would call an oscillating, unconverged pose solved).
+A controller reads from it whether a command was solved (position below its tolerance) and how
+far the tool is turned from the nominal orientation.
+
+The iteration count is fixed (no data-dependent control flow in the graph). The manifest's
+``convergence`` (:func:`torchcal.compensate.export.convergence_report`) shows what it reaches
+over the joint range, with the singular neighbourhoods as separate strata.
 """
 
 from __future__ import annotations
@@ -57,16 +63,32 @@ from torch import nn
 from torchcal.compensate.chain import ChainGraph, geometric_jacobian_t
 from torchcal.compensate.deflection import DeflectionGraph
 from torchcal.compensate.joint_error_graph import JointErrorGraph
-from torchcal.compensate.linalg import gauss_jordan, ort_solve
+from torchcal.compensate.linalg import gauss_jordan, ort_inverse, ort_solve
+from torchcal.compensate.steps import inverse3, pose_step, position_first_step
 from torchcal.identify.joint_errors import JointSpaceErrors
 from torchcal.kinematics.error_model import ErrorModel
 from torchcal.kinematics.robot import RobotModel
 
-DEFAULT_ITERATIONS = 3
-DEFAULT_DAMPING_GAIN = 10.0
+TASKS = ("position", "pose")
+DEFAULT_TASK = "position"
+DEFAULT_ITERATIONS = {"position": 6, "pose": 3}
+"""Steps per task: chosen by the convergence table (``scripts/bench_onnx.py``, docs/export.md)."""
+POSITION_ONLY_STEPS = 3
+"""The last steps of the position task move the position only (at most ``iterations - 1``)."""
+DEFAULT_DAMPING_GAIN = {"position": 0.1, "pose": 10.0}
 DEFAULT_DAMPING_FLOOR = 1e-5
+DEFAULT_ORIENTATION_DAMPING = 0.01
+"""Floor of the secondary (orientation) task's damping, rad/rad: bounds the wrist's swing."""
+DEFAULT_MAX_STEP = 0.1
+"""Largest joint move of one step (of the position part of a position-first step), rad."""
+DEFAULT_MAX_ORIENTATION_STEP = 0.02
+"""Largest joint move of the orientation part of a position-first step, rad."""
+RESIDUAL_OUTPUT = "residual"
+"""Second output of the compensator: ``(B, 2)`` remaining TCP position error (m) and orientation deviation (rad)."""
 SOLVERS = {"inverse": ort_solve, "gauss_jordan": gauss_jordan}
-"""The 6x6 solve of a step: onnxruntime's ``Inverse`` node, or the portable unrolled elimination."""
+"""The 6x6 solve of a ``pose`` step: onnxruntime's ``Inverse`` node, or the portable unrolled elimination."""
+INVERSES3 = {"inverse": ort_inverse, "gauss_jordan": inverse3}
+"""The 3x3 inverses of a ``position`` step: onnxruntime's ``Inverse`` node, or the portable adjugate."""
 
 
 def _end_transforms(robot: RobotModel, model: ErrorModel, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -168,11 +190,20 @@ class CompensatorGraph(nn.Module):
         residual: optional module ``q (B, N) rad -> TCP position error (B, 3)`` in ``base``, m,
             predicted by a learned head (``StoredModel.residual.to_torch_module()``).
         dtype: float64 or float32 (inputs and outputs use it too).
-        iterations: damped Newton steps, each with a fresh Jacobian.
-        damping_gain: ``c`` of the error-dependent damping ``lambda^2 = c |e|^2 + lambda_0^2``.
+        task: ``"position"`` (position first, orientation secondary; default) or ``"pose"``
+            (full 6-D damped least squares).
+        iterations: Newton steps, each with a fresh Jacobian (default: :data:`DEFAULT_ITERATIONS`).
+        damping_gain: ``c`` of the error-dependent damping ``lambda^2 = c |e|^2 + lambda_0^2``
+            (default: :data:`DEFAULT_DAMPING_GAIN` of the task).
         damping_floor: ``lambda_0`` (m per rad, rad per rad).
+        orientation_damping: floor of the orientation task's damping (``position`` task), rad/rad.
+        max_step: largest joint move per step (of its position part for the ``position`` task), rad.
+        max_orientation_step: largest joint move of the orientation part of a ``position`` step, rad.
+        position_only_steps: how many of the last steps of the ``position`` task are position-only
+            (at least one step keeps the orientation task).
         solver: ``"inverse"`` (onnxruntime's contrib ``Inverse``, default) or ``"gauss_jordan"``
-            (standard ONNX operators only, for other runtimes); both solve in float64.
+            (standard ONNX operators only: an unrolled elimination for the 6x6 solve of the
+            ``pose`` task, the closed-form adjugate for the 3x3 solves of the ``position`` task).
         joint_errors: the model's joint-space errors (gravity compliance, harmonics), if any: the
             calibrated chain then turns by ``q + dq(q)`` (:mod:`torchcal.compensate.joint_error_graph`).
         device: where the constants live (CPU by default).
@@ -185,26 +216,48 @@ class CompensatorGraph(nn.Module):
         residual: nn.Module | None = None,
         *,
         dtype: torch.dtype = torch.float64,
-        iterations: int = DEFAULT_ITERATIONS,
-        damping_gain: float = DEFAULT_DAMPING_GAIN,
+        task: str = DEFAULT_TASK,
+        iterations: int | None = None,
+        damping_gain: float | None = None,
         damping_floor: float = DEFAULT_DAMPING_FLOOR,
+        orientation_damping: float = DEFAULT_ORIENTATION_DAMPING,
+        max_step: float = DEFAULT_MAX_STEP,
+        max_orientation_step: float = DEFAULT_MAX_ORIENTATION_STEP,
+        position_only_steps: int = POSITION_ONLY_STEPS,
         solver: str = "inverse",
         joint_errors: JointSpaceErrors | None = None,
         device: str | torch.device = "cpu",
     ) -> None:
         super().__init__()
+        if task not in TASKS:
+            raise ValueError(f"task must be one of {list(TASKS)}, got {task!r}")
+        iterations = DEFAULT_ITERATIONS[task] if iterations is None else int(iterations)
         if iterations < 1:
             raise ValueError("iterations must be >= 1")
         if solver not in SOLVERS:
             raise ValueError(f"solver must be one of {sorted(SOLVERS)}, got {solver!r}")
+        if not (max_step > 0 and max_orientation_step > 0):
+            raise ValueError(f"max_step and max_orientation_step must be > 0 rad, got {max_step}, {max_orientation_step}")
         self.models = _TwoModels(model, x, residual, dtype, device, joint_errors)
-        self.iterations = int(iterations)
+        self.task = task
+        self.iterations = iterations
+        # position task: orientation on the first steps, position alone on the last ones (at least one mixed step)
+        self.orientation_steps = iterations if task == "pose" else max(1, iterations - int(position_only_steps))
         self.solver = solver
         self.dtype = dtype
+        gain = DEFAULT_DAMPING_GAIN[task] if damping_gain is None else float(damping_gain)
+        f64 = {"dtype": torch.float64, "device": device}
         # the solve's constants are float64 whatever the graph's dtype (see the module docstring)
-        self.register_buffer("eye6", torch.eye(6, dtype=torch.float64, device=device))
-        self.register_buffer("damping_floor_sq", torch.tensor(damping_floor**2, dtype=torch.float64, device=device))
-        self.register_buffer("damping_gain", torch.tensor(damping_gain, dtype=torch.float64, device=device))
+        self.register_buffer("eye6", torch.eye(6, **f64))
+        self.register_buffer("eye3", torch.eye(3, **f64))
+        self.register_buffer("damping_floor_sq", torch.tensor(damping_floor**2, **f64))
+        self.register_buffer("damping_gain", torch.tensor(gain, **f64))
+        self.register_buffer("orientation_damping_sq", torch.tensor(orientation_damping**2, **f64))
+        self.register_buffer("max_step", torch.tensor(max_step, **f64))
+        self.register_buffer("max_orientation_step", torch.tensor(max_orientation_step, **f64))
+        limits = model.robot.joint_limits.to(torch.float64)
+        self.register_buffer("lower", limits[:, 0].to(device=device, dtype=dtype))
+        self.register_buffer("upper", limits[:, 1].to(device=device, dtype=dtype))
 
     @classmethod
     def from_stored(cls, stored, **options) -> "CompensatorGraph":
@@ -212,36 +265,52 @@ class CompensatorGraph(nn.Module):
         return cls(stored.model, stored.x, **stored_parts(stored), **options)
 
     def forward(self, q_nominal: torch.Tensor) -> torch.Tensor:
-        return self.solve(q_nominal)
+        return self.solve(q_nominal)[0]
 
-    def solve(self, q_nominal: torch.Tensor, wrench: torch.Tensor | None = None) -> torch.Tensor:
-        """The fixed number of damped Newton steps from ``q_nominal`` (``wrench``: loaded graphs)."""
+    def solve(self, q_nominal: torch.Tensor, wrench: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """The fixed number of steps from ``q_nominal`` (``wrench``: loaded graphs).
+
+        Returns ``q_corrected`` ``(B, N)`` rad and the ``residual`` ``(B, 2)``: the predicted
+        remaining position error (m) and orientation deviation (rad) of the model at ``q_corrected``.
+        """
         target, pose, joint_frames, slope = self.models.nominal_and_calibrated(q_nominal)
         q = q_nominal
         for step in range(self.iterations):
             if step > 0:
                 pose, joint_frames, slope = self.models.calibrated_at(q)
-            q = q + self.step(target, pose, joint_frames, q, wrench, slope)
-        return q
+            error = self.loaded_error(target, pose, joint_frames, q, wrench)  # (B, 6, 1)
+            jac_t = command_jacobian_t(pose, joint_frames, slope)
+            dq = self.step(jac_t, error, orientation=step < self.orientation_steps)
+            q = torch.minimum(torch.maximum(q + dq, self.lower), self.upper)
+        # what the command leaves, through the kinematics once more: where the iteration did not
+        # converge (near a singularity) a prediction from the last step would say it did
+        pose, joint_frames, _ = self.models.calibrated_at(q)
+        return q, self.remaining(self.loaded_error(target, pose, joint_frames, q, wrench).squeeze(-1))
 
-    def step(self, target: torch.Tensor, pose: torch.Tensor, joint_frames: torch.Tensor, q: torch.Tensor,
-             wrench: torch.Tensor | None = None, slope: torch.Tensor | None = None) -> torch.Tensor:
-        """One damped Newton step ``(B, N)`` rad: ``J^T (J J^T + lambda^2 I)^-1 e``."""
-        error = self.pose_error(target, pose[:, :3, 3], pose[:, :3, :3], q).unsqueeze(-1)  # (B, 6, 1)
-        return self.damped_step(command_jacobian_t(pose, joint_frames, slope), error)
+    def loaded_error(self, target: torch.Tensor, pose: torch.Tensor, joint_frames: torch.Tensor, q: torch.Tensor,
+                     wrench: torch.Tensor | None) -> torch.Tensor:
+        """``[p_t - p - r(q), vee(R_t R^T)]`` ``(B, 6, 1)`` of the (unloaded) calibrated TCP ``pose``."""
+        return self.pose_error(target, pose[:, :3, 3], pose[:, :3, :3], q).unsqueeze(-1)
 
-    def damped_step(self, jac_t: torch.Tensor, error: torch.Tensor) -> torch.Tensor:
-        """``J^T (J J^T + lambda^2 I)^-1 e`` ``(B, N)`` for ``J^T`` ``(B, N, 6)`` and ``e`` ``(B, 6, 1)``.
-
-        Computed in float64; a float32 graph casts in and out (structural, fixed at construction).
-        """
+    def step(self, jac_t: torch.Tensor, error: torch.Tensor, orientation: bool = True) -> torch.Tensor:
+        """One step ``(B, N)`` rad of the graph's task, computed in float64 (a float32 graph casts in and out)."""
         wide = self.dtype != torch.float64
         if wide:
             jac_t, error = jac_t.to(torch.float64), error.to(torch.float64)
-        lam2 = self.damping_gain * (error * error).sum(-2, keepdim=True) + self.damping_floor_sq  # (B, 1, 1)
-        normal = jac_t.transpose(-1, -2) @ jac_t + lam2 * self.eye6
-        step = (jac_t @ SOLVERS[self.solver](normal, error, self.eye6)).squeeze(-1)
+        if self.task == "pose":
+            step = pose_step(jac_t, error, self.damping_gain, self.damping_floor_sq, self.eye6, SOLVERS[self.solver])
+        else:
+            step = position_first_step(jac_t, error, self.damping_gain, self.damping_floor_sq, self.orientation_damping_sq,
+                                       self.eye3, self.max_step, self.max_orientation_step, orientation=orientation,
+                                       inverse=INVERSES3[self.solver])
         return step.to(self.dtype) if wide else step
+
+    def remaining(self, error: torch.Tensor) -> torch.Tensor:
+        """``(B, 2)`` from the error ``(B, 6)`` at the command: position error norm (m) and the
+        orientation deviation angle (rad; the rotation error is ``sin(angle) axis``)."""
+        # onnxruntime has Asin for float32 only: float32 is ample for a reported angle (1e-7 relative)
+        turn = torch.asin(torch.clamp(error[:, 3:].norm(dim=-1), max=1.0).float()).to(error.dtype)
+        return torch.stack([error[:, :3].norm(dim=-1), turn], -1)
 
     def pose_error(self, target: torch.Tensor, position: torch.Tensor, rotation: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
         """``[p_t - p - r(q), vee(R_t R^T)]`` ``(B, 6)`` (m, rad), ``base`` frame, for the TCP at
@@ -250,6 +319,19 @@ class CompensatorGraph(nn.Module):
         e = target[:, :3, :3] @ rotation.transpose(-1, -2)
         skew = (e - e.transpose(-1, -2)).reshape(-1, 9)
         return torch.cat([dp, 0.5 * skew[:, [7, 2, 3]]], -1)
+
+
+class CompensatorWithResidual(nn.Module):
+    """The exported form of a compensator: ``forward`` returns ``(q_corrected, residual)``."""
+
+    def __init__(self, graph: CompensatorGraph) -> None:
+        super().__init__()
+        self.graph = graph
+        self.solver = graph.solver
+        self.task = graph.task
+
+    def forward(self, q_nominal: torch.Tensor, wrench: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        return self.graph.solve(q_nominal, wrench)
 
 
 class MonitorGraph(nn.Module):
@@ -321,14 +403,13 @@ class LoadedCompensatorGraph(CompensatorGraph):
         return cls(stored.model, stored.x, stored.stiffness.compliance, **stored_parts(stored), **options)
 
     def forward(self, q_nominal: torch.Tensor, wrench: torch.Tensor) -> torch.Tensor:  # type: ignore[override]
-        return self.solve(q_nominal, wrench)
+        return self.solve(q_nominal, wrench)[0]
 
-    def step(self, target: torch.Tensor, pose: torch.Tensor, joint_frames: torch.Tensor, q: torch.Tensor,
-             wrench: torch.Tensor | None = None, slope: torch.Tensor | None = None) -> torch.Tensor:
-        """The rigid step with the error measured at the loaded TCP (Jacobian kept rigid)."""
+    def loaded_error(self, target: torch.Tensor, pose: torch.Tensor, joint_frames: torch.Tensor, q: torch.Tensor,
+                     wrench: torch.Tensor | None) -> torch.Tensor:
+        """The error measured at the loaded TCP (the Jacobian stays rigid)."""
         position, rotation = self.deflection.loaded_pose(pose, joint_frames, wrench)
-        error = self.pose_error(target, position, rotation, q).unsqueeze(-1)
-        return self.damped_step(command_jacobian_t(pose, joint_frames, slope), error)
+        return self.pose_error(target, position, rotation, q).unsqueeze(-1)
 
 
 class LoadedMonitorGraph(MonitorGraph):

@@ -3,7 +3,8 @@
 Files written to ``out_dir`` (each atomically, single-file ONNX without external data):
 
 * ``compensator.onnx`` / ``compensator_f32.onnx``: ``q_nominal (batch, N)`` rad ->
-  ``q_corrected (batch, N)`` rad, float64 / float32;
+  ``q_corrected (batch, N)`` rad and ``residual (batch, 2)``: the model's remaining TCP position
+  error (m) and orientation deviation (rad) at the corrected command; float64 / float32;
 * ``monitor.onnx`` / ``monitor_f32.onnx``: ``q (batch, N)`` rad -> ``tcp_error_m (batch, 3)``,
   the predicted TCP position error in the robot ``base`` frame, m;
 * with a stiffness stage in the model folder, both graphs take a second input ``wrench``
@@ -27,8 +28,11 @@ from pathlib import Path
 import torch
 
 from torchcal.compensate.compensator import (
-    DEFAULT_ITERATIONS,
+    DEFAULT_TASK,
+    RESIDUAL_OUTPUT,
+    TASKS,
     CompensatorGraph,
+    CompensatorWithResidual,
     LoadedCompensatorGraph,
     LoadedMonitorGraph,
     MonitorGraph,
@@ -62,10 +66,12 @@ def onnx_bytes(
     output_name: str,
     *,
     wrench_input: str | None = None,
+    extra_outputs: tuple[str, ...] = (),
 ) -> bytes:
     """Serialize ``module`` to ONNX (opset :data:`OPSET`, dynamic batch axis) in memory.
 
-    ``wrench_input`` names a second ``(batch, 6)`` input (graphs with a stiffness stage).
+    ``wrench_input`` names a second ``(batch, 6)`` input (graphs with a stiffness stage);
+    ``extra_outputs`` names outputs after the first (the compensator's ``residual``).
 
     The TorchScript exporter (``dynamo=False``) is used: the dynamo exporter needs onnxscript,
     which a calibration PC may not have, and the graphs hold no data-dependent control flow.
@@ -74,7 +80,9 @@ def onnx_bytes(
     """
     buffer = io.BytesIO()
     example = torch.zeros(2, n_joints, dtype=dtype)
-    args, names, axes = (example,), [input_name], {input_name: {0: "batch"}, output_name: {0: "batch"}}
+    outputs = [output_name, *extra_outputs]
+    args, names = (example,), [input_name]
+    axes = {name: {0: "batch"} for name in (input_name, *outputs)}
     if wrench_input is not None:
         args, names = (example, torch.zeros(2, 6, dtype=dtype)), [input_name, wrench_input]
         axes[wrench_input] = {0: "batch"}
@@ -87,13 +95,18 @@ def onnx_bytes(
             dynamo=False,
             opset_version=OPSET,
             input_names=names,
-            output_names=[output_name],
+            output_names=outputs,
             dynamic_axes=axes,
             do_constant_folding=True,
             # declared only where a node uses it, so a portable graph loads in any runtime
-            custom_opsets={CONTRIB_DOMAIN: 1} if getattr(module, "solver", None) == SOLVER_DEFAULT else None,
+            custom_opsets={CONTRIB_DOMAIN: 1} if uses_contrib_inverse(module) else None,
         )
     return buffer.getvalue()
+
+
+def uses_contrib_inverse(module: torch.nn.Module) -> bool:
+    """Whether a graph holds onnxruntime's contrib ``Inverse`` (the compensators' default solves)."""
+    return getattr(module, "solver", None) == SOLVER_DEFAULT
 
 
 def build_graphs(
@@ -102,17 +115,19 @@ def build_graphs(
     *,
     use_stored_residual: bool = True,
     wrench_frame: str = "tool",
-    iterations: int = DEFAULT_ITERATIONS,
+    iterations: int | None = None,
     portable: bool = False,
+    task: str = DEFAULT_TASK,
 ) -> dict[str, torch.nn.Module]:
     """The four torch modules of :data:`GRAPHS` for a :class:`StoredModel`.
 
     With a stiffness stage (``stored.stiffness``) they are the loaded graphs, whose second
-    argument is the wrench in ``wrench_frame`` (``tool`` or ``base``). ``iterations``: damped
-    Newton steps of the compensators; ``portable``: standard ONNX operators only (see
-    :data:`SOLVER_PORTABLE`).
+    argument is the wrench in ``wrench_frame`` (``tool`` or ``base``). ``task``: ``position``
+    (position first, orientation secondary) or ``pose`` (full 6-D); ``iterations``: Newton steps
+    of the compensators (``None``: the task's default); ``portable``: standard ONNX operators only
+    (see :data:`SOLVER_PORTABLE`).
     """
-    solve = {"iterations": iterations, "solver": SOLVER_PORTABLE if portable else SOLVER_DEFAULT}
+    solve = {"iterations": iterations, "task": task, "solver": SOLVER_PORTABLE if portable else SOLVER_DEFAULT}
     parts = stored_parts(stored)
     if residual is None and use_stored_residual:
         residual = parts["residual"]
@@ -238,28 +253,101 @@ def unsolved_distance_m(graphs: dict[str, torch.nn.Module], robot, q_target: tor
     return (landed - robot.tcp_position(q_target)).norm(dim=-1)
 
 
-def convergence_report(graphs: dict[str, torch.nn.Module], stored, n_poses: int = BUDGET_POSES, seed: int = 1) -> dict:
-    """Where the float64 compensator's command puts the predicted real TCP, against the nominal target.
+WRIST_SINGULAR_BELOW = 0.02
+"""Wrist stratum of the convergence report: smallest singular value of the last three joints'
+angular Jacobian below this (for a spherical wrist ``|sin q5|``: about 1.1 deg from alignment)."""
+POSITION_SINGULAR_BELOW_M = 0.01
+"""Position-singular stratum: smallest singular value of the TCP position Jacobian below 10 mm/rad."""
+SOLVABLE_ABOVE_M = 0.001
+"""Poses whose position Jacobian keeps a singular value above 1 mm/rad must be solved to 1 um."""
 
-    Over ``n_poses`` uniform within the joint limits (with the budget's wrenches for a loaded
-    model): ``|p_nom(q_c) + monitor(q_c) - p_nom(q_t)|``, the position the fixed iteration count
-    leaves unsolved, in mm. Large values mark poses near a singularity, where the damped steps
-    give a partial correction.
+
+def singular_values(robot, q: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(sigma_position, sigma_wrist)`` ``(B,)`` of the nominal robot at ``q``: the smallest singular
+    value of the TCP position Jacobian (m/rad) and of the last three joints' angular Jacobian (rad/rad)."""
+    from torchcal.kinematics.error_model import ErrorModel
+    from torchcal.kinematics.joint_jacobian import geometric_jacobian
+
+    model = ErrorModel(robot)
+    _, jac = geometric_jacobian(model, q, model.nominal_vector())
+    return torch.linalg.svdvals(jac[:, :3, :])[:, -1], torch.linalg.svdvals(jac[:, 3:, -3:])[:, -1]
+
+
+def _stratum(miss_mm: torch.Tensor, turn: torch.Tensor, joint: torch.Tensor, solvable: torch.Tensor, out_err: torch.Tensor) -> dict:
+    """Summary of one stratum: unsolved position (mm), orientation deviation (rad), joint moves (rad)."""
+    n = int(miss_mm.numel())
+    if n == 0:
+        return {"n_poses": 0}
+    q = torch.tensor([0.5, 0.99], dtype=torch.float64)
+    return {
+        "n_poses": n,
+        "unsolved_tcp_mm": {"median": float(miss_mm.median()), "p99": float(miss_mm.quantile(q[1])), "max": float(miss_mm.max())},
+        "share_within_1um": float((miss_mm <= 1e-3).double().mean()),
+        "n_solvable": int(solvable.sum()),
+        "solvable_share_within_1um": float((miss_mm[solvable] <= 1e-3).double().mean()) if bool(solvable.any()) else None,
+        "orientation_deviation_rad": {"median": float(turn.median()), "p99": float(turn.quantile(q[1])), "max": float(turn.max())},
+        "largest_joint_correction_rad": float(joint.max()),
+        "residual_output_error": {"position_mm_max": float(out_err[:, 0].max()), "orientation_rad_max": float(out_err[:, 1].max())},
+    }
+
+
+def convergence_report(graphs: dict[str, torch.nn.Module], stored, n_poses: int = BUDGET_POSES, seed: int = 1) -> dict:
+    """What the float64 compensator's commands reach, over the joint range and near singularities.
+
+    Poses: ``n_poses`` uniform within the joint limits, and as many again with the second-to-last
+    joint within +-1 deg (the wrist singularity of 6-R wrists and of 7-joint arms; with the
+    budget's wrenches for a loaded model). For each command: the position the fixed iteration
+    count leaves unsolved, ``|p_nom(q_c) + monitor(q_c) - p_nom(q_t)|`` (mm), and the orientation
+    deviation of the calibrated tool from the nominal target (rad), computed outside the graph
+    and compared with the graph's own ``residual`` output. Strata: all uniform poses; wrist
+    singular (:data:`WRIST_SINGULAR_BELOW`); position singular (:data:`POSITION_SINGULAR_BELOW_M`).
+    A pose counts as solvable where the position Jacobian's smallest singular value exceeds
+    :data:`SOLVABLE_ABOVE_M`.
     """
     gen = torch.Generator().manual_seed(seed)
-    q = stored.robot.sample_joints(n_poses, gen)
-    wrench = budget_wrenches(stored, n_poses, gen) if has_wrench_input(graphs) else None
+    robot = stored.robot
+    uniform = robot.sample_joints(n_poses, gen)
+    wrist = robot.sample_joints(n_poses, gen)
+    limits = robot.joint_limits.to(torch.float64)
+    wrist_joint = (torch.rand(n_poses, generator=gen, dtype=torch.float64) * 2 - 1) * math.radians(1.0)
+    wrist[:, -2] = wrist_joint.clamp(limits[-2, 0], limits[-2, 1])
+    q = torch.cat([uniform, wrist])
+    graph = graphs["compensator"]
+    wrench = budget_wrenches(stored, len(q), gen) if has_wrench_input(graphs) else None
+    extra = () if wrench is None else (wrench,)
     with torch.no_grad():
-        q_c = graphs["compensator"](q, *(() if wrench is None else (wrench,)))
-    miss = unsolved_distance_m(graphs, stored.robot, q, q_c, wrench) * 1e3
+        q_c, residual = graph.solve(q, wrench)
+        target = graph.models.nominal_and_calibrated(q)[0]
+        pose = graph.models.calibrated_at(q_c)[0]
+        if wrench is not None:
+            pose = pose.clone()
+            position, rotation = graph.deflection.loaded_pose(*graph.models.calibrated_at(q_c)[:2], wrench)
+            pose[:, :3, 3], pose[:, :3, :3] = position, rotation
+    miss = unsolved_distance_m(graphs, robot, q, q_c, wrench) * 1e3
+    turn = torch.asin(graph.pose_error(target, pose[:, :3, 3], pose[:, :3, :3], q_c)[:, 3:].norm(dim=-1).clamp(max=1.0))
+    out_err = torch.stack([(residual[:, 0] * 1e3 - miss).abs(), (residual[:, 1] - turn).abs()], -1)
+    joint = (q_c - q).abs().amax(-1)
+    sigma_p, sigma_w = singular_values(robot, q)
+    solvable = sigma_p > SOLVABLE_ABOVE_M
+    parts = {
+        "uniform": torch.arange(len(q)) < n_poses,
+        "wrist_singular": sigma_w < WRIST_SINGULAR_BELOW,
+        "position_singular": sigma_p < POSITION_SINGULAR_BELOW_M,
+    }
+    strata = {name: _stratum(miss[m], turn[m], joint[m], solvable[m], out_err[m]) for name, m in parts.items()}
     return {
         "n_poses": n_poses,
-        "sampling": "uniform within joint limits, seed %d" % seed,
-        "iterations": graphs["compensator"].iterations,
-        "unsolved_tcp_mm": {"median": float(miss.median()), "p90": float(miss.quantile(0.9)),
-                            "p99": float(miss.quantile(0.99)), "max": float(miss.max())},
-        "share_within_1um": float((miss <= 1e-3).double().mean()),
-        "largest_joint_correction_rad": float((q_c - q).abs().max()),
+        "sampling": (f"uniform within joint limits (seed {seed}), and {n_poses} more with joint {robot.dof - 1} "
+                     "within +-1 deg; strata by the nominal robot's singular values"),
+        "task": graph.task,
+        "iterations": graph.iterations,
+        "thresholds": {"wrist_singular_below": WRIST_SINGULAR_BELOW, "position_singular_below_m_per_rad": POSITION_SINGULAR_BELOW_M,
+                       "solvable_above_m_per_rad": SOLVABLE_ABOVE_M},
+        "strata": strata,
+        # the uniform stratum's headline figures, where older readers look for them
+        "unsolved_tcp_mm": {**strata["uniform"]["unsolved_tcp_mm"], "p90": float(miss[parts["uniform"]].quantile(0.9))},
+        "share_within_1um": strata["uniform"]["share_within_1um"],
+        "largest_joint_correction_rad": strata["uniform"]["largest_joint_correction_rad"],
     }
 
 
@@ -279,30 +367,38 @@ def export_model(
     out_dir: str | Path,
     *,
     wrench_frame: str = "tool",
-    iterations: int = DEFAULT_ITERATIONS,
+    iterations: int | None = None,
     portable: bool = False,
+    task: str = DEFAULT_TASK,
 ) -> dict:
     """Export the compensator of a model folder; returns the manifest (also written to disk).
 
     ``wrench_frame`` (``tool`` | ``base``) sets the axes of the ``wrench`` input of a model
-    folder with a stiffness stage; it is recorded in the manifest. ``iterations``: damped Newton
-    steps of the compensator (more for models with large corrections; the manifest's
-    ``convergence`` shows what they reach). ``portable``: standard ONNX operators only.
+    folder with a stiffness stage; it is recorded in the manifest. ``task``: ``position``
+    (default: position exactly, orientation as far as the position leaves room) or ``pose``
+    (full 6-D). ``iterations``: Newton steps of the compensator (``None``: the task's default;
+    the manifest's ``convergence`` shows what they reach). ``portable``: standard ONNX operators
+    only.
     """
-    if iterations < 1:
-        from torchcal.errors import TorchcalError
+    from torchcal.errors import TorchcalError
 
+    if iterations is not None and iterations < 1:
         raise TorchcalError(f"iterations must be >= 1, got {iterations}")
+    if task not in TASKS:
+        raise TorchcalError(f"task must be one of {list(TASKS)}, got {task!r}")
     from torchcal.model_store import load_model
 
     model_dir, out_dir = Path(model_dir), Path(out_dir)
     stored = load_model(model_dir)
-    graphs = build_graphs(stored, wrench_frame=wrench_frame, iterations=iterations, portable=portable)
+    graphs = build_graphs(stored, wrench_frame=wrench_frame, iterations=iterations, portable=portable, task=task)
     loaded = has_wrench_input(graphs)
     robot = stored.robot
     files, digests = {}, {}
     for key, (name, dtype, input_name, output_name) in GRAPHS.items():
-        data = onnx_bytes(graphs[key], robot.dof, dtype, input_name, output_name, wrench_input=WRENCH_INPUT if loaded else None)
+        compensator = key.startswith("compensator")
+        module = CompensatorWithResidual(graphs[key]) if compensator else graphs[key]
+        data = onnx_bytes(module, robot.dof, dtype, input_name, output_name, wrench_input=WRENCH_INPUT if loaded else None,
+                          extra_outputs=(RESIDUAL_OUTPUT,) if compensator else ())
         atomic_write_bytes(out_dir / name, data)
         files[key] = name
         digests[key] = hashlib.sha256(data).hexdigest()
@@ -315,7 +411,10 @@ def export_model(
         "joint_names": list(robot.joint_names),
         "joint_limits_rad": robot.joint_limits.tolist(),
         "units": {
-            "compensator": {"input": "q_nominal, rad", "output": "q_corrected, rad"},
+            "compensator": {"input": "q_nominal, rad", "output": "q_corrected, rad",
+                            RESIDUAL_OUTPUT: "(batch, 2): remaining TCP position error of the model at q_corrected, m, "
+                                             "and orientation deviation of the tool from the nominal target, rad "
+                                             "(first-order prediction from the last step)"},
             "monitor": {"input": "q, rad", "output": "tcp_error_m: predicted TCP position error, m, robot base frame"},
         },
         "frames": "robot base frame (calibrated); the instrument frame of the calibration is not applied",
@@ -323,22 +422,13 @@ def export_model(
         "stages": {"geometry": True, "residual": stored.residual is not None, "stiffness": False,
                    **_joint_error_stages(stored.metadata)},
         "inputs": {"compensator": "q_nominal", "monitor": "q"},
-        "outputs": {"compensator": "q_corrected", "monitor": "tcp_error_m"},
+        "outputs": {"compensator": ["q_corrected", RESIDUAL_OUTPUT], "monitor": ["tcp_error_m"]},
         "dtypes": {key: str(dtype).replace("torch.", "") for key, (_, dtype, _, _) in GRAPHS.items()},
         "opset": OPSET,
         "iterations": compensator.iterations,
-        "solver": {
-            "method": "damped Newton (damped least squares), fixed iteration count, from q_nominal",
-            "damping": "lambda^2 = gain * |e|^2 + floor^2",
-            "damping_gain": float(compensator.damping_gain),
-            "damping_floor": math.sqrt(float(compensator.damping_floor_sq)),
-            "linear_solve": (
-                "6x6, float64 in every variant: unrolled Gauss-Jordan (standard ONNX operators)" if portable else
-                "6x6, float64 in every variant: com.microsoft.Inverse (onnxruntime contrib operator, LU with partial pivoting)"
-            ),
-        },
-        "runtime": "any ONNX runtime (standard operators, opset %d)" % OPSET if portable else
-                   "onnxruntime (the compensators use the contrib operator com.microsoft.Inverse, domain version 1)",
+        "solver": _solver_description(compensator, portable),
+        "runtime": "onnxruntime (the compensators use the contrib operator com.microsoft.Inverse, domain version 1)"
+                   if uses_contrib_inverse(compensator) else "any ONNX runtime (standard operators, opset %d)" % OPSET,
         "training_data": {"sha256": meta.get("data", {}).get("sha256"), "n_poses": meta.get("data", {}).get("n_poses")},
         "calibration": {"method": meta.get("method"), "residual_sigma_mm": meta.get("residual_sigma_mm")},
         "held_out_metrics": _held_out_metrics(model_dir, meta),
@@ -353,6 +443,40 @@ def export_model(
     atomic_write_json(out_dir / "manifest.json", manifest)
     atomic_write_text(out_dir / "README.md", readme_text(manifest))
     return manifest
+
+
+def _solver_description(compensator: CompensatorGraph, portable: bool) -> dict:
+    """The manifest's ``solver`` entry: task, steps, damping and linear solve of the compensator."""
+    common = {
+        "damping": "lambda^2 = gain * |e|^2 + floor^2",
+        "damping_gain": float(compensator.damping_gain),
+        "damping_floor": math.sqrt(float(compensator.damping_floor_sq)),
+        "max_step_rad": float(compensator.max_step),
+        "joint_limits": "every iterate is clipped to joint_limits_rad",
+    }
+    if compensator.task == "pose":
+        return {
+            "task": "pose",
+            "method": "damped least squares on the 6-D pose, fixed iteration count, from q_nominal",
+            **common,
+            "linear_solve": (
+                "6x6, float64 in every variant: unrolled Gauss-Jordan (standard ONNX operators)" if portable else
+                "6x6, float64 in every variant: com.microsoft.Inverse (onnxruntime contrib operator, LU with partial pivoting)"
+            ),
+        }
+    return {
+        "task": "position",
+        "method": ("task-priority damped least squares from q_nominal: the TCP position first, the orientation in the "
+                   f"position task's null space; the last {compensator.iterations - compensator.orientation_steps} of "
+                   f"{compensator.iterations} steps are position-only"),
+        **common,
+        "orientation_damping_floor": math.sqrt(float(compensator.orientation_damping_sq)),
+        "max_orientation_step_rad": float(compensator.max_orientation_step),
+        "linear_solve": (
+            "two 3x3 systems per step, float64 in every variant: closed-form adjugate (standard ONNX operators)" if portable else
+            "two 3x3 systems per step, float64 in every variant: com.microsoft.Inverse (onnxruntime contrib operator)"
+        ),
+    }
 
 
 def _joint_error_stages(metadata: dict) -> dict:
@@ -401,10 +525,39 @@ def _describe_stiffness(manifest: dict, stored, wrench_frame: str) -> None:
     manifest["sign_convention"] += "; with stiffness, T_real is the loaded TCP under the wrench input"
 
 
+def _convergence_text(manifest: dict) -> str:
+    """The README's paragraph on what the fixed steps reach, stratum by stratum."""
+    conv = manifest["convergence"]
+    strata = conv["strata"]
+    if conv["task"] == "position":
+        what = ("It puts the TCP **position** on the target first and turns the tool toward the nominal orientation only as "
+                "far as the position leaves room: near a wrist singularity the orientation may stay off by the deviation "
+                "in the `residual` output.")
+    else:
+        what = ("It solves the full 6-D pose; near singular poses the damping keeps the correction small instead of exact, "
+                "for the position too.")
+    lines = [f"The compensator runs {conv['iterations']} Newton steps (fixed, no data-dependent branches; task "
+             f"`{conv['task']}`). {what} Every step moves a joint by at most "
+             f"{manifest['solver']['max_step_rad']:.2f} rad and every iterate stays within the joint limits.", "",
+             "| poses | n | within 1 um | within 1 um where solvable | unsolved p99 / max (mm) | orientation deviation p99 / max (rad) |",
+             "| --- | --- | --- | --- | --- | --- |"]
+    for name, s in strata.items():
+        if not s.get("n_poses"):
+            continue
+        solvable = "n/a" if s["solvable_share_within_1um"] is None else f"{100 * s['solvable_share_within_1um']:.1f} % of {s['n_solvable']}"
+        lines.append(f"| {name.replace('_', ' ')} | {s['n_poses']} | {100 * s['share_within_1um']:.1f} % | {solvable} | "
+                     f"{s['unsolved_tcp_mm']['p99']:.1e} / {s['unsolved_tcp_mm']['max']:.1e} | "
+                     f"{s['orientation_deviation_rad']['p99']:.1e} / {s['orientation_deviation_rad']['max']:.1e} |")
+    t = conv["thresholds"]
+    lines += ["", f"Solvable: the position Jacobian's smallest singular value above {t['solvable_above_m_per_rad'] * 1e3:.0f} mm/rad; "
+              f"wrist singular: the last three joints' angular Jacobian below {t['wrist_singular_below']}; position singular: "
+              f"below {t['position_singular_below_m_per_rad'] * 1e3:.0f} mm/rad. Sampling: {conv['sampling']}."]
+    return "\n".join(lines)
+
+
 def readme_text(manifest: dict) -> str:
     """The integrator's README of an exported folder."""
     budget = manifest["float32_error_budget"]
-    conv = manifest["convergence"]
     joints = ", ".join(manifest["joint_names"])
     residual = "yes" if manifest["stages"]["residual"] else "no"
     stiffness = "yes" if manifest["stages"]["stiffness"] else "no"
@@ -436,7 +589,7 @@ Stages: geometry yes, learned residual {residual}, stiffness {stiffness}, joint-
 
 | file | input | output |
 | --- | --- | --- |
-| `compensator.onnx` (float64), `compensator_f32.onnx` (float32) | `q_nominal` (batch, {n}), rad{extra} | `q_corrected` (batch, {n}), rad |
+| `compensator.onnx` (float64), `compensator_f32.onnx` (float32) | `q_nominal` (batch, {n}), rad{extra} | `q_corrected` (batch, {n}), rad; `residual` (batch, 2): remaining position error, m, and orientation deviation, rad |
 | `monitor.onnx` (float64), `monitor_f32.onnx` (float32) | `q` (batch, {n}), rad{extra} | `tcp_error_m` (batch, 3), m, robot base frame |
 
 Joint order: {joints}. Angles in **radians** in and out (convert degrees before the call).
@@ -444,18 +597,16 @@ Joint order: {joints}. Angles in **radians** in and out (convert degrees before 
 ## Use
 
 Give the compensator the joint command the controller computed with its nominal kinematics; send
-the output to the drives instead. The real robot then puts its TCP where the nominal model
-believed it would be (position and orientation), as far as the calibration knows the robot.
+the first output to the drives instead. The real robot then puts its TCP where the nominal model
+believed it would be, as far as the calibration knows the robot. The second output, `residual`,
+says per command how far the model's TCP still is from that target (m: above your tolerance, the
+command was not solved, e.g. at a position singularity) and how far the tool is turned from the
+nominal orientation (rad).
 The monitor graph predicts, for any joint vector, where the real TCP lies relative to the nominal
 one (`real - nominal`, m, base frame).
 
-The compensator runs {manifest['iterations']} damped Newton steps (fixed, no data-dependent branches).
-Near singular poses the damping keeps the correction small instead of exact. Joint limits are not
-enforced by the graph: the controller's limit checks stay in charge. Over {conv['n_poses']} random
-poses within the joint limits, the float64 command leaves the predicted real TCP
-{conv['unsolved_tcp_mm']['median']:.1e} mm (median), {conv['unsolved_tcp_mm']['p99']:.1e} mm (p99) from the
-nominal target; {100 * conv['share_within_1um']:.1f} % of the poses are within 1 um (the rest lie near a
-singularity). Runtime: {manifest['runtime']}.
+{_convergence_text(manifest)}
+Runtime: {manifest['runtime']}.
 
 Check `sha256` in `manifest.json` before loading (`torchcal.compensate.runtime.CompensatorRuntime`
 does; it needs only onnxruntime and numpy). Run single poses with `intra_op_num_threads=1`.

@@ -6,6 +6,8 @@ PC needs neither torch nor the rest of torchcal's dependencies::
     from torchcal.compensate.runtime import CompensatorRuntime
     rt = CompensatorRuntime("exported_models/twin-default", threads=1)
     q_corrected = rt.correct(q_nominal_rad)        # (N,) or (B, N), rad
+    q_corrected, residual = rt.correct_with_residual(q_nominal_rad)
+                                                   # residual: (2,) or (B, 2): position m, orientation rad
     tcp_error_m = rt.predict_error(q_rad)          # (3,) or (B, 3), m, robot base frame
 
 A folder exported with a stiffness stage (``manifest["stages"]["stiffness"]``) needs the
@@ -147,7 +149,7 @@ class CompensatorRuntime:
             raise CompensatorError("wrench has NaN or infinite values; refusing to compensate")
         return np.ascontiguousarray(np.broadcast_to(array, (batch, 6)))
 
-    def _run(self, graph, q, wrench=None) -> np.ndarray:
+    def _run(self, graph, q, wrench=None, outputs: int = 1):
         session, names = graph
         array, single = self._prepare(q)
         feeds = {names[0]: array}
@@ -155,7 +157,8 @@ class CompensatorRuntime:
             feeds[names[1]] = self._prepare_wrench(wrench, array.shape[0])
         elif wrench is not None:
             raise CompensatorError(f"{self.folder}: this compensator has no stiffness stage; it takes no wrench")
-        out = session.run(None, feeds)[0]
+        results = session.run(None, feeds)
+        out = results[0]
         if not np.isfinite(out).all():
             # Never hand a controller NaN: float32 loses the solve at exactly singular poses.
             rows = np.flatnonzero(~np.isfinite(out).reshape(out.shape[0], -1).all(axis=1))
@@ -163,7 +166,9 @@ class CompensatorRuntime:
                 f"{self.folder}: no finite output for row(s) {rows[:10].tolist()} (pose at a singularity, "
                 f"{self.precision} graph); use precision='float64' or keep the nominal command there"
             )
-        return out[0] if single else out
+        if outputs == 1:
+            return out[0] if single else out
+        return tuple(r[0] if single else r for r in results[:outputs])
 
     def correct(self, q_nominal, wrench=None) -> np.ndarray:
         """Corrected joint command(s), rad, for nominal command(s) ``(N,)`` or ``(B, N)`` in rad.
@@ -172,6 +177,19 @@ class CompensatorRuntime:
         ``wrench``), required by a compensator with a stiffness stage, refused by one without.
         """
         return self._run(self._compensator, q_nominal, wrench)
+
+    def correct_with_residual(self, q_nominal, wrench=None) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`correct` and the compensator's ``residual``: ``(2,)`` or ``(B, 2)`` per command,
+        the model's remaining TCP position error (m) and the tool's orientation deviation from
+        the nominal target (rad) at the corrected command.
+
+        A position error above the controller's tolerance marks a command the compensator could
+        not solve (a pose at or near a position singularity); the orientation deviation is what the
+        position-first task gave up near a wrist singularity (``manifest["solver"]``).
+        """
+        if len(self._compensator[0].get_outputs()) < 2:
+            raise CompensatorError(f"{self.folder}: this compensator was exported without a residual output; export it again")
+        return self._run(self._compensator, q_nominal, wrench, outputs=2)
 
     def predict_error(self, q, wrench=None) -> np.ndarray:
         """Predicted TCP position error (real - nominal), m, robot ``base`` frame: ``(3,)`` or ``(B, 3)``.

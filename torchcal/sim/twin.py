@@ -43,7 +43,8 @@ class TwinConfig:
         gravity: add gravity-induced joint compliance.
         gear: add periodic gear errors.
         gear_amplitude_deg: amplitude of the first gear harmonic.
-        joint_stiffness_nm_per_rad: per-joint stiffness for the gravity compliance.
+        joint_stiffness_nm_per_rad: per-joint stiffness for the gravity compliance (a robot with
+            more joints than values repeats the last value).
         link_masses_kg: point masses at the middle of links 2 and 3 and at the wrist.
         margin_deg: distance kept from joint limits when sampling poses.
     """
@@ -139,7 +140,9 @@ class Twin:
         )
         masses = torch.tensor(self.config.link_masses_kg, dtype=q.dtype)
         gravity = torch.tensor([0.0, 0.0, -9.81], dtype=q.dtype)
-        stiffness = torch.tensor(self.config.joint_stiffness_nm_per_rad[:n], dtype=q.dtype)
+        values = list(self.config.joint_stiffness_nm_per_rad[:n])
+        values += values[-1:] * (n - len(values))  # a robot with more joints: the last (wrist) value again
+        stiffness = torch.tensor(values, dtype=q.dtype)
         tau = torch.zeros_like(q)
         for j in range(n):
             lever = points - origins[:, j : j + 1]
