@@ -41,7 +41,7 @@ def run_twin(robot: str, folder: Path, task: str) -> dict:
     from torchcal.pipeline import run
 
     path = default_robot_path().with_name(f"{robot}.yaml")
-    config = compose_run_config([f"twin.robot={path}", f"name={robot}", f"out={folder / 'runs'}",
+    config, _ = compose_run_config([f"twin.robot={path}", f"name={robot}", f"out={folder / 'runs'}",
                                  f"export_dir={folder / 'exported'}"])
     if task != "position":
         from torchcal.compensate import export as export_module
