@@ -133,3 +133,22 @@ def test_iteration_count_is_what_converges(stored):
         with torch.no_grad():
             q_c = CompensatorGraph(stored.model, stored.x, task=task)(q)
         assert (ErrorModel(stored.robot).tcp_position(q_c, stored.x) - target).norm(dim=-1).max() < 1e-9, task
+
+
+def test_a_command_the_steps_cannot_improve_is_returned_unchanged(stored):
+    """Joint 2 at its limit and the correction pointing beyond it: the graph never returns a
+    command that the model says lands further from the target than the nominal one."""
+    limits = stored.robot.joint_limits
+    q = stored.robot.sample_joints(2000, torch.Generator().manual_seed(8))
+    q[:, 1] = limits[1, 1]
+    graph = CompensatorGraph(stored.model, stored.x)
+    base_model = ErrorModel(stored.robot)
+    target = nominal_tcp_pose(stored.robot, q)[:, :3, 3]
+    with torch.no_grad():
+        q_c, residual = graph.solve(q)
+    before = (base_model.tcp_position(q, stored.x) - target).norm(dim=-1)
+    after = (base_model.tcp_position(q_c, stored.x) - target).norm(dim=-1)
+    assert (after <= before + 1e-12).all()
+    kept = (q_c == q).all(-1)
+    assert kept.any() and (~kept).any()  # some commands cannot be improved there, most can
+    assert (residual[kept, 0] - before[kept]).abs().max() < 1e-12  # and the graph says so

@@ -34,8 +34,11 @@ so that ``p_nom(q_c) = p_t - dp(q_c)`` holds exactly (tested).
   corrects the position only partially.
 
 Every step is bounded (no joint moves more than ``max_step`` rad per step) and every iterate is
-kept inside the joint limits. The damping follows the error, ``lambda^2 = c |e|^2 + lambda_0^2``
-(Sugihara's rule): large while the error is large, vanishing as it does, so regular poses
+kept inside the joint limits. Where the steps end further from the target than the nominal
+command is (a target beyond a joint limit or beyond the real arm's reach), the graph returns the
+nominal command: compensation never makes a command worse, by the model's own account.
+
+The damping follows the error, ``lambda^2 = c |e|^2 + lambda_0^2`` (Sugihara's rule): large while the error is large, vanishing as it does, so regular poses
 converge quadratically. The residual's own Jacobian is left out of the step: a learned error of
 ~0.1 mm varies by ~1e-4 m/rad against ~1 m/rad for the arm, so it only slows the contraction by
 ~1e-4 per step. The solves run in float64 in every variant: a float32 graph casts ``J`` and ``e``
@@ -275,17 +278,24 @@ class CompensatorGraph(nn.Module):
         """
         target, pose, joint_frames, slope = self.models.nominal_and_calibrated(q_nominal)
         q = q_nominal
+        before = None
         for step in range(self.iterations):
             if step > 0:
                 pose, joint_frames, slope = self.models.calibrated_at(q)
             error = self.loaded_error(target, pose, joint_frames, q, wrench)  # (B, 6, 1)
+            if step == 0:
+                before = self.remaining(error.squeeze(-1))
             jac_t = command_jacobian_t(pose, joint_frames, slope)
             dq = self.step(jac_t, error, orientation=step < self.orientation_steps)
             q = torch.minimum(torch.maximum(q + dq, self.lower), self.upper)
         # what the command leaves, through the kinematics once more: where the iteration did not
         # converge (near a singularity) a prediction from the last step would say it did
         pose, joint_frames, _ = self.models.calibrated_at(q)
-        return q, self.remaining(self.loaded_error(target, pose, joint_frames, q, wrench).squeeze(-1))
+        after = self.remaining(self.loaded_error(target, pose, joint_frames, q, wrench).squeeze(-1))
+        # never worse than no compensation: where a joint limit or the arm's reach stopped the
+        # steps further from the target than the nominal command, the nominal command is returned
+        better = after[:, :1] <= before[:, :1]
+        return torch.where(better, q, q_nominal), torch.where(better, after, before)
 
     def loaded_error(self, target: torch.Tensor, pose: torch.Tensor, joint_frames: torch.Tensor, q: torch.Tensor,
                      wrench: torch.Tensor | None) -> torch.Tensor:
