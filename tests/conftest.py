@@ -13,6 +13,13 @@ from torchcal.kinematics.robot import default_robot_path, load_robot
 
 import os
 
+# Under pytest-xdist each worker gets its share of the cores: torch's default pool (every core) in
+# every worker, and in the command-line processes the tests start, oversubscribes them.
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    _share = max(1, (os.cpu_count() or 1) // int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1")))
+    os.environ.setdefault("OMP_NUM_THREADS", str(_share))
+    torch.set_num_threads(_share)
+
 # ../shared/data/real next to the checkout; TORCHCAL_REAL_DATA points elsewhere (e.g. from a worktree)
 REAL_DATA = Path(os.environ.get("TORCHCAL_REAL_DATA", Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real"))
 
