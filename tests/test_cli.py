@@ -27,6 +27,10 @@ def test_simulate_fit_evaluate(tmp_path, capsys):
     assert metrics["position_rms_mm"] < 1.2 * truth["noise_floor_rms_mm"]
     # new poses: no twins of the training poses, no leakage warning
     assert metrics["leakage"]["twin_share"] == 0.0 and not metrics["leakage"]["warning"]
+    # what the exported compensator leaves at the scored poses (position first: solved, orientation reported)
+    comp = metrics["compensator"]
+    assert comp["task"] == "position" and comp["solved_share"] > 0.9
+    assert 0.0 <= comp["orientation_deviation_median_rad"] <= comp["orientation_deviation_max_rad"] < 0.5
     selection = json.loads((model / "model_selection.json").read_text())
     assert selection["chosen"].startswith("geometry") and "configuration regions" in selection["protocol"]
     # scoring the training file itself: every pose is its own twin, and evaluate says so

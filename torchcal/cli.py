@@ -128,6 +128,11 @@ def _cmd_evaluate(args) -> int:
 
         report = LeakageReport(**metrics["leakage"])
         print(f"torchcal: {'warning: ' if report.warning else ''}{report.summary()}", file=sys.stderr)
+    comp = metrics["compensator"]
+    print(f"torchcal: the exported compensator ({comp['task']} first, {comp['iterations']} steps) solves "
+          f"{100 * comp['solved_share']:.1f} % of these poses to 1 um (worst {comp['unsolved_max_mm']:.2e} mm); "
+          f"tool orientation deviation median {comp['orientation_deviation_median_rad']:.1e} rad, "
+          f"max {comp['orientation_deviation_max_rad']:.1e} rad", file=sys.stderr)
     print(json.dumps({k: v for k, v in metrics.items() if k.startswith(("n_", "position_"))}, indent=2))
     return 0
 
