@@ -72,5 +72,6 @@ def write_run_report(folder: Path, robot: RobotModel, result: CalibrationResult,
     ]
     path = write_report(folder / "report.md", sections, f"torchcal report: {robot.name} ({summary['name']})")
     if console is not None:
-        console.log(f"report: {path}; final held-out RMS {final['position_rms_mm']:.4f} mm ({summary['final_stage']})")
+        # the model as chosen (structure and head), not the stage key: "geometric" also holds joint-space terms
+        console.log(f"report: {path}; final held-out RMS {final['position_rms_mm']:.4f} mm ({summary.get('model') or summary['final_stage']})")
     return path
