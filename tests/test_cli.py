@@ -102,3 +102,19 @@ def test_tracer_simulate_fit_evaluate_register(tmp_path):
         assert metrics["n_poses"] == 150
         assert metrics["position_rms_mm"] < 1.25 * truth["noise_floor_rms_mm"], (method, metrics["position_rms_mm"])
     assert main(["export", "--model", str(tmp_path / "joint"), "--out", str(tmp_path / "onnx")]) == 0
+
+
+def test_a_reader_that_closes_the_pipe_gets_no_traceback(tmp_path):
+    """`torchcal evaluate ... | head`: the reader stops early; no BrokenPipe traceback."""
+    import subprocess
+    import sys
+
+    case, model = tmp_path / "case", tmp_path / "model"
+    assert main(["simulate", "--out", str(case), "n_train=120", "n_test=50", "seed=3"]) == 0
+    assert main(["fit", "--robot", str(case / "robot.yaml"), "--data", str(case / "train.csv"), "--out", str(model),
+                 "residual=none", "gravity_compliance=none", "joint_harmonics=none"]) == 0
+    # `true` exits without reading: the pipe is closed long before evaluate writes its result
+    command = f"{sys.executable} -m torchcal.cli evaluate --model {model} --data {case / 'test.csv'} | true"
+    done = subprocess.run(["bash", "-o", "pipefail", "-c", command], capture_output=True, text=True, timeout=300)
+    assert "Traceback" not in done.stderr and "BrokenPipe" not in done.stderr, done.stderr[-2000:]
+    assert done.returncode == 0

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from pathlib import Path
 
@@ -260,6 +261,11 @@ def main(argv: list[str] | None = None) -> int:
     except FileNotFoundError as exc:
         print(f"torchcal: error: {exc.filename or exc}: file not found", file=sys.stderr)
         return 2
+    except BrokenPipeError:
+        # the reader closed the pipe (`torchcal evaluate ... | head`): it has what it wanted; stdout
+        # goes to devnull so that the interpreter's final flush raises nothing either
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
 
 
 if __name__ == "__main__":
