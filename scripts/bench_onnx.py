@@ -87,19 +87,16 @@ def convergence(stored, n_poses: int, task: str, max_iterations: int = 8) -> lis
     second-to-last joint within +-1 deg (the wrist singularity). Positions are scored on the
     poses whose position Jacobian keeps a singular value above 1 mm/rad (the solvable ones).
     """
-    import math
-
     import torch
 
     from torchcal.compensate.compensator import CompensatorGraph
-    from torchcal.compensate.export import SOLVABLE_ABOVE_M, singular_values
+    from torchcal.compensate.export import SOLVABLE_ABOVE_M, singular_values, wrist_singular_samples
     from torchcal.kinematics.error_model import ErrorModel
     from torchcal.kinematics.ik import pose_error
 
     gen = torch.Generator().manual_seed(5)
     uniform = stored.robot.sample_joints(n_poses, gen)
-    wrist = stored.robot.sample_joints(n_poses, gen)
-    wrist[:, -2] = (torch.rand(n_poses, generator=gen, dtype=torch.float64) * 2 - 1) * math.radians(1.0)
+    wrist = wrist_singular_samples(stored.robot, n_poses, gen)
     base_model = ErrorModel(stored.robot)
     rows = []
     for stratum, q in (("uniform", uniform), ("|q_(N-1)| < 1 deg", wrist)):

@@ -6,6 +6,7 @@ import pytest
 import torch
 
 from torchcal.compensate.compensator import CompensatorGraph, MonitorGraph
+from torchcal.compensate.export import wrist_singular_samples
 from torchcal.kinematics.error_model import ErrorModel
 from torchcal.kinematics.ik import pose_error
 from torchcal.kinematics.joint_jacobian import geometric_jacobian
@@ -87,9 +88,7 @@ def test_damping_bounds_the_step_at_a_wrist_singularity(stored):
 
 def near_wrist_singularity(stored, n, seed, degrees=1.0):
     """Random poses with |q5| < ``degrees`` whose position Jacobian keeps sigma_min > 1 mm/rad."""
-    g = torch.Generator().manual_seed(seed)
-    q = stored.robot.sample_joints(2 * n, g)
-    q[:, 4] = (torch.rand(2 * n, generator=g, dtype=torch.float64) * 2 - 1) * math.radians(degrees)
+    q = wrist_singular_samples(stored.robot, 2 * n, torch.Generator().manual_seed(seed), degrees)
     _, jac = geometric_jacobian(ErrorModel(stored.robot), q, stored.x)
     return q[torch.linalg.svdvals(jac[:, :3, :])[:, -1] > 1e-3][:n]
 

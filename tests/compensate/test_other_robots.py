@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from torchcal.compensate.compensator import CompensatorGraph
-from torchcal.compensate.export import SOLVABLE_ABOVE_M, singular_values
+from torchcal.compensate.export import SOLVABLE_ABOVE_M, singular_values, wrist_singular_samples
 from torchcal.kinematics.error_model import ErrorModel
 from torchcal.kinematics.ik import pose_error
 from torchcal.kinematics.robot import default_robot_path
@@ -25,9 +25,8 @@ def _model(robot: str):
 @pytest.mark.parametrize("robot", ["twin-ur10", "twin-iiwa7"])
 def test_position_is_solved_near_the_wrist_singularity(robot):
     twin, x = _model(robot)
-    g = torch.Generator().manual_seed(0)
-    q = twin.robot.sample_joints(600, g, margin=math.radians(5))
-    q[:, -2] = (torch.rand(600, generator=g, dtype=torch.float64) * 2 - 1) * math.radians(1.0)  # wrist axes nearly aligned
+    # the wrist axes nearly aligned (second-to-last joint within 1 deg), 5 deg inside the limits
+    q = wrist_singular_samples(twin.robot, 600, torch.Generator().manual_seed(0), margin=math.radians(5))
     q = q[singular_values(twin.robot, q)[0] > SOLVABLE_ABOVE_M]
     base = ErrorModel(twin.robot)
     target = base.tcp_pose(q, base.nominal_vector())

@@ -2,8 +2,8 @@
 
 import torch
 
-from torchcal.compensate.steps import bounded, inverse3, pose_step, position_first_step
-from torchcal.compensate.linalg import gauss_jordan
+from torchcal.compensate.linalg import gauss_jordan, inverse3
+from torchcal.compensate.steps import bounded, pose_step, position_first_step
 
 F64 = {"dtype": torch.float64}
 

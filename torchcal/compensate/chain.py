@@ -18,6 +18,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+from torchcal.compensate.linalg import cross
 from torchcal.kinematics import transforms as tf
 from torchcal.kinematics.mdh import link_transform
 
@@ -125,7 +126,4 @@ def geometric_jacobian_t(tcp: torch.Tensor, frames: torch.Tensor) -> torch.Tenso
     """
     axis = frames[..., :3, 2]
     lever = tcp[..., None, :3, 3] - frames[..., :3, 3]
-    # cross product by index permutations (no ONNX operator for it)
-    i1, i2 = [1, 2, 0], [2, 0, 1]
-    linear = axis[..., i1] * lever[..., i2] - axis[..., i2] * lever[..., i1]
-    return torch.cat([linear, axis], -1)
+    return torch.cat([cross(axis, lever), axis], -1)

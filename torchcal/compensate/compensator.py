@@ -66,8 +66,8 @@ from torch import nn
 from torchcal.compensate.chain import ChainGraph, geometric_jacobian_t
 from torchcal.compensate.deflection import DeflectionGraph
 from torchcal.compensate.joint_error_graph import JointErrorGraph
-from torchcal.compensate.linalg import gauss_jordan, ort_inverse, ort_solve
-from torchcal.compensate.steps import inverse3, pose_step, position_first_step
+from torchcal.compensate.linalg import gauss_jordan, inverse3, ort_inverse, ort_solve
+from torchcal.compensate.steps import pose_step, position_first_step
 from torchcal.identify.joint_errors import JointSpaceErrors
 from torchcal.kinematics.error_model import ErrorModel
 from torchcal.kinematics.robot import RobotModel
@@ -273,18 +273,17 @@ class CompensatorGraph(nn.Module):
     def solve(self, q_nominal: torch.Tensor, wrench: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """The fixed number of steps from ``q_nominal`` (``wrench``: loaded graphs).
 
-        Returns ``q_corrected`` ``(B, N)`` rad and the ``residual`` ``(B, 2)``: the predicted
-        remaining position error (m) and orientation deviation (rad) of the model at ``q_corrected``.
+        Returns ``q_corrected`` ``(B, N)`` rad and the ``residual`` ``(B, 2)``: the remaining
+        position error (m) and orientation deviation (rad) of the model at ``q_corrected``.
         """
         target, pose, joint_frames, slope = self.models.nominal_and_calibrated(q_nominal)
         q = q_nominal
-        before = None
+        error = self.loaded_error(target, pose, joint_frames, q, wrench)  # (B, 6, 1)
+        before = self.remaining(error.squeeze(-1))
         for step in range(self.iterations):
             if step > 0:
                 pose, joint_frames, slope = self.models.calibrated_at(q)
-            error = self.loaded_error(target, pose, joint_frames, q, wrench)  # (B, 6, 1)
-            if step == 0:
-                before = self.remaining(error.squeeze(-1))
+                error = self.loaded_error(target, pose, joint_frames, q, wrench)
             jac_t = command_jacobian_t(pose, joint_frames, slope)
             dq = self.step(jac_t, error, orientation=step < self.orientation_steps)
             q = torch.minimum(torch.maximum(q + dq, self.lower), self.upper)
@@ -337,8 +336,6 @@ class CompensatorWithResidual(nn.Module):
     def __init__(self, graph: CompensatorGraph) -> None:
         super().__init__()
         self.graph = graph
-        self.solver = graph.solver
-        self.task = graph.task
 
     def forward(self, q_nominal: torch.Tensor, wrench: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         return self.graph.solve(q_nominal, wrench)

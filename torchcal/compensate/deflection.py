@@ -7,7 +7,8 @@ where the virtual springs of :mod:`torchcal.stiffness.vjm` sit), plus the expect
 the spring of joint ``i`` deforms by ``theta_i = C_i [R_i^T f; R_i^T (l_i x f + m)]`` (its own
 frame) and moves the TCP by ``dp_i = R_i t_i + (R_i r_i) x l_i``, ``dphi_i = R_i r_i``; the sums
 over joints are the deflection ``J C J^T W`` of :func:`torchcal.stiffness.vjm.deflection` (equal
-to rounding, tested). Cross products are written with index permutations (no ONNX operator).
+to rounding, tested). Cross products are :func:`torchcal.compensate.linalg.cross` (index
+permutations: ONNX has no cross operator).
 
 The loaded TCP orientation is ``exp([dphi]x) R`` with the exponential to second order,
 ``I + K + K^2 / 2``: elastic rotations are below ~1e-2 rad, where the third-order term
@@ -19,13 +20,9 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+from torchcal.compensate.linalg import cross
+
 WRENCH_FRAMES = ("tool", "base")
-
-
-def cross(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """``a x b`` over the last axis, by index permutations (exportable)."""
-    i1, i2 = [1, 2, 0], [2, 0, 1]
-    return a[..., i1] * b[..., i2] - a[..., i2] * b[..., i1]
 
 
 def skew(w: torch.Tensor) -> torch.Tensor:

@@ -10,6 +10,10 @@ compensator are symmetric positive definite (``J J^T + lambda^2 I``), which leav
   matrix size and unrolled at export into ``7 n`` standard elementwise nodes, for runtimes without
   the contrib domain (``torchcal export --portable``). It is stable on SPD matrices: their diagonal
   pivots stay positive through the elimination (each one is a ratio of leading principal minors).
+
+The position-first steps solve 3x3 systems: :func:`ort_inverse` again, or the closed-form
+adjugate :func:`inverse3` (built on :func:`cross`, which the Jacobian of
+:mod:`torchcal.compensate.chain` uses too).
 """
 
 from __future__ import annotations
@@ -72,3 +76,21 @@ def spd_inverse(a: torch.Tensor) -> torch.Tensor:
     """Inverse of SPD matrices ``(..., n, n)`` by :func:`gauss_jordan`."""
     eye = torch.eye(a.shape[-1], dtype=a.dtype, device=a.device)
     return gauss_jordan(a, eye.expand_as(a))
+
+
+def cross(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """``a x b`` along the last axis (length 3), by index permutations (ONNX has no cross operator)."""
+    i1, i2 = [1, 2, 0], [2, 0, 1]
+    return a[..., i1] * b[..., i2] - a[..., i2] * b[..., i1]
+
+
+def inverse3(a: torch.Tensor) -> torch.Tensor:
+    """Inverse of invertible ``(..., 3, 3)`` matrices by the adjugate.
+
+    With columns ``c0, c1, c2`` of ``a``, the rows of ``a^-1`` are ``c1 x c2``, ``c2 x c0`` and
+    ``c0 x c1`` divided by ``det a = c0 . (c1 x c2)``.
+    """
+    c0, c1, c2 = a[..., :, 0], a[..., :, 1], a[..., :, 2]
+    r0, r1, r2 = cross(c1, c2), cross(c2, c0), cross(c0, c1)
+    det = (c0 * r0).sum(-1, keepdim=True).unsqueeze(-1)
+    return torch.stack([r0, r1, r2], -2) / det

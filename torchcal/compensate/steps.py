@@ -19,7 +19,7 @@ They run in float64 whatever the graph's dtype (the caller casts; see
       dq_o = Jo'^T (Jo' Jo'^T + lo^2 I)^-1 (e_o - Jo dq_p)
 
   Two 3x3 solves: onnxruntime's one-node ``Inverse`` by default, or the closed-form adjugate
-  (:func:`inverse3`, standard operators only) for other runtimes. The orientation damping
+  (:func:`~torchcal.compensate.linalg.inverse3`, standard operators only) for other runtimes. The orientation damping
   ``lo`` has a floor (``orientation_damping``): near the wrist singularity ``Jo'`` loses a
   direction, and without a floor holding the orientation would swing joints 4 and 6 by tenths
   of a radian for milliradians of orientation; with it the swing is bounded and the orientation
@@ -37,23 +37,7 @@ from __future__ import annotations
 
 import torch
 
-
-def cross(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """``a x b`` along the last axis (length 3), by index permutations (ONNX has no cross operator)."""
-    i1, i2 = [1, 2, 0], [2, 0, 1]
-    return a[..., i1] * b[..., i2] - a[..., i2] * b[..., i1]
-
-
-def inverse3(a: torch.Tensor) -> torch.Tensor:
-    """Inverse of invertible ``(..., 3, 3)`` matrices by the adjugate.
-
-    With columns ``c0, c1, c2`` of ``a``, the rows of ``a^-1`` are ``c1 x c2``, ``c2 x c0`` and
-    ``c0 x c1`` divided by ``det a = c0 . (c1 x c2)``.
-    """
-    c0, c1, c2 = a[..., :, 0], a[..., :, 1], a[..., :, 2]
-    r0, r1, r2 = cross(c1, c2), cross(c2, c0), cross(c0, c1)
-    det = (c0 * r0).sum(-1, keepdim=True).unsqueeze(-1)
-    return torch.stack([r0, r1, r2], -2) / det
+from torchcal.compensate.linalg import inverse3
 
 
 def bounded(dq: torch.Tensor, max_step: torch.Tensor) -> torch.Tensor:
@@ -90,7 +74,8 @@ def position_first_step(jac_t: torch.Tensor, error: torch.Tensor, damping_gain: 
             wrist singularity large wrist swings buy little orientation and, being nonlinear,
             can turn the tool the wrong way).
         orientation: ``False`` for a position-only step (structural: fixed at export).
-        inverse: the 3x3 inverse (:func:`inverse3`, or :func:`~torchcal.compensate.linalg.ort_inverse`).
+        inverse: the 3x3 inverse (:func:`~torchcal.compensate.linalg.inverse3`, or
+            :func:`~torchcal.compensate.linalg.ort_inverse`).
     """
     jp, jo = jac_t[..., :3], jac_t[..., 3:]
     ep, eo = error[:, :3], error[:, 3:]
