@@ -36,9 +36,9 @@ def run_twin(robot: str, folder: Path, task: str) -> dict:
     """``torchcal run`` on one twin robot; returns the numbers of the table."""
     from rich.console import Console
 
+    from torchcal.app.pipeline import run
     from torchcal.config import compose_run_config
     from torchcal.kinematics.robot import default_robot_path
-    from torchcal.pipeline import run
 
     path = default_robot_path().with_name(f"{robot}.yaml")
     config, _ = compose_run_config([f"twin.robot={path}", f"name={robot}", f"out={folder / 'runs'}",
@@ -104,7 +104,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--robots", nargs="*", default=list(ROBOTS))
     args = parser.parse_args(argv)
 
-    from torchcal.io import atomic_write_json, atomic_write_text
+    from torchcal.core.io import atomic_write_json, atomic_write_text
 
     rows = []
     with tempfile.TemporaryDirectory() as tmp:

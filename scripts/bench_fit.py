@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from torchcal.io import atomic_write_json, atomic_write_text
+from torchcal.core.io import atomic_write_json, atomic_write_text
 
 CASES = {
     "geometry alone": ["residual=none", "gravity_compliance=none", "joint_harmonics=none"],

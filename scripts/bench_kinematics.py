@@ -344,9 +344,10 @@ def main() -> None:
     if args.repeats < 5:
         parser.error("--repeats must be at least 5")
 
+    from importlib.metadata import version
+
     import pinocchio
     import pytorch_kinematics  # noqa: F401
-    from importlib.metadata import version
 
     load_before = " ".join(f"{v:.2f}" for v in os.getloadavg())
     passes = [run(args.batches, args.repeats, t, memory=not args.no_memory and i == 0) for i, t in enumerate(args.threads)]

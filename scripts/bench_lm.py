@@ -12,7 +12,6 @@ docs/bench_lm.json and docs/bench_lm.md.
 from __future__ import annotations
 
 import argparse
-import json
 import platform
 import statistics
 import time
@@ -22,12 +21,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from torchcal.errors import IdentifiabilityWarning
-from torchcal.identify.calibrate import calibrate, register_instrument
+from torchcal.core.errors import IdentifiabilityWarning
+from torchcal.core.io import atomic_write_json, atomic_write_text
+from torchcal.identify.calibrate import register_instrument
 from torchcal.identify.identifiability import analyze
 from torchcal.identify.lm import LevenbergMarquardt
 from torchcal.identify.problem import CalibrationProblem
-from torchcal.io import atomic_write_json, atomic_write_text
 from torchcal.kinematics.error_model import ErrorModel
 from torchcal.sim.twin import Twin, TwinConfig
 

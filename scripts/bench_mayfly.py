@@ -15,7 +15,7 @@ from pathlib import Path
 
 import torch
 
-from torchcal.io import atomic_write_json, atomic_write_text
+from torchcal.core.io import atomic_write_json, atomic_write_text
 from torchcal.optimize import Mayfly, RandomSearch
 
 FUNCTIONS = {
@@ -37,8 +37,8 @@ def mma_elm_timing(repeats: int = 3) -> dict:
     from torchcal.identify.calibrate import calibrate
     from torchcal.residual import ELM, MayflyELM, rms
     from torchcal.residual.features import JointFeatures
-    from torchcal.residual_stage import residual_targets_mm, split
     from torchcal.sim.twin import Twin, TwinConfig
+    from torchcal.stages.residual import residual_targets_mm, split
 
     twin = Twin.create(TwinConfig(gravity=True, gear=True))
     gen = torch.Generator().manual_seed(1)

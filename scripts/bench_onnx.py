@@ -71,8 +71,9 @@ def _session(path: Path, threads: int | None):
 def _model_dir(tmp: Path) -> Path:
     import torch
 
-    from torchcal.pipeline import FitConfig, fit, save_fit
+    from torchcal.config.schema import FitConfig
     from torchcal.sim.twin import Twin, TwinConfig
+    from torchcal.stages.geometry import fit, save_fit
 
     twin = Twin.create(TwinConfig(seed=0))
     train = twin.sample(300, torch.Generator().manual_seed(1))
@@ -199,8 +200,8 @@ def main(argv: list[str] | None = None) -> int:
     from rich.console import Console
 
     from torchcal.compensate.export import GRAPHS, build_graphs, export_model
-    from torchcal.io import atomic_write_json, atomic_write_text
-    from torchcal.model_store import load_model
+    from torchcal.core.io import atomic_write_json, atomic_write_text
+    from torchcal.stages.store import load_model
 
     console = Console()
     load_before = os.getloadavg()

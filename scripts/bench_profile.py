@@ -23,11 +23,11 @@ from pathlib import Path
 
 import torch
 
-from torchcal.io import atomic_write_json, atomic_write_text
-from torchcal.measure.profile_closed_form import closed_form
-from torchcal.measure.profile_model import rotation_angle_deg
-from torchcal.measure.profile_refine import refine
-from torchcal.sim.profile_twin import ProfileTwin, ProfileTwinConfig
+from torchcal.core.io import atomic_write_json, atomic_write_text
+from torchcal.instruments.profile.closed_form import closed_form
+from torchcal.instruments.profile.model import rotation_angle_deg
+from torchcal.instruments.profile.refine import refine
+from torchcal.instruments.profile.twin import ProfileTwin, ProfileTwinConfig
 
 DOCS = Path(__file__).resolve().parents[1] / "docs"
 
@@ -159,9 +159,9 @@ data) instead of the nominal robot; `joint_unit=rad`, `length_unit=m` read files
 `torchcal evaluate --model DIR --data profile.csv` reports the RMS point-to-plane distance of the
 stored extrinsics (each placement's plane re-fitted, since placements belong to a file).
 
-Code: `torchcal/data/profile.py` (loader), `torchcal/measure/profile_model.py` (geometry),
+Code: `torchcal/instruments/profile/data.py` (loader), `torchcal/instruments/profile/model.py` (geometry),
 `profile_closed_form.py`, `profile_refine.py`, `profile_search.py`, `profile_plan.py`,
-`profile_commands.py` (fit / evaluate), `torchcal/sim/profile_twin.py`
+`profile_commands.py` (fit / evaluate), `torchcal/instruments/profile/twin.py`
 (`torchcal simulate instrument=profile --out DIR`).
 
 ## Model
@@ -224,7 +224,7 @@ such data can allow.
 
 ## Planning the motions
 
-`torchcal/measure/profile_plan.py::plan_profile_scans` turns placements, a design mounting and
+`torchcal/instruments/profile/plan.py::plan_profile_scans` turns placements, a design mounting and
 the sensor window (`u` range, `w` range) into joint commands:
 
 * **Plane orientations**: >= 3 placements, each seen obliquely so that the normals seen from the

@@ -25,11 +25,11 @@ from pathlib import Path
 import torch
 from rich.progress import Progress
 
-from torchcal.data.stiffness import StiffnessData
-from torchcal.errors import IdentifiabilityWarning
+from torchcal.core.errors import IdentifiabilityWarning
+from torchcal.instruments.stiffness.twin import StiffnessTwin, StiffnessTwinConfig
 from torchcal.kinematics import transforms as tf
-from torchcal.sim.stiffness_twin import StiffnessTwin, StiffnessTwinConfig
 from torchcal.stiffness.compensate import DeflectionCompensator
+from torchcal.stiffness.experiment import StiffnessData
 from torchcal.stiffness.identify import deflection_metrics, identify_stiffness
 from torchcal.stiffness.vjm import deflection
 
@@ -148,7 +148,7 @@ def _markdown(result: dict) -> str:
         "  direction are named (`k_j6_rz`, ...) in an `IdentifiabilityWarning` and kept rigid. Default:",
         "  one rotational stiffness per joint about its axis (`classic`); `full` fits the observable part",
         "  of the 6-D diagonal.",
-        "- **Data** (`torchcal.data.stiffness`): `q1..qN, fx..tz, dx,dy,dz`, optional `drx,dry,drz` and",
+        "- **Data** (`torchcal.instruments.stiffness.data`): `q1..qN, fx..tz, dx,dy,dz`, optional `drx,dry,drz` and",
         "  `x,y,z` (unloaded TCP, from which the instrument frame is registered by Kabsch).",
         "- **Deformed kinematics** (`torchcal.stiffness.deformed`): the chain with every spring deflected",
         "  and, for a fixed deformation, its MDH(+beta) table re-derived by the axis method (Hayati",

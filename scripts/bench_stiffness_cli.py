@@ -22,9 +22,9 @@ import torch
 
 from torchcal.cli import main
 from torchcal.compensate.runtime import CompensatorRuntime
-from torchcal.io import atomic_write_text
-from torchcal.sim.stiffness_case import StiffnessCaseConfig
-from torchcal.sim.stiffness_twin import StiffnessTwin
+from torchcal.core.io import atomic_write_text
+from torchcal.instruments.stiffness.twin import StiffnessTwin
+from torchcal.instruments.stiffness.twin_case import StiffnessCaseConfig
 
 
 def one_seed(seed: int, root: Path, plan: str = "optimal") -> dict:

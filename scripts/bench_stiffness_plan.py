@@ -20,8 +20,8 @@ from pathlib import Path
 from bench_stiffness_cli import one_seed
 
 from torchcal.cli import main
-from torchcal.io import atomic_write_text
-from torchcal.sim.stiffness_twin import MAIN_AXIS_RANGE_NM_PER_RAD, WRIST_RANGE_NM_PER_RAD
+from torchcal.core.io import atomic_write_text
+from torchcal.instruments.stiffness.twin import MAIN_AXIS_RANGE_NM_PER_RAD, WRIST_RANGE_NM_PER_RAD
 
 DOCS = Path(__file__).resolve().parents[1] / "docs"
 BOUND = 0.10

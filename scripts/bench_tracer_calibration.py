@@ -25,8 +25,6 @@ docs/tracer_calibration.json and docs/tracer_calibration.md.
 from __future__ import annotations
 
 import argparse
-import json
-import math
 import platform
 import statistics
 import time
@@ -36,18 +34,18 @@ from pathlib import Path
 
 import torch
 
+from torchcal.core.errors import IdentifiabilityWarning
+from torchcal.core.io import atomic_write_json, atomic_write_text
 from torchcal.data.measurements import Measurements
-from torchcal.data.tracer import TracerData
-from torchcal.errors import IdentifiabilityWarning
 from torchcal.identify.calibrate import calibrate
-from torchcal.identify.tracer_joint import calibrate_joint
-from torchcal.identify.tracer_two_step import calibrate_two_step
+from torchcal.instruments.tracer.data import TracerData
+from torchcal.instruments.tracer.joint_fit import calibrate_joint
+from torchcal.instruments.tracer.multilateration import predict_covariance
+from torchcal.instruments.tracer.twin_case import TracerTwinConfig, simulate_tracer_case
+from torchcal.instruments.tracer.two_step import calibrate_two_step
 from torchcal.kinematics import transforms as tf
 from torchcal.kinematics.mdh import link_transform
-from torchcal.io import atomic_write_json, atomic_write_text
-from torchcal.measure.tracer import predict_covariance
-from torchcal.pipeline import registered_errors
-from torchcal.sim.tracer_case import TracerTwinConfig, simulate_tracer_case
+from torchcal.stages.geometry import registered_errors
 
 DOCS = Path(__file__).resolve().parents[1] / "docs"
 

@@ -18,15 +18,15 @@ from pathlib import Path
 import torch
 from rich.console import Console
 
+from torchcal.core.io import atomic_write_json, atomic_write_text
+from torchcal.core.metrics import position_metrics
 from torchcal.identify.calibrate import calibrate
-from torchcal.io import atomic_write_json, atomic_write_text
-from torchcal.metrics import position_metrics
-from torchcal.pipeline import nominal_errors
 from torchcal.residual import ELM, MayflyELM, MLPHead
 from torchcal.residual.features import JointFeatures
 from torchcal.residual.selection import fit_before_gate, refit_on_all
-from torchcal.residual_stage import residual_targets_mm, split
 from torchcal.sim.twin import Twin, TwinConfig
+from torchcal.stages.geometry import nominal_errors
+from torchcal.stages.residual import residual_targets_mm, split
 
 
 def one_seed(seed: int, with_mlp: bool = True) -> dict[str, dict]:

@@ -1,7 +1,7 @@
 """Reproduce the real-robot validation table: ``python scripts/validate_real.py --data-root ../shared/data/real``.
 
 Reads the public measurements in place (nothing is copied), runs every protocol of
-:mod:`torchcal.validation` through the fit/evaluate pipeline, and writes ``docs/validation.json``,
+:mod:`torchcal.app.validation` through the fit/evaluate pipeline, and writes ``docs/validation.json``,
 the Markdown table (``docs/validation_table.md``, and between the table markers of
 ``docs/validation.md``) and one error histogram per protocol under ``docs/img/``.
 """
@@ -15,8 +15,8 @@ from pathlib import Path
 
 from rich.console import Console
 
-from torchcal.io import atomic_write_bytes, atomic_write_json, atomic_write_text
-from torchcal.validation import PROTOCOLS, STAGES, run_protocol
+from torchcal.app.validation import PROTOCOLS, STAGES, run_protocol
+from torchcal.core.io import atomic_write_bytes, atomic_write_json, atomic_write_text
 
 START, END = "<!-- validation-table:start -->", "<!-- validation-table:end -->"
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import os
 import warnings
 from pathlib import Path
 
@@ -10,8 +11,6 @@ import pytest
 import torch
 
 from torchcal.kinematics.robot import default_robot_path, load_robot
-
-import os
 
 # Under pytest-xdist each worker gets its share of the cores: torch's default pool (every core) in
 # every worker, and in the command-line processes the tests start, oversubscribes them.
@@ -36,7 +35,7 @@ def generator():
 
 @pytest.fixture(autouse=True)
 def _quiet_identifiability():
-    from torchcal.errors import IdentifiabilityWarning
+    from torchcal.core.errors import IdentifiabilityWarning
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", IdentifiabilityWarning)

@@ -7,7 +7,7 @@ heads), ``compensate`` (the composed compensator and its ONNX export), ``report`
 ``studies``. Internally everything is SI (m, rad) and float64 for identification.
 """
 
-from torchcal.errors import DataError, ModelError, TorchcalError
+from torchcal.core.errors import DataError, ModelError, TorchcalError
 
 __version__ = "0.1.0"
 

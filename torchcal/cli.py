@@ -3,7 +3,7 @@
 Options follow the command-line contract of the design; ``key=value`` overrides set fields of
 the command's configuration (dotted for nested ones, e.g. ``twin.n_train=120``). Heavy imports
 happen inside each command so that ``torchcal --help`` starts fast. Every
-:class:`~torchcal.errors.TorchcalError` becomes one line on stderr and exit status 2.
+:class:`~torchcal.core.errors.TorchcalError` becomes one line on stderr and exit status 2.
 """
 
 from __future__ import annotations
@@ -12,129 +12,74 @@ import argparse
 import json
 import os
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 
-def _apply_overrides(config, overrides: list[str]):
-    """Merge ``key=value`` strings into a dataclass config, rejecting unknown keys."""
-    from omegaconf import OmegaConf
-    from omegaconf.errors import OmegaConfBaseException
+def _split_instrument(overrides: list[str], default: str = "tracker") -> tuple[str, list[str]]:
+    """Take ``instrument=<name>`` out of a list of ``key=value`` overrides."""
+    instrument, rest = default, []
+    for item in overrides:
+        key, _, value = item.partition("=")
+        if key.strip() == "instrument":
+            instrument = value.strip()
+        else:
+            rest.append(item)
+    return instrument, rest
 
-    from torchcal.errors import TorchcalError
 
-    bad = [o for o in overrides if "=" not in o]
-    if bad:
-        raise TorchcalError(f"override '{bad[0]}' is not of the form key=value")
-    base = OmegaConf.structured(config)
-    try:
-        merged = OmegaConf.merge(base, OmegaConf.from_dotlist(overrides))
-    except OmegaConfBaseException as exc:
-        msg = str(exc).splitlines()[0]
-        raise TorchcalError(f"invalid override: {msg}") from None
-    return OmegaConf.to_object(merged)
+def _progress(status) -> Callable[[str], None]:
+    """A progress callback that shows a step's text on a rich status spinner."""
+    return lambda text: status.update(text)
 
 
 def _cmd_simulate(args) -> int:
-    from torchcal.sim.instruments import split_instrument, twin_writer
+    from torchcal.core.overrides import apply_overrides
+    from torchcal.instruments.registry import get
 
-    instrument, overrides = split_instrument(args.overrides)
-    writer = twin_writer(instrument)
-    config = _apply_overrides(writer.config_factory(), overrides)
-    paths = writer.write(Path(args.out), config)
-    for name, path in paths.items():
-        print(f"{name}: {path}")
+    name, overrides = _split_instrument(args.overrides)
+    twin = get(name).twin()
+    config = apply_overrides(twin.config_factory(), overrides)
+    paths = twin.write(Path(args.out), config)
+    for key, path in paths.items():
+        print(f"{key}: {path}")
     return 0
 
 
 def _cmd_fit(args) -> int:
-    from torchcal.data.kinds import measurement_kind
-
-    kind = measurement_kind(args.data)
-    if kind != "tracker":
-        from torchcal.commands_by_kind import handlers_for
-
-        folder = handlers_for(kind, "fit").fit(
-            args.robot, args.data, args.out, args.overrides, base_link=args.base_link, end_link=args.end_link
-        )
-        print(f"model: {folder}")
-        return 0
     from rich.console import Console
 
-    from torchcal.config.compose import compose_fit_config
-    from torchcal.data.measurements import load_measurements
-    from torchcal.kinematics.robot import load_robot
-    from torchcal.metrics import position_metrics
-    from torchcal.pipeline import (
-        describe_structure,
-        fit_with_selection,
-        nominal_errors,
-        save_fit,
-        with_tool,
-    )
+    from torchcal.instruments.base import FitRequest
+    from torchcal.instruments.registry import recognise
 
-    config = compose_fit_config(args.overrides)
+    instrument = recognise(args.data)
     console = Console(stderr=True)
-    robot = with_tool(load_robot(args.robot, base_link=args.base_link, end_link=args.end_link), config)
-    data = load_measurements(args.data, robot, joint_unit=config.joint_unit, length_unit=config.length_unit)
-    with console.status(f"identifying {robot.name} from {len(data)} poses") as status:
-        result, structure = fit_with_selection(robot, data, config, progress=status.update)
-    before = position_metrics(nominal_errors(robot, data))
-    from torchcal.identify.joint_fit import predicted_positions
-
-    after = position_metrics(data.position - predicted_positions(result, data.q))
-    folder = save_fit(Path(args.out), robot, data, result, {"fit_metrics": {"nominal_registered": before, "geometric": after}})
-    from torchcal.config import save_resolved_config
-
-    save_resolved_config(folder / "config.yaml", config)
-    console.print(result.identifiability.summary())
-    console.print(
-        f"training RMS {before['position_rms_mm']:.4f} mm (nominal, registered) -> {after['position_rms_mm']:.4f} mm "
-        f"({describe_structure(result)}, on the poses it was fitted to)"
-    )
-    if config.residual != "none":
-        from torchcal.residual_stage import fit_residual_stage
-
-        with console.status("cross-validating residual heads") as status:
-            summary = fit_residual_stage(folder, data, config, structure=structure)
-        console.print(summary["table"])
-        console.print(summary["decision"])
-    elif structure is not None:
-        from torchcal.residual_stage import write_selection
-
-        write_selection(folder, structure.comparison, "residual=none: no head considered")
-        console.print(structure.comparison.format_table())
-    print(f"model: {folder}")
+    with console.status(f"fitting {instrument.name} data") as status:
+        outcome = instrument.fit(FitRequest(
+            robot=Path(args.robot), data=Path(args.data), out=Path(args.out), overrides=list(args.overrides),
+            base_link=args.base_link, end_link=args.end_link, progress=_progress(status)))
+    for line in outcome.lines:
+        console.print(line, markup=False, highlight=False)
+    print(f"model: {outcome.folder}")
     return 0
 
 
 def _cmd_evaluate(args) -> int:
-    from torchcal.data.kinds import measurement_kind
-    from torchcal.io import atomic_write_json
-    from torchcal.pipeline import FitConfig, evaluate
+    from torchcal.core.io import atomic_write_json
+    from torchcal.instruments.base import EvaluateRequest
+    from torchcal.instruments.registry import recognise
 
-    kind = measurement_kind(args.data)
-    if kind != "tracker":
-        from torchcal.commands_by_kind import handlers_for
-
-        metrics = handlers_for(kind, "evaluate").evaluate(args.model, args.data, args.overrides, register=args.register)
-        if args.json:
-            atomic_write_json(args.json, metrics)
-        print(json.dumps(metrics, indent=2, default=str))
-        return 0
-    metrics = evaluate(args.model, args.data, register=args.register, config=_apply_overrides(FitConfig(), args.overrides))
+    instrument = recognise(args.data)
+    outcome = instrument.evaluate(EvaluateRequest(
+        model=Path(args.model), data=Path(args.data), overrides=list(args.overrides), register=args.register))
     if args.json:
-        atomic_write_json(args.json, metrics)
-    if "leakage" in metrics:
-        from torchcal.model_selection.leakage import LeakageReport
-
-        report = LeakageReport(**metrics["leakage"])
-        print(f"torchcal: {'warning: ' if report.warning else ''}{report.summary()}", file=sys.stderr)
-    comp = metrics["compensator"]
-    print(f"torchcal: the exported compensator ({comp['task']} first, {comp['iterations']} steps) solves "
-          f"{100 * comp['solved_share']:.1f} % of these poses to 1 um (worst {comp['unsolved_max_mm']:.2e} mm); "
-          f"tool orientation deviation median {comp['orientation_deviation_median_rad']:.1e} rad, "
-          f"max {comp['orientation_deviation_max_rad']:.1e} rad", file=sys.stderr)
-    print(json.dumps({k: v for k, v in metrics.items() if k.startswith(("n_", "position_"))}, indent=2))
+        atomic_write_json(args.json, outcome.metrics)
+    for line in outcome.lines:
+        print(f"torchcal: {line}", file=sys.stderr)
+    shown = outcome.metrics
+    if instrument.name == "tracker":  # the point figures; leakage and compensator are in the lines above
+        shown = {k: v for k, v in shown.items() if k.startswith(("n_", "position_"))}
+    print(json.dumps(shown, indent=2, default=str))
     return 0
 
 
@@ -156,8 +101,8 @@ def _cmd_export(args) -> int:
 
 
 def _cmd_run(args) -> int:
+    from torchcal.app.pipeline import run
     from torchcal.config import compose_run_config
-    from torchcal.pipeline import run
 
     config, _ = compose_run_config(args.overrides)
     summary = run(config)
@@ -243,7 +188,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     import warnings
 
-    from torchcal.errors import TorchcalError
+    from torchcal.core.errors import TorchcalError
 
     parser = build_parser()
     args, extra = parser.parse_known_args(argv)

@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
-import torch
 import pytest
+import torch
 
-from torchcal.pipeline import FitConfig, fit, save_fit
+from torchcal.config.schema import FitConfig
 from torchcal.sim.twin import Twin, TwinConfig
+from torchcal.stages.geometry import fit, save_fit
 
 
 @pytest.fixture(scope="session")

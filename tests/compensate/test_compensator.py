@@ -4,15 +4,14 @@ import math
 
 import pytest
 import torch
+from known_cases import KnownResidual, nominal_tcp_pose, residual_value
 
 from torchcal.compensate.compensator import CompensatorGraph, MonitorGraph
 from torchcal.compensate.export import wrist_singular_samples
 from torchcal.kinematics.error_model import ErrorModel
 from torchcal.kinematics.ik import pose_error
 from torchcal.kinematics.joint_jacobian import geometric_jacobian
-from torchcal.model_store import load_model
-
-from known_cases import KnownResidual, nominal_tcp_pose, residual_value
+from torchcal.stages.store import load_model
 
 
 def regular_poses(stored, n, seed, min_singular=0.05):

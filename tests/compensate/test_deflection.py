@@ -1,20 +1,23 @@
 """The stiffness stage of the graphs against the VJM of torchcal.stiffness (torch side only)."""
 
-import math
 
 import pytest
 import torch
+from known_cases import KnownResidual, nominal_tcp_pose, residual_value
 
 from torchcal.compensate.chain import ChainGraph
-from torchcal.compensate.compensator import CompensatorGraph, LoadedCompensatorGraph, LoadedMonitorGraph, MonitorGraph
+from torchcal.compensate.compensator import (
+    CompensatorGraph,
+    LoadedCompensatorGraph,
+    LoadedMonitorGraph,
+    MonitorGraph,
+)
 from torchcal.compensate.deflection import DeflectionGraph
 from torchcal.kinematics import transforms as tf
 from torchcal.kinematics.error_model import ErrorModel
 from torchcal.kinematics.joint_jacobian import geometric_jacobian
-from torchcal.model_store import load_model
+from torchcal.stages.store import load_model
 from torchcal.stiffness.vjm import classic_compliance, deflection
-
-from known_cases import KnownResidual, nominal_tcp_pose, residual_value
 
 
 @pytest.fixture(scope="module")

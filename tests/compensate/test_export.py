@@ -4,17 +4,15 @@ import hashlib
 import json
 import math
 
-import numpy as np
 import onnx
 import onnxruntime as ort
 import pytest
 import torch
 
 from torchcal.compensate.export import GRAPHS, OPSET, build_graphs, export_and_check
-from torchcal.data.measurements import Measurements
 from torchcal.kinematics.error_model import ErrorModel
 from torchcal.kinematics.joint_jacobian import geometric_jacobian
-from torchcal.model_store import load_model
+from torchcal.stages.store import load_model
 
 
 @pytest.fixture(scope="module")

@@ -13,15 +13,16 @@ import torch
 from torchcal.compensate import compensator as compensator_module
 from torchcal.compensate.compensator import CompensatorGraph, MonitorGraph, _TwoModels
 from torchcal.compensate.export import build_graphs, export_model
+from torchcal.config.schema import FitConfig
 from torchcal.identify.compliance import GravityCompliance
 from torchcal.identify.harmonics import JointHarmonics
 from torchcal.identify.joint_errors import JointSpaceErrors
 from torchcal.kinematics.error_model import ErrorModel
 from torchcal.kinematics.ik import pose_error
 from torchcal.kinematics.joint_jacobian import geometric_jacobian
-from torchcal.model_store import load_model
-from torchcal.pipeline import FitConfig, fit, model_joints, save_fit
 from torchcal.sim.twin import Twin, TwinConfig
+from torchcal.stages.geometry import fit, model_joints, save_fit
+from torchcal.stages.store import load_model
 
 
 def _errors(kind: str, n: int, scale: float = 1.0) -> JointSpaceErrors:

@@ -11,8 +11,8 @@ import torch
 
 from torchcal.compensate.export import build_graphs
 from torchcal.compensate.runtime import CompensatorError, CompensatorRuntime
-from torchcal.errors import TorchcalError
-from torchcal.model_store import load_model
+from torchcal.core.errors import TorchcalError
+from torchcal.stages.store import load_model
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -116,7 +116,6 @@ def _nan_folder(tmp_path: Path) -> Path:
     import hashlib
     import json
 
-    import onnx
     from onnx import TensorProto, helper
 
     def graph(name: str, width: int) -> bytes:

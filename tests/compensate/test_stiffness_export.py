@@ -12,12 +12,12 @@ import torch
 
 from torchcal.compensate.export import GRAPHS, build_graphs, export_model, sample_wrenches
 from torchcal.compensate.runtime import CompensatorError, CompensatorRuntime
+from torchcal.instruments.stiffness.commands import fit_stiffness
+from torchcal.instruments.stiffness.twin import StiffnessTwin
+from torchcal.instruments.stiffness.twin_case import StiffnessCaseConfig, write_stiffness_twin_case
 from torchcal.kinematics.error_model import ErrorModel
 from torchcal.kinematics.joint_jacobian import geometric_jacobian
-from torchcal.model_store import load_model
-from torchcal.sim.stiffness_case import StiffnessCaseConfig, write_stiffness_twin_case
-from torchcal.sim.stiffness_twin import StiffnessTwin
-from torchcal.stiffness_stage import fit_stiffness
+from torchcal.stages.store import load_model
 
 CASE = StiffnessCaseConfig(seed=12, n_train=80, n_test=10)
 
@@ -26,7 +26,7 @@ CASE = StiffnessCaseConfig(seed=12, n_train=80, n_test=10)
 def stiff_dir(tmp_path_factory):
     root = tmp_path_factory.mktemp("stiff")
     paths = write_stiffness_twin_case(root / "case", CASE)
-    return fit_stiffness(paths["robot.yaml"], paths["stiffness_train.csv"], root / "model", [])
+    return fit_stiffness(paths["robot.yaml"], paths["stiffness_train.csv"], root / "model", []).folder
 
 
 @pytest.fixture(scope="module")

@@ -6,7 +6,7 @@ import torch
 
 from torchcal.compensate.export import build_graphs
 from torchcal.compensate.true_robot_check import compensation_on_true_robot
-from torchcal.model_store import load_model
+from torchcal.stages.store import load_model
 
 
 def test_exported_commands_land_as_torch_commands_on_the_true_twin(exported, model_dir, twin):

@@ -5,8 +5,8 @@ from omegaconf import OmegaConf
 
 from torchcal.config import compose_run_config, instantiate, save_resolved_config
 from torchcal.config.compose import merge_section
-from torchcal.errors import TorchcalError
-from torchcal.pipeline import FitConfig, RunConfig
+from torchcal.config.schema import FitConfig, RunConfig
+from torchcal.core.errors import TorchcalError
 from torchcal.studies.spec import StudyConfig
 
 

@@ -7,8 +7,8 @@ import math
 import pytest
 import torch
 
+from torchcal.core.errors import DataError
 from torchcal.data.measurements import load_measurements, write_measurements_csv
-from torchcal.errors import DataError
 
 HEADER = "q1,q2,q3,q4,q5,q6,x,y,z"
 

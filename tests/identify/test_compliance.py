@@ -5,14 +5,14 @@ from __future__ import annotations
 import math
 
 import torch
+from fd_jacobian import central_difference_jacobian
 
 from tests.conftest import perturbed_vector
 from torchcal.data.measurements import Measurements
 from torchcal.identify.calibrate import calibrate
-from torchcal.identify.compliance import GravityCompliance, fit_with_compliance, gravity_torque_basis
-from torchcal.identify.joint_fit import JointErrorProblem, predicted_positions
+from torchcal.identify.compliance import GravityCompliance, gravity_torque_basis
+from torchcal.identify.joint_fit import JointErrorProblem, fit_with_compliance, predicted_positions
 from torchcal.kinematics.error_model import ErrorModel
-from fd_jacobian import central_difference_jacobian
 
 
 def _synthetic(robot, generator, n, coefficients, points=("elbow", "tcp"), noise_mm=0.0):

@@ -6,16 +6,17 @@ import math
 
 import pytest
 import torch
+from fd_jacobian import central_difference_jacobian
 
-from torchcal.errors import DataError
+from torchcal.config.schema import FitConfig
+from torchcal.core.errors import DataError
 from torchcal.identify.calibrate import calibrate
 from torchcal.identify.compliance import gravity_torque_basis
 from torchcal.identify.harmonics import HARMONIC_SETS, JointHarmonics, harmonic_basis
 from torchcal.identify.joint_fit import JointErrorProblem, fit_joint_errors, predicted_positions
-from torchcal.pipeline import FitConfig, fit, held_out_errors, save_fit
-from torchcal.model_store import load_model
 from torchcal.sim.twin import Twin, TwinConfig
-from fd_jacobian import central_difference_jacobian
+from torchcal.stages.geometry import fit, held_out_errors, save_fit
+from torchcal.stages.store import load_model
 
 
 def _twin_with_first_harmonics(amplitude_deg: float, seed: int = 4, last_joint: bool = False) -> Twin:

@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import torch
 
+from torchcal.data.measurements import Measurements
 from torchcal.identify.identifiability import analyze
 from torchcal.identify.pose_selection import select_poses_d_optimal
 from torchcal.identify.problem import CalibrationProblem
-from torchcal.data.measurements import Measurements
 from torchcal.kinematics.error_model import ErrorModel
 
 

@@ -6,9 +6,9 @@ import math
 
 import torch
 
+from torchcal.kinematics import transforms as tf
 from torchcal.kinematics.axes import mdh_from_axes
 from torchcal.kinematics.mdh import chain_transforms
-from torchcal.kinematics import transforms as tf
 
 
 def _axes_of(table: torch.Tensor):

@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from torchcal.errors import ModelError
+from torchcal.core.errors import ModelError
 from torchcal.kinematics import transforms as tf
 from torchcal.kinematics.error_model import ErrorModel
 from torchcal.kinematics.param_jacobian import so3_right_jacobian, tcp_position_jacobian

@@ -7,7 +7,7 @@ import math
 import pytest
 import torch
 
-from torchcal.errors import ModelError
+from torchcal.core.errors import ModelError
 from torchcal.kinematics.robot import load_robot, mdh_to_urdf, robot_to_yaml
 
 

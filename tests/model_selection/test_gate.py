@@ -21,10 +21,11 @@ from tests.model_selection.drift_twin import (
     smooth_field_instrument,
     smooth_field_series,
 )
-from torchcal.errors import IdentifiabilityWarning
-from torchcal.model_store import load_model
-from torchcal.pipeline import FitConfig, fit_with_selection, predict_positions, save_fit
-from torchcal.residual_stage import fit_residual_stage
+from torchcal.config.schema import FitConfig
+from torchcal.core.errors import IdentifiabilityWarning
+from torchcal.stages.geometry import fit_with_selection, predict_positions, save_fit
+from torchcal.stages.residual import fit_residual_stage
+from torchcal.stages.store import load_model
 
 
 def _fit(tmp_path, twin, data, **options):

@@ -4,7 +4,7 @@ import math
 import pytest
 import torch
 
-from torchcal.errors import ModelError
+from torchcal.core.errors import ModelError
 from torchcal.kinematics.error_model import ErrorModel
 from torchcal.kinematics.ik import solve_ik
 from torchcal.kinematics.joint_jacobian import geometric_jacobian

@@ -3,7 +3,7 @@ import math
 import pytest
 import torch
 
-from torchcal.errors import ModelError
+from torchcal.core.errors import ModelError
 from torchcal.kinematics.joint_jacobian import geometric_jacobian
 from torchcal.motion.dls import adaptive_damping, damped_inverse, dls_inverse, pseudo_inverse
 

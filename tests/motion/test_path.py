@@ -1,9 +1,8 @@
-import math
 
 import pytest
 import torch
 
-from torchcal.errors import ModelError
+from torchcal.core.errors import ModelError
 from torchcal.kinematics import transforms as tf
 from torchcal.motion.path import ArcPath, CartesianLimits, LinePath, slerp
 

@@ -3,7 +3,7 @@ import math
 import pytest
 import torch
 
-from torchcal.errors import ModelError
+from torchcal.core.errors import ModelError
 from torchcal.motion.profiles import make_profile, quintic, scurve, trapezoid
 
 DT = 1e-4

@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 import torch
 
-from torchcal.errors import DataError
+from torchcal.core.errors import DataError
 from torchcal.motion.trajectory import JointTrajectory, load_csv
 
 

@@ -84,7 +84,7 @@ def test_mlp_fits_the_smooth_function():
 
 @pytest.mark.parametrize("name", sorted(HEADS))
 def test_head_contract_and_state_round_trip(name, tmp_path):
-    from torchcal.residual_store import StoredResidual, load_residual, save_residual
+    from torchcal.stages.residual_store import StoredResidual, load_residual, save_residual
 
     x, y = _smooth_problem(300)
     options = {"mlp": {"max_epochs": 5}, "mma-elm": {"hidden": 10, "population": 4, "iterations": 2}, "elm": {"hidden": 10}}[name]

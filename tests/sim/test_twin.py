@@ -7,7 +7,8 @@ import math
 
 import pytest
 
-from torchcal.pipeline import RunConfig, run
+from torchcal.app.pipeline import run
+from torchcal.config.schema import RunConfig
 from torchcal.sim.twin import Twin, TwinConfig, write_twin_case
 
 

@@ -5,8 +5,8 @@ from __future__ import annotations
 import pytest
 import torch
 
+from torchcal.instruments.stiffness.twin import StiffnessTwin, StiffnessTwinConfig
 from torchcal.kinematics.robot import default_robot_path, load_robot
-from torchcal.sim.stiffness_twin import StiffnessTwin, StiffnessTwinConfig
 
 
 @pytest.fixture(scope="session")

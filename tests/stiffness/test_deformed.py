@@ -7,7 +7,6 @@ import math
 import pytest
 import torch
 
-from torchcal.kinematics import transforms as tf
 from torchcal.kinematics.error_model import ErrorModel
 from torchcal.kinematics.robot import RobotModel
 from torchcal.stiffness.deformed import (

@@ -2,14 +2,12 @@
 
 from __future__ import annotations
 
-import math
-
 import pytest
 import torch
 
-from torchcal.data.stiffness import StiffnessData
-from torchcal.errors import DataError, IdentifiabilityWarning, ModelError
+from torchcal.core.errors import DataError, IdentifiabilityWarning, ModelError
 from torchcal.kinematics import transforms as tf
+from torchcal.stiffness.experiment import StiffnessData
 from torchcal.stiffness.identify import (
     deflection_metrics,
     identify_stiffness,

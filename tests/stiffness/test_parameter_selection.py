@@ -14,10 +14,14 @@ import json
 import pytest
 import torch
 
-from torchcal.errors import TorchcalError
-from torchcal.sim.stiffness_case import StiffnessCaseConfig, write_stiffness_twin_case
-from torchcal.sim.stiffness_twin import OFF_AXIS_LEVER_M, StiffnessTwin, StiffnessTwinConfig
-from torchcal.stiffness_stage import evaluate_stiffness, fit_stiffness, stiffness_config
+from torchcal.core.errors import TorchcalError
+from torchcal.instruments.stiffness.commands import (
+    evaluate_stiffness,
+    fit_stiffness,
+    stiffness_config,
+)
+from torchcal.instruments.stiffness.twin import OFF_AXIS_LEVER_M, StiffnessTwin, StiffnessTwinConfig
+from torchcal.instruments.stiffness.twin_case import StiffnessCaseConfig, write_stiffness_twin_case
 
 OFF_AXIS = {"standard": 0.0, "off_axis": 0.05}
 EXPECTED = {"standard": "classic", "off_axis": "full"}
@@ -41,10 +45,10 @@ def fits(request, cases, tmp_path_factory):
     folders, rms, console = {}, {}, io.StringIO()
     for parameters in ("auto", "classic", "full"):
         overrides = [] if parameters == "auto" else [f"parameters={parameters}"]
-        with contextlib.redirect_stderr(console if parameters == "auto" else io.StringIO()):
-            folders[parameters] = fit_stiffness(
-                paths["robot.yaml"], paths["stiffness_train.csv"], root / parameters, overrides
-            )
+        outcome = fit_stiffness(paths["robot.yaml"], paths["stiffness_train.csv"], root / parameters, overrides)
+        folders[parameters] = outcome.folder
+        if parameters == "auto":
+            console.write("\n".join(outcome.lines))
         rms[parameters] = evaluate_stiffness(folders[parameters], paths["stiffness_test.csv"], [])["deflection_rms_mm"]
     return request.param, paths, console.getvalue(), folders, rms
 
@@ -106,8 +110,7 @@ def test_too_few_poses_for_cross_validation_fit_classic(cases, tmp_path):
     small = tmp_path / "small.csv"
     small.write_text("\n".join(lines[:9]) + "\n")
     with pytest.warns(UserWarning, match="parameters=auto: 5-fold cross-validation needs at least 10 poses"):
-        with contextlib.redirect_stderr(io.StringIO()):
-            folder = fit_stiffness(cases["standard"]["robot.yaml"], small, tmp_path / "m", [])
+        folder = fit_stiffness(cases["standard"]["robot.yaml"], small, tmp_path / "m", []).folder
     selection = json.loads((folder / "stiffness.json").read_text())["model_selection"]
     assert selection["chosen"] == "classic" and "no cross-validation" in selection["reason"]
 

@@ -2,15 +2,17 @@
 
 from __future__ import annotations
 
-import math
-
 import pytest
 import torch
 
-from torchcal.errors import DataError
+from torchcal.core.errors import DataError
+from torchcal.instruments.stiffness.twin import (
+    StiffnessTwin,
+    StiffnessTwinConfig,
+    prior_middle_stiffness,
+)
 from torchcal.kinematics.error_model import ErrorModel
 from torchcal.kinematics.joint_jacobian import geometric_jacobian
-from torchcal.sim.stiffness_twin import StiffnessTwin, StiffnessTwinConfig, prior_middle_stiffness
 from torchcal.stiffness.identify import classic_names, stiffness_regressor
 from torchcal.stiffness.plan import plan_loading, rig_wrenches, unit_directions
 
@@ -97,8 +99,8 @@ def test_bad_plan_input_is_refused(planned):
 def test_planned_twin_identifies_every_joint_within_ten_percent(seed, tmp_path):
     import json
 
-    from torchcal.data.stiffness import load_stiffness
-    from torchcal.sim.stiffness_twin import write_stiffness_case
+    from torchcal.instruments.stiffness.data import load_stiffness
+    from torchcal.instruments.stiffness.twin import write_stiffness_case
     from torchcal.stiffness.identify import deflection_metrics, identify_stiffness
 
     paths = write_stiffness_case(tmp_path, StiffnessTwinConfig(seed=seed), n_train=120, n_test=200)

@@ -78,7 +78,7 @@ def kill_during_second_trial(proc: subprocess.Popen, name: str, storage: str, ti
 
 def open_storage_once(url: str) -> str:
     """Open (and so create) the study tables at ``url``; the error text if it failed."""
-    from torchcal.errors import TorchcalError
+    from torchcal.core.errors import TorchcalError
     from torchcal.studies.spec import StudyConfig
     from torchcal.studies.storage import open_storage
 

@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from torchcal.config import compose_run_config
-from torchcal.errors import TorchcalError
+from torchcal.core.errors import TorchcalError
 from torchcal.residual.base import rms
 from torchcal.studies.runner import run_study
 from torchcal.studies.spec import Distribution, StudyConfig

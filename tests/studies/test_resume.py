@@ -5,11 +5,9 @@ from __future__ import annotations
 import time
 import uuid
 
-import optuna
 import pytest
 from optuna.storages import RetryHeartbeatStaleTrialCallback
 from optuna.trial import TrialState
-
 from study_procs import finish, kill_during_second_trial, load, start, study_command
 
 N_TRIALS = 5

@@ -114,7 +114,7 @@ def _residual_copy(residual: nn.Module | None, dtype: torch.dtype, device) -> nn
 
 
 def stored_parts(stored) -> dict:
-    """Keyword arguments of the graphs from a :class:`~torchcal.model_store.StoredModel`: its
+    """Keyword arguments of the graphs from a :class:`~torchcal.stages.store.StoredModel`: its
     residual head and its joint-space errors (so that no constructor can drop either)."""
     residual = stored.residual.to_torch_module() if stored.residual is not None else None
     return {"residual": residual, "joint_errors": JointSpaceErrors.from_metadata(stored.metadata)}
@@ -264,7 +264,7 @@ class CompensatorGraph(nn.Module):
 
     @classmethod
     def from_stored(cls, stored, **options) -> "CompensatorGraph":
-        """Build from a :class:`torchcal.model_store.StoredModel` (residual head and joint-space errors included)."""
+        """Build from a :class:`torchcal.stages.store.StoredModel` (residual head and joint-space errors included)."""
         return cls(stored.model, stored.x, **stored_parts(stored), **options)
 
     def forward(self, q_nominal: torch.Tensor) -> torch.Tensor:
@@ -406,7 +406,7 @@ class LoadedCompensatorGraph(CompensatorGraph):
 
     @classmethod
     def from_stored(cls, stored, **options) -> "LoadedCompensatorGraph":
-        """Build from a :class:`torchcal.model_store.StoredModel` with a stiffness stage."""
+        """Build from a :class:`torchcal.stages.store.StoredModel` with a stiffness stage."""
         return cls(stored.model, stored.x, stored.stiffness.compliance, **stored_parts(stored), **options)
 
     def forward(self, q_nominal: torch.Tensor, wrench: torch.Tensor) -> torch.Tensor:  # type: ignore[override]

@@ -17,7 +17,6 @@ Files written to ``out_dir`` (each atomically, single-file ONNX without external
 
 from __future__ import annotations
 
-import hashlib
 import io
 import json
 import math
@@ -39,7 +38,9 @@ from torchcal.compensate.compensator import (
     stored_parts,
 )
 from torchcal.compensate.linalg import CONTRIB_DOMAIN
-from torchcal.io import atomic_write_bytes, atomic_write_json, atomic_write_text
+from torchcal.compensate.onnx_checks import ort_feeds, ort_session, unsolved_distance_m
+from torchcal.core.hashing import sha256_bytes
+from torchcal.core.io import atomic_write_bytes, atomic_write_json, atomic_write_text
 
 OPSET = 17
 MANIFEST_FORMAT = "torchcal-compensator/1"
@@ -171,19 +172,6 @@ def budget_wrenches(stored, n: int, generator: torch.Generator) -> torch.Tensor:
     return sample_wrenches(n, loads["max_force_n"], loads["max_torque_nm"], generator)
 
 
-def _feeds(session, q, wrench=None) -> dict:
-    """Input dict of an ORT session: joints first, then the wrench where the graph takes one."""
-    names = [i.name for i in session.get_inputs()]
-    feeds = {names[0]: q}
-    if len(names) > 1:
-        feeds[names[1]] = wrench.astype(q.dtype)
-    return feeds
-
-
-def sha256_file(path: str | Path) -> str:
-    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
-
-
 def _versions() -> dict:
     import onnx
     import onnxruntime
@@ -197,14 +185,6 @@ def _versions() -> dict:
         "onnxruntime": onnxruntime.__version__,
         "python": platform.python_version(),
     }
-
-
-def _session(path: Path):
-    import onnxruntime as ort
-
-    options = ort.SessionOptions()
-    options.log_severity_level = 3
-    return ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
 
 
 def float32_budget(graphs: dict[str, torch.nn.Module], out_dir: Path, stored, n_poses: int = BUDGET_POSES, seed: int = 0) -> dict:
@@ -223,10 +203,10 @@ def float32_budget(graphs: dict[str, torch.nn.Module], out_dir: Path, stored, n_
         qc64 = graphs["compensator"](*args)
         mon64 = graphs["monitor"](*args)
     w32 = wrench.numpy() if loaded else None
-    session = _session(out_dir / GRAPHS["compensator_f32"][0])
-    qc32 = torch.from_numpy(session.run(None, _feeds(session, q.float().numpy(), w32))[0]).double()
-    session = _session(out_dir / GRAPHS["monitor_f32"][0])
-    mon32 = torch.from_numpy(session.run(None, _feeds(session, q.float().numpy(), w32))[0]).double()
+    session = ort_session(out_dir / GRAPHS["compensator_f32"][0])
+    qc32 = torch.from_numpy(session.run(None, ort_feeds(session, q.float().numpy(), w32))[0]).double()
+    session = ort_session(out_dir / GRAPHS["monitor_f32"][0])
+    mon32 = torch.from_numpy(session.run(None, ort_feeds(session, q.float().numpy(), w32))[0]).double()
     model = stored.model
     tcp = lambda qq: model.base_flange_pose(qq, stored.x) @ model.flange_from_tool(stored.x)  # noqa: E731
     d_cmd = (tcp(qc32)[..., :3, 3] - tcp(qc64)[..., :3, 3]).norm(dim=-1) * 1e3
@@ -241,17 +221,6 @@ def float32_budget(graphs: dict[str, torch.nn.Module], out_dir: Path, stored, n_
     if loaded:
         budget["wrench_sampling"] = "uniform directions, magnitudes uniform up to the stiffness data's largest force and moment"
     return budget
-
-
-def unsolved_distance_m(graphs: dict[str, torch.nn.Module], robot, q_target: torch.Tensor, q_command: torch.Tensor,
-                        wrench: torch.Tensor | None = None) -> torch.Tensor:
-    """``|p_nom(q_c) + monitor(q_c) - p_nom(q_t)|`` ``(B,)``, m: how far the model's predicted real
-    TCP at the command ``q_c`` lies from the nominal target of ``q_t`` (what the fixed number of
-    Newton steps left unsolved; ``wrench`` for graphs with a stiffness stage)."""
-    extra = () if wrench is None else (wrench,)
-    with torch.no_grad():
-        landed = robot.tcp_position(q_command) + graphs["monitor"](q_command, *extra)
-    return (landed - robot.tcp_position(q_target)).norm(dim=-1)
 
 
 WRIST_SINGULAR_BELOW = 0.02
@@ -380,13 +349,13 @@ def export_model(
     the manifest's ``convergence`` shows what they reach). ``portable``: standard ONNX operators
     only.
     """
-    from torchcal.errors import TorchcalError
+    from torchcal.core.errors import TorchcalError
 
     if iterations is not None and iterations < 1:
         raise TorchcalError(f"iterations must be >= 1, got {iterations}")
     if task not in TASKS:
         raise TorchcalError(f"task must be one of {list(TASKS)}, got {task!r}")
-    from torchcal.model_store import load_model
+    from torchcal.stages.store import load_model
 
     model_dir, out_dir = Path(model_dir), Path(out_dir)
     stored = load_model(model_dir)
@@ -401,7 +370,7 @@ def export_model(
                           extra_outputs=(RESIDUAL_OUTPUT,) if compensator else ())
         atomic_write_bytes(out_dir / name, data)
         files[key] = name
-        digests[key] = hashlib.sha256(data).hexdigest()
+        digests[key] = sha256_bytes(data)
     meta = stored.metadata
     compensator = graphs["compensator"]
     manifest = {
@@ -628,8 +597,8 @@ def export_and_check(model_dir: str | Path, out_dir: str | Path, test, console=N
     ``compensation_on_true_robot``: the commands of torch and of both exported files at the test
     poses, sent to that robot (:func:`~torchcal.compensate.true_robot_check.compensation_on_true_robot`).
     """
-    from torchcal.metrics import position_metrics
-    from torchcal.model_store import load_model
+    from torchcal.core.metrics import position_metrics
+    from torchcal.stages.store import load_model
 
     out_dir = Path(out_dir)
     manifest = export_model(model_dir, out_dir)
@@ -645,10 +614,10 @@ def export_and_check(model_dir: str | Path, out_dir: str | Path, test, console=N
     with torch.no_grad():
         ref_cmd = graphs["compensator"](*args)
         ref_mon = graphs["monitor"](*args)
-    session = _session(out_dir / manifest["files"]["compensator"])
-    ort_cmd = torch.from_numpy(session.run(None, _feeds(session, q.numpy(), w))[0])
-    session = _session(out_dir / manifest["files"]["monitor"])
-    ort_mon = torch.from_numpy(session.run(None, _feeds(session, q.numpy(), w))[0])
+    session = ort_session(out_dir / manifest["files"]["compensator"])
+    ort_cmd = torch.from_numpy(session.run(None, ort_feeds(session, q.numpy(), w))[0])
+    session = ort_session(out_dir / manifest["files"]["monitor"])
+    ort_mon = torch.from_numpy(session.run(None, ort_feeds(session, q.numpy(), w))[0])
     model = stored.model
     tcp = lambda qq: (model.base_flange_pose(qq, stored.x) @ model.flange_from_tool(stored.x))[..., :3, 3]  # noqa: E731
     nominal = stored.robot.tcp_position(q)

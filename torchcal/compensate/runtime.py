@@ -1,6 +1,6 @@
 """Controller-side runner of an exported compensator: onnxruntime and numpy only.
 
-This module (and what it imports: :mod:`torchcal.errors`) never imports torch, so a controller
+This module (and what it imports: :mod:`torchcal.core.errors`) never imports torch, so a controller
 PC needs neither torch nor the rest of torchcal's dependencies::
 
     from torchcal.compensate.runtime import CompensatorRuntime
@@ -27,7 +27,7 @@ from typing import Sequence
 
 import numpy as np
 
-from torchcal.errors import TorchcalError
+from torchcal.core.errors import TorchcalError
 
 MANIFEST_FORMAT = "torchcal-compensator/1"
 

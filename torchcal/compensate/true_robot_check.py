@@ -16,7 +16,7 @@ from typing import Callable
 import numpy as np
 import torch
 
-from torchcal.metrics import position_metrics
+from torchcal.core.metrics import position_metrics
 
 
 def compensation_on_true_robot(
@@ -31,7 +31,7 @@ def compensation_on_true_robot(
     """TCP error left on the true robot by the torch and the exported compensators.
 
     Args:
-        stored: the :class:`~torchcal.model_store.StoredModel` that was exported.
+        stored: the :class:`~torchcal.stages.store.StoredModel` that was exported.
         graphs: its torch graphs (:func:`torchcal.compensate.export.build_graphs`).
         out_dir: the exported folder (``manifest["files"]`` inside it).
         manifest: the export's manifest.
@@ -47,7 +47,7 @@ def compensation_on_true_robot(
         whose command puts the model's predicted TCP within 1 um of the target, and
         ``torch_on_solved`` / ``torch_on_unsolved``: the torch metrics on either part.
     """
-    from torchcal.compensate.export import _feeds, _session, unsolved_distance_m
+    from torchcal.compensate.onnx_checks import ort_feeds, ort_session, unsolved_distance_m
 
     out_dir = Path(out_dir)
     q = q_target.to(torch.float64)
@@ -59,8 +59,8 @@ def compensation_on_true_robot(
     with torch.no_grad():
         commands = {"uncompensated": q, "torch": graphs["compensator"](*args)}
     for key, dtype in (("compensator", np.float64), ("compensator_f32", np.float32)):
-        session = _session(out_dir / manifest["files"][key])
-        out = session.run(None, _feeds(session, q.numpy().astype(dtype), w))[0]
+        session = ort_session(out_dir / manifest["files"][key])
+        out = session.run(None, ort_feeds(session, q.numpy().astype(dtype), w))[0]
         commands["onnx_float64" if dtype == np.float64 else "onnx_float32"] = torch.from_numpy(out).to(torch.float64)
     result: dict = {"n_poses": int(q.shape[0])}
     with torch.no_grad():

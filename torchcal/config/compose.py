@@ -14,7 +14,7 @@ import os
 from pathlib import Path
 from typing import Any
 
-from torchcal.errors import TorchcalError
+from torchcal.core.errors import TorchcalError
 
 GROUPS = ("robot", "measurement", "model", "experiment", "study")
 CONFIG_DIR_ENV = "TORCHCAL_CONFIG_DIR"
@@ -80,14 +80,14 @@ def _merge(schema: Any, *nodes) -> Any:
 
 
 def compose_run_config(overrides: list[str], config_name: str = "config", extra_sections: tuple[str, ...] = ()):
-    """A :class:`~torchcal.pipeline.RunConfig` from ``configs/`` plus overrides.
+    """A :class:`~torchcal.config.schema.RunConfig` from ``configs/`` plus overrides.
 
     Returns ``(run_config, sections)`` where ``sections`` maps each name in ``extra_sections``
     (e.g. ``study``) to its composed OmegaConf node, taken out before the run schema is applied.
     """
     from omegaconf import OmegaConf
 
-    from torchcal.pipeline import RunConfig
+    from torchcal.config.schema import RunConfig
 
     group_overrides, field_overrides = split_overrides(overrides)
     composed = _compose_yaml(config_name, group_overrides)
@@ -123,7 +123,7 @@ def save_resolved_config(path: str | Path, config: Any, **sections: Any) -> Path
     """Write the fully resolved configuration (dataclasses) as YAML, atomically."""
     from omegaconf import OmegaConf
 
-    from torchcal.io import atomic_write_text
+    from torchcal.core.io import atomic_write_text
 
     tree = OmegaConf.structured(config)
     if sections:
@@ -136,11 +136,11 @@ def save_resolved_config(path: str | Path, config: Any, **sections: Any) -> Path
 
 
 def compose_fit_config(overrides: list[str]):
-    """A :class:`~torchcal.pipeline.FitConfig` for ``torchcal fit``: ``model=<name>`` picks a file
+    """A :class:`~torchcal.config.schema.FitConfig` for ``torchcal fit``: ``model=<name>`` picks a file
     of ``configs/model/``, other ``key=value`` set fields (``method=lasso``, ``seed=3``)."""
     from omegaconf import OmegaConf
 
-    from torchcal.pipeline import FitConfig
+    from torchcal.config.schema import FitConfig
 
     group_overrides, field_overrides = split_overrides(overrides)
     other = [g for g in group_overrides if not g.startswith("model=")]

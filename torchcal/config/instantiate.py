@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from torchcal.errors import TorchcalError
+from torchcal.core.errors import TorchcalError
 
 ALLOWED_PREFIX = "torchcal."
 

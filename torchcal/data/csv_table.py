@@ -1,6 +1,6 @@
 """Strict CSV reading shared by every measurement loader.
 
-Every problem is reported as a :class:`~torchcal.errors.DataError` naming the file, the 1-based
+Every problem is reported as a :class:`~torchcal.core.errors.DataError` naming the file, the 1-based
 line number as a spreadsheet shows it (the header is line 1) and the column.
 """
 
@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from torchcal.errors import DataError
+from torchcal.core.errors import DataError
 
 
 @dataclass(frozen=True)
@@ -83,15 +83,6 @@ def read_csv_table(path: str | Path) -> CsvTable:
     return CsvTable(path=path, header=header, rows=rows, line_numbers=lines)
 
 
-def joint_columns(header: tuple[str, ...]) -> list[str]:
-    """The ``q1..qN`` columns of a header, checked to be consecutive from 1."""
-    names = [h for h in header if len(h) > 1 and h[0] == "q" and h[1:].isdigit()]
-    numbers = sorted(int(h[1:]) for h in names)
-    if numbers != list(range(1, len(numbers) + 1)):
-        raise DataError(f"joint columns must be q1..qN without gaps, found {names}")
-    return [f"q{i}" for i in numbers]
-
-
 def check_units(joint_unit: str, length_unit: str, path: str | Path) -> None:
     """Refuse unit names other than those of the data contract (``deg``/``rad``, ``mm``/``m``)."""
     if joint_unit not in ("deg", "rad"):
@@ -123,3 +114,19 @@ def joint_columns(header: tuple[str, ...], path: str | Path, n_joints: int | Non
     if n_joints is not None and len(numbers) != n_joints:
         raise DataError(f"has {len(numbers)} joint columns but the robot has {n_joints} joints", path=p, row=1)
     return [f"q{i}" for i in numbers]
+
+
+def read_header(path: str | Path) -> list[str]:
+    """The column names (stripped, lower case) of the first non-empty row of the CSV at ``path``.
+
+    Raises:
+        DataError: the file is missing or has no header row.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise DataError("file not found", path=str(path))
+    with path.open(encoding="utf-8-sig", newline="") as handle:
+        for row in csv.reader(handle):
+            if any(cell.strip() for cell in row):
+                return [cell.strip().lower() for cell in row]
+    raise DataError("the file is empty (no header row)", path=str(path))

@@ -7,7 +7,6 @@ Columns: ``q1..qN`` (deg, or rad), ``x, y, z`` (mm, or m) of the TCP/reflector i
 
 from __future__ import annotations
 
-import hashlib
 import math
 import warnings
 from dataclasses import dataclass, field
@@ -16,8 +15,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from torchcal.core.errors import DataError
+from torchcal.core.hashing import sha256_file
 from torchcal.data.csv_table import check_units, joint_columns, read_csv_table
-from torchcal.errors import DataError
 from torchcal.kinematics.robot import RobotModel
 from torchcal.kinematics.transforms import euler_xyz_to_matrix
 
@@ -163,7 +163,7 @@ def load_measurements(
             "kept as repeated measurements",
             stacklevel=2,
         )
-    digest = hashlib.sha256(Path(p).read_bytes()).hexdigest()
+    digest = sha256_file(p)
     return Measurements(
         q=torch.from_numpy(q), position=torch.from_numpy(pos), rotation=rotation, wrench=wrench,
         temperature=temperature, source=p, line_numbers=tuple(table.line_numbers), sha256=digest,
@@ -178,7 +178,7 @@ def write_measurements_csv(
     extra: dict[str, torch.Tensor] | None = None,
 ) -> None:
     """Write a contract position file (deg, mm) atomically."""
-    from torchcal.io import atomic_write_text
+    from torchcal.core.io import atomic_write_text
 
     cols = [f"q{i}" for i in range(1, q.shape[1] + 1)] + list(POSITION)
     data = [q.detach().cpu().numpy() * (180.0 / math.pi), position.detach().cpu().numpy() * 1e3]

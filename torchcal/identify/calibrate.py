@@ -15,8 +15,8 @@ from dataclasses import dataclass, field
 
 import torch
 
+from torchcal.core.errors import DataError, IdentifiabilityWarning
 from torchcal.data.measurements import Measurements
-from torchcal.errors import DataError, IdentifiabilityWarning
 from torchcal.identify.base import Identifier, SolveResult
 from torchcal.identify.identifiability import IdentifiabilityReport, analyze
 from torchcal.identify.problem import CalibrationProblem

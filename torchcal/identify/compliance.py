@@ -21,7 +21,6 @@ from dataclasses import dataclass
 
 import torch
 
-from torchcal.data.measurements import Measurements
 from torchcal.kinematics.error_model import ErrorModel
 from torchcal.kinematics.mdh import chain_frames
 from torchcal.kinematics.robot import RobotModel
@@ -77,10 +76,3 @@ class GravityCompliance:
     @classmethod
     def from_json(cls, data: dict) -> "GravityCompliance":
         return cls(tuple(data["points"]), torch.tensor(data["coefficients_rad_per_m"], dtype=torch.float64))
-
-
-def fit_with_compliance(robot: RobotModel, data: Measurements, geometric, points: tuple[str, ...]):
-    """Geometry refined jointly with gravity compliance only (see :func:`torchcal.identify.joint_fit.fit_joint_errors`)."""
-    from torchcal.identify.joint_fit import fit_joint_errors
-
-    return fit_joint_errors(robot, data, geometric, points)

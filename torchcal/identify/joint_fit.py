@@ -8,7 +8,7 @@ Jacobian, so the identification Jacobian is the geometric one extended by those 
 
 Coefficients the data cannot separate from the geometry (or from each other) are found by the
 same identifiability analysis as geometric parameters, stay at zero and are named in an
-:class:`~torchcal.errors.IdentifiabilityWarning`. Which terms to use is chosen by the grouped
+:class:`~torchcal.core.errors.IdentifiabilityWarning`. Which terms to use is chosen by the grouped
 cross-validation of :mod:`torchcal.model_selection.structure`, never on a test set.
 """
 
@@ -19,8 +19,8 @@ from dataclasses import replace
 
 import torch
 
+from torchcal.core.errors import IdentifiabilityWarning
 from torchcal.data.measurements import Measurements
-from torchcal.errors import IdentifiabilityWarning
 from torchcal.identify.compliance import (
     _ZERO_COLUMN,
     POINT_SETS,
@@ -200,3 +200,8 @@ def joint_error_options(gravity: tuple[str, ...], harmonics: tuple[str, ...]) ->
         if name not in HARMONIC_SETS:
             raise ValueError(f"unknown harmonic set '{name}'; choose one of {sorted(HARMONIC_SETS)}")
     return [(g, h) for h in harmonics for g in gravity]
+
+
+def fit_with_compliance(robot: RobotModel, data: Measurements, geometric, points: tuple[str, ...]):
+    """Geometry refined jointly with gravity compliance only (see :func:`fit_joint_errors`)."""
+    return fit_joint_errors(robot, data, geometric, points)

@@ -7,7 +7,7 @@
    bound treats a degree and a millimetre alike by their effect on the TCP.
 4. The L1 bound (equivalently the penalty ``alpha`` on the same path) is chosen by K-fold
    cross-validation over poses (scikit-learn's ``LassoCV``; all rows of a pose stay in one fold),
-   the folds of :mod:`torchcal.model_selection.folds`: configuration groups by default, so that a
+   the folds of :mod:`torchcal.data.folds`: configuration groups by default, so that a
    near-twin of a held-out pose never sits in the training part and favours a weak penalty.
 5. The selected support plus the frame parameters is refitted without penalty by
    Levenberg-Marquardt, which removes the shrinkage bias of the L1 estimate.
@@ -34,7 +34,7 @@ class LassoIdentifier(Identifier):
         seed: fold assignment seed.
         selection_threshold: a standardized coefficient counts as selected above this.
         split: ``grouped`` (configuration groups of the problem's nominal robot), ``blocks``
-            (row order) or ``random`` (:func:`~torchcal.model_selection.folds.make_folds`).
+            (row order) or ``random`` (:func:`~torchcal.data.folds.make_folds`).
         robot: nominal robot for grouped folds (default: the problem's).
     """
 
@@ -69,7 +69,7 @@ class LassoIdentifier(Identifier):
         y = y - y.mean()
         rows = problem.rows_per_pose
         n_poses = len(y) // rows
-        from torchcal.model_selection.folds import make_folds
+        from torchcal.data.folds import make_folds
 
         robot = self.robot if self.robot is not None else problem.model.robot
         fold_of_pose = make_folds(self.split, robot, problem.data.q[:n_poses].cpu(), k=self.folds, seed=self.seed).fold

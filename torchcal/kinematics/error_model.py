@@ -28,7 +28,7 @@ from dataclasses import dataclass
 
 import torch
 
-from torchcal.errors import ModelError
+from torchcal.core.errors import ModelError
 from torchcal.kinematics import transforms as tf
 from torchcal.kinematics.mdh import chain_point, chain_transforms
 from torchcal.kinematics.robot import RobotModel

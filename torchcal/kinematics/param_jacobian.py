@@ -38,13 +38,16 @@ against, together with central finite differences.
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 
-from torchcal.errors import ModelError
+from torchcal.core.errors import ModelError
 from torchcal.kinematics import transforms as tf
-from torchcal.kinematics.error_model import ErrorModel
+
+if TYPE_CHECKING:  # the model calls into this module; the type only is needed here
+    from torchcal.kinematics.error_model import ErrorModel
 
 __all__ = ["so3_right_jacobian", "tcp_position_jacobian"]
 

@@ -17,7 +17,7 @@ from pathlib import Path
 import torch
 import yaml
 
-from torchcal.errors import ModelError
+from torchcal.core.errors import ModelError
 from torchcal.kinematics import transforms as tf
 from torchcal.kinematics.mdh import chain_transforms
 

@@ -2,7 +2,7 @@
 
 A test error says something about new poses only if the test poses are as far from the
 training poses as new poses would be. Distances are tool-point displacements (m) in the
-lever-arm-weighted joint space of :func:`~torchcal.model_selection.folds.pose_embedding`, with
+lever-arm-weighted joint space of :func:`~torchcal.data.folds.pose_embedding`, with
 the training poses' lever arms. Two references:
 
 * ``training_spacing``: each training pose's distance to its nearest *other* training pose, what
@@ -22,7 +22,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 import torch
 
-from torchcal.model_selection.folds import joint_lever_arms, pose_embedding
+from torchcal.data.folds import joint_lever_arms, pose_embedding
 
 
 @dataclass

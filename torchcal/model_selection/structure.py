@@ -1,6 +1,6 @@
 """Cross-validation of a fit's structures: geometry alone, geometry with joint-space error terms.
 
-For every fold (:mod:`~torchcal.model_selection.folds`), geometry is identified once on the
+For every fold (:mod:`~torchcal.data.folds`), geometry is identified once on the
 training part and every joint-space option (gravity compliance, first harmonics) refines it
 there; the held-out part scores each. The per-fold fits are kept: the residual-head stage
 (:mod:`~torchcal.model_selection.heads`) learns on their residuals, so a head is judged on top
@@ -15,13 +15,13 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from torchcal.core.errors import IdentifiabilityWarning
+from torchcal.data.folds import Folds
 from torchcal.data.measurements import Measurements
-from torchcal.errors import IdentifiabilityWarning
 from torchcal.identify.compliance import POINT_SETS
 from torchcal.identify.harmonics import HARMONIC_SETS
 from torchcal.identify.joint_fit import fit_joint_errors, option_label, predicted_positions
 from torchcal.model_selection.compare import Candidate, Comparison, compare_candidates
-from torchcal.model_selection.folds import Folds
 
 
 @dataclass

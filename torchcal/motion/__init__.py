@@ -2,7 +2,13 @@
 
 from torchcal.motion.clik import CLIKResult, follow
 from torchcal.motion.config import KR6_SPEED_LIMITS_DEG_S, MotionConfig
-from torchcal.motion.dls import DLSInverse, adaptive_damping, damped_inverse, dls_inverse, pseudo_inverse
+from torchcal.motion.dls import (
+    DLSInverse,
+    adaptive_damping,
+    damped_inverse,
+    dls_inverse,
+    pseudo_inverse,
+)
 from torchcal.motion.metrics import MotionMetrics, path_errors, summarize, velocity_steps
 from torchcal.motion.path import ArcPath, CartesianLimits, CartesianTrajectory, LinePath, slerp
 from torchcal.motion.profiles import SpeedProfile, make_profile, quintic, scurve, trapezoid

@@ -32,10 +32,10 @@ from dataclasses import dataclass
 
 import torch
 
-from torchcal.errors import ModelError
+from torchcal.core.errors import ModelError
+from torchcal.kinematics import transforms as tf
 from torchcal.kinematics.error_model import ErrorModel
 from torchcal.kinematics.ik import pose_error
-from torchcal.kinematics import transforms as tf
 from torchcal.kinematics.mdh import chain_transforms
 from torchcal.motion.config import MotionConfig
 from torchcal.motion.dls import DLSInverse, dls_inverse, pseudo_inverse

@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 
 import torch
 
-from torchcal.errors import ModelError
+from torchcal.core.errors import ModelError
 from torchcal.kinematics.robot import RobotModel
 from torchcal.motion.dls import DEFAULT_A_MAX, DEFAULT_EPS
 from torchcal.motion.path import DEFAULT_RATE_HZ, CartesianLimits

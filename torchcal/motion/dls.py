@@ -27,7 +27,7 @@ from dataclasses import dataclass
 
 import torch
 
-from torchcal.errors import ModelError
+from torchcal.core.errors import ModelError
 
 DEFAULT_EPS = 0.04
 DEFAULT_A_MAX = 0.06

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import torch
 
-from torchcal.errors import ModelError
+from torchcal.core.errors import ModelError
 from torchcal.kinematics import transforms as tf
 from torchcal.motion.profiles import SpeedProfile, make_profile
 

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import torch
 
-from torchcal.errors import ModelError
+from torchcal.core.errors import ModelError
 
 PROFILE_KINDS = ("trapezoid", "scurve", "quintic")
 

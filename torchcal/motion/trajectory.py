@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from torchcal.errors import DataError
+from torchcal.core.errors import DataError
 
 _ANGLE = {"deg": 180.0 / math.pi, "rad": 1.0}
 

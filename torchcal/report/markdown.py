@@ -4,11 +4,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from torchcal.io import atomic_write_text
+from torchcal.core.io import atomic_write_text
 
 
 def metrics_table(rows: dict[str, dict[str, float]]) -> str:
-    keys = ["n_poses", "position_rms_mm", "position_mean_mm", "position_p95_mm", "position_max_mm", "iso9283_AP_mm"]
     head = "| stage | poses | RMS [mm] | mean [mm] | p95 [mm] | max [mm] | AP [mm] |\n|---|---|---|---|---|---|---|"
     lines = [head]
     for stage, m in rows.items():

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from torchcal.io import atomic_write_bytes
+from torchcal.core.io import atomic_write_bytes
 
 
 def _figure():

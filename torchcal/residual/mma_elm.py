@@ -14,7 +14,7 @@ import torch
 
 from torchcal.optimize.mayfly import Mayfly
 from torchcal.residual.base import ResidualHead
-from torchcal.residual.elm import ELM, ELMModule, solve_output_weights
+from torchcal.residual.elm import ELM, solve_output_weights
 
 
 class MayflyELM(ResidualHead):

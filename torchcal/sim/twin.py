@@ -20,9 +20,8 @@ from pathlib import Path
 
 import torch
 
+from torchcal.core.io import atomic_write_json, atomic_write_text
 from torchcal.data.measurements import Measurements, write_measurements_csv
-from torchcal.io import atomic_write_json, atomic_write_text
-from torchcal.kinematics import transforms as tf
 from torchcal.kinematics.error_model import ErrorModel
 from torchcal.kinematics.joint_jacobian import joint_frames
 from torchcal.kinematics.robot import RobotModel, default_robot_path, load_robot, robot_to_yaml

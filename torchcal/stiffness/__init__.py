@@ -5,7 +5,11 @@ handed to :func:`deflection` are in the ``instrument`` frame (the ``base`` frame
 instrument is registered), wrenches from a file in the ``tool`` frame.
 """
 
-from torchcal.stiffness.compensate import DeflectionCompensation, DeflectionCompensator, compensate_deflection
+from torchcal.stiffness.compensate import (
+    DeflectionCompensation,
+    DeflectionCompensator,
+    compensate_deflection,
+)
 from torchcal.stiffness.deformed import (
     deformed_joint_poses,
     deformed_tcp_pose,

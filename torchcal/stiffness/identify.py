@@ -12,7 +12,7 @@ scaled Jacobian, independent of the parameter magnitudes). A column that vanishe
 6 about its own axis when the TCP lies on that axis and only positions are measured) or a
 direction of near-zero singular value (e.g. translations along two parallel joint axes) is not
 observable: the parameter with the largest share of that null direction is removed, named in an
-:class:`~torchcal.errors.IdentifiabilityWarning`, and treated as rigid; this repeats until the
+:class:`~torchcal.core.errors.IdentifiabilityWarning`, and treated as rigid; this repeats until the
 rest is well conditioned. After the fit, parameters with a large relative standard deviation
 are reported as poorly determined.
 """
@@ -26,11 +26,11 @@ from typing import Sequence
 
 import torch
 
-from torchcal.data.stiffness import StiffnessData
-from torchcal.errors import DataError, IdentifiabilityWarning, ModelError
+from torchcal.core.errors import DataError, IdentifiabilityWarning, ModelError
 from torchcal.kinematics import transforms as tf
 from torchcal.kinematics.error_model import ErrorModel
 from torchcal.kinematics.robot import RobotModel
+from torchcal.stiffness.experiment import StiffnessData
 from torchcal.stiffness.vjm import (
     SPRING_COMPONENTS,
     WrenchFrame,
@@ -357,7 +357,7 @@ def identify_stiffness(
 
     Args:
         robot: nominal robot (or an error model whose robot is used).
-        data: the stiffness experiment (see :func:`torchcal.data.stiffness.load_stiffness`).
+        data: the stiffness experiment (see :func:`torchcal.instruments.stiffness.data.load_stiffness`).
         x: calibrated geometry (error-layer vector); nominal by default.
         parameters: ``"classic"`` (``k_j{i}_rz``), ``"full"`` (6-D diagonal, observable part) or
             explicit names.

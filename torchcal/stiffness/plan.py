@@ -28,7 +28,7 @@ from typing import Sequence
 
 import torch
 
-from torchcal.errors import DataError
+from torchcal.core.errors import DataError
 from torchcal.identify.pose_selection import Criterion, design_criterion, greedy_design
 from torchcal.kinematics.error_model import ErrorModel
 from torchcal.stiffness.identify import (

@@ -1,7 +1,7 @@
 """One trial of a study: the run configuration with the trial's values, scored on validation.
 
 The objective is the validation RMS (mm) of the residual head on a held-out part of the
-*training* poses: one fold of the fit's own folds (:mod:`torchcal.model_selection.folds`,
+*training* poses: one fold of the fit's own folds (:mod:`torchcal.data.folds`,
 whole configuration regions by default, so that near-twins of validation poses never train the
 head), with the head fitted exactly as in the gate of ``fit`` (its own tuning on a slice of the
 training part, never on the validation poses). The twin's
@@ -23,7 +23,7 @@ from typing import Any
 
 import torch
 
-from torchcal.errors import TorchcalError
+from torchcal.core.errors import TorchcalError
 from torchcal.studies.spec import StudyConfig, search_space
 
 # Fit settings that change the geometric stage; the others only change the residual head.
@@ -86,9 +86,9 @@ class StudyObjective:
         from torchcal.data.measurements import load_measurements
         from torchcal.identify.joint_errors import JointSpaceErrors
         from torchcal.kinematics.robot import load_robot
-        from torchcal.pipeline import fit, make_config_folds, with_tool
         from torchcal.residual.features import JointFeatures
-        from torchcal.residual_stage import residual_targets_mm
+        from torchcal.stages.geometry import fit, make_config_folds, with_tool
+        from torchcal.stages.residual import residual_targets_mm
 
         fit_geometry = {k: getattr(config.fit, k) for k in GEOMETRIC_KEYS}
         source = asdict(config.twin) if self.study.train is None else [self.study.robot, self.study.train, self.study.test]
@@ -126,7 +126,7 @@ class StudyObjective:
         from torchcal.config import save_resolved_config
         from torchcal.residual.base import rms
         from torchcal.residual.selection import fit_before_gate
-        from torchcal.residual_stage import _candidates
+        from torchcal.stages.residual import _candidates
 
         values = {d.key: d.suggest(trial) for d in self.space}
         config = apply_values(self.base, values)

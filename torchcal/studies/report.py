@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from torchcal.io import atomic_write_text
+from torchcal.core.io import atomic_write_text
 from torchcal.studies.spec import StudyConfig
 
 
@@ -72,10 +72,11 @@ def _plot_pareto(trials, config: StudyConfig, path: Path) -> None:
 
 
 def _save(fig, path: Path) -> None:
+    import io
+
     import matplotlib.pyplot as plt
 
-    from torchcal.io import atomic_write_bytes
-    import io
+    from torchcal.core.io import atomic_write_bytes
 
     buffer = io.BytesIO()
     fig.savefig(buffer, format="png", dpi=110)

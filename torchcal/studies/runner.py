@@ -13,7 +13,7 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
-from torchcal.errors import TorchcalError
+from torchcal.core.errors import TorchcalError
 from torchcal.studies.spec import StudyConfig
 
 MAX_CONSECUTIVE_FAILURES = 3
@@ -162,7 +162,7 @@ def _best_number(study) -> int | None:
 
 def refit_best(base, config: StudyConfig, study, study_dir: Path, console=None) -> dict:
     """Refit the best trial as a full run (report, held-out test, export) under the study folder."""
-    from torchcal.pipeline import run
+    from torchcal.app.pipeline import run
     from torchcal.studies.objective import apply_values
 
     best = study.best_trial
@@ -182,9 +182,10 @@ def _refit_best_on_files(run_config, config: StudyConfig, best, study_dir: Path,
     from torchcal.compensate.export import export_model
     from torchcal.config import save_resolved_config
     from torchcal.data.measurements import load_measurements
+    from torchcal.instruments.tracker.evaluate import evaluate
     from torchcal.kinematics.robot import load_robot
-    from torchcal.pipeline import evaluate, fit_with_selection, save_fit, with_tool
-    from torchcal.residual_stage import fit_residual_stage
+    from torchcal.stages.geometry import fit_with_selection, save_fit, with_tool
+    from torchcal.stages.residual import fit_residual_stage
 
     fit_config = run_config.fit
     units = {"joint_unit": fit_config.joint_unit, "length_unit": fit_config.length_unit}
@@ -193,7 +194,7 @@ def _refit_best_on_files(run_config, config: StudyConfig, best, study_dir: Path,
     result, structure = fit_with_selection(robot, train, fit_config)
     folder = save_fit(study_dir / "best" / "model", robot, train, result, {})
     save_resolved_config(folder / "config.yaml", fit_config)
-    residual = fit_residual_stage(folder, train, fit_config, console=console, structure=structure) if fit_config.residual != "none" else None
+    residual = fit_residual_stage(folder, train, fit_config, progress=console.log if console is not None else None, structure=structure) if fit_config.residual != "none" else None
     out = {"trial": best.number, "params": dict(best.params), "run_folder": str(folder), "residual": residual}
     if config.test:
         metrics = evaluate(folder, config.test, config=fit_config)

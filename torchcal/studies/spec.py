@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
-from torchcal.errors import TorchcalError
+from torchcal.core.errors import TorchcalError
 
 OBJECTIVES = {"validation_rms_mm": "minimize", "model_size": "minimize", "fit_seconds": "minimize"}
 SAMPLERS = ("tpe", "random")

@@ -11,7 +11,7 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-from torchcal.errors import TorchcalError
+from torchcal.core.errors import TorchcalError
 from torchcal.studies.spec import StudyConfig
 
 CREATE_ATTEMPTS = 5

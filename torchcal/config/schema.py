@@ -1,0 +1,86 @@
+"""Configuration dataclasses of the tracker fit (``torchcal fit``) and the main job (``torchcal run``).
+
+They are the schema the YAML files under ``configs/`` and ``key=value`` overrides merge into
+(:mod:`torchcal.config.compose`); instruments with options of their own extend ``FitConfig``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from torchcal.sim.twin import TwinConfig
+
+
+@dataclass
+class FitConfig:
+    """Options of ``torchcal fit`` (and the fit stage of ``run``).
+
+    Attributes:
+        method: identifier: ``lm`` (default), ``gn`` or ``lasso``.
+        parallel_threshold_deg: Hayati switch (see :mod:`torchcal.kinematics.error_model`).
+        joint_unit / length_unit: units of the measurement file.
+        residual: learned residual stage: ``auto`` (cross-validate every candidate head on top
+            of the chosen structure, keep one only where it beats it beyond noise), ``none``, or
+            head names joined by ``+``.
+        split: how the cross-validation behind every choice forms its folds
+            (:mod:`torchcal.data.folds`): ``grouped`` (default; near-twin
+            configurations in one fold), ``blocks`` (contiguous blocks of the file's row order,
+            for data that drifts while measured) or ``random`` (rows; for comparison only).
+        cv_folds: folds of that cross-validation.
+        cv_groups: configuration regions (k-means clusters) of ``split=grouped``.
+        harmonic_min_range_deg: first harmonics only on joints whose range in the data spans at
+            least this (deg): over a shorter arc a harmonic is an offset and a slope that
+            extrapolates wildly (:func:`~torchcal.identify.joint_fit.fit_joint_errors`).
+        head_time_check: a head that passes the CV must pass again on contiguous blocks of the
+            file's row order (measurement order), so that one that learned a drift is refused.
+        device: ``cpu`` or a torch device string.
+        seed: seed of the folds and of stochastic heads.
+        tool_mm: nominal TCP in the flange frame (mm) replacing the robot file's (a URDF has none).
+        residual_hidden: hidden units of ELM heads.
+        mayfly_population / mayfly_iterations: MMA search of the ELM hidden layer.
+        residual_margin: a head must lower the CV RMS by this fraction (and with a paired gain
+            beyond chance over configuration groups) to be kept.
+        progress: show progress of long steps.
+        gravity_compliance: joint compliance under the arm's own weight, identified with the
+            geometry (:mod:`torchcal.identify.compliance`): ``none``, ``wrist``, ``elbow+wrist``
+            or ``auto`` (default: chosen by the cross-validation, with the harmonics).
+        joint_harmonics: first-harmonic joint errors ``a_j sin q_j + b_j cos q_j`` (rad), every
+            joint but the last, identified with the geometry (:mod:`torchcal.identify.harmonics`):
+            ``none``, ``first`` or ``auto`` (default). With ``auto`` (here or in
+            ``gravity_compliance``) the cross-validation compares the options and keeps the
+            simplest within noise of the best (:mod:`torchcal.model_selection.compare`). The
+            exported compensator carries both terms (:mod:`torchcal.compensate.joint_error_graph`).
+    """
+
+    method: str = "lm"
+    parallel_threshold_deg: float = 2.0
+    joint_unit: str = "deg"
+    length_unit: str = "mm"
+    residual: str = "auto"
+    split: str = "grouped"
+    cv_folds: int = 5
+    cv_groups: int = 20
+    head_time_check: bool = True
+    harmonic_min_range_deg: float = 180.0
+    device: str = "cpu"
+    seed: int = 0
+    tool_mm: list[float] | None = None
+    residual_hidden: int = 80
+    mayfly_population: int = 20
+    mayfly_iterations: int = 50
+    residual_margin: float = 0.05
+    progress: bool = True
+    gravity_compliance: str = "auto"
+    joint_harmonics: str = "auto"
+
+
+@dataclass
+class RunConfig:
+    """The main job: simulate the default twin, fit, evaluate on held-out poses, report, export."""
+
+    name: str = "twin-default"
+    out: str = "runs"
+    twin: TwinConfig = field(default_factory=lambda: TwinConfig(gravity=True, gear=True, n_train=1500, n_test=600))
+    fit: FitConfig = field(default_factory=FitConfig)
+    export: bool = True
+    export_dir: str = "exported_models"

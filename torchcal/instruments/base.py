@@ -1,0 +1,182 @@
+"""The instrument protocol: what every measuring instrument plugs into torchcal with.
+
+An instrument is a subpackage of :mod:`torchcal.instruments` (or of another distribution, see
+:mod:`torchcal.instruments.registry`) whose ``INSTRUMENT`` is an :class:`Instrument`. It says
+
+* how a file of its kind is **recognised** (the columns it needs; the user never names the
+  instrument, the header tells),
+* how such a file is **loaded** (validated, SI units),
+* how ``torchcal fit`` **fits** it (a model folder; :attr:`Instrument.stage` names the model stage it
+  adds: the robot ``geometry``, ``stiffness``, a ``sensor`` mounting...),
+* how ``torchcal evaluate`` **scores** a model folder on it (a dict of metrics, mm),
+* how ``torchcal simulate instrument=<name>`` writes a **twin** case with known truth, and
+* which small twin case the shared contract suite (:mod:`torchcal.testing.instrument_contract`)
+  runs it through, with the accuracy a fit must reach there.
+
+Commands get results back and print them; an instrument does not print (warnings go through
+:mod:`warnings`, which the command line shows as one line each).
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, ClassVar
+
+#: Model stages an instrument's fit can add to a model folder.
+STAGES = ("geometry", "stiffness", "sensor")
+
+
+@dataclass(frozen=True)
+class FitRequest:
+    """What ``torchcal fit`` passes to an instrument.
+
+    Attributes:
+        robot: robot file (MDH YAML or URDF).
+        data: the measurement file.
+        out: model folder to write.
+        overrides: ``key=value`` options of the command line.
+        base_link / end_link: URDF links of the robot base and the flange (``None``: root, last).
+        progress: called with a one-line description of each long step (a spinner's text).
+    """
+
+    robot: Path
+    data: Path
+    out: Path
+    overrides: list[str] = field(default_factory=list)
+    base_link: str | None = None
+    end_link: str | None = None
+    progress: Callable[[str], None] = lambda _text: None
+
+
+@dataclass(frozen=True)
+class FitOutcome:
+    """What a fit wrote and what the command line shows of it.
+
+    Attributes:
+        folder: the model folder written.
+        lines: result lines for the user, in order (the CLI prints them; the last one names the
+            chosen model and its training figure).
+    """
+
+    folder: Path
+    lines: list[str] = field(default_factory=list)
+
+
+@dataclass(frozen=True)
+class EvaluateRequest:
+    """What ``torchcal evaluate`` passes to an instrument.
+
+    Attributes:
+        model: the model folder.
+        data: the measurement file to score.
+        overrides: ``key=value`` options (units of the file and the like).
+        register: re-fit only what a new set-up of the instrument changes (its frame, stations...)
+            before scoring.
+    """
+
+    model: Path
+    data: Path
+    overrides: list[str] = field(default_factory=list)
+    register: bool = False
+
+
+@dataclass(frozen=True)
+class EvaluateOutcome:
+    """Metrics of a model on a file (JSON-ready, lengths in mm) and lines for the user."""
+
+    metrics: dict[str, Any]
+    lines: list[str] = field(default_factory=list)
+
+
+@dataclass(frozen=True)
+class TwinSpec:
+    """How ``torchcal simulate instrument=<name>`` writes a case.
+
+    Attributes:
+        config_factory: the twin's configuration dataclass (its ``key=value`` options).
+        write: ``write(out_dir, config) -> {name: path}``; the names include ``robot.yaml`` and
+            the measurement files.
+        description: one line for ``--help``.
+    """
+
+    config_factory: Callable[[], Any]
+    write: Callable[[Path, Any], dict[str, Path]]
+    description: str
+
+
+@dataclass(frozen=True)
+class ContractCase:
+    """A small twin case the contract suite fits and scores, with its known-truth bound.
+
+    Attributes:
+        twin_overrides: ``key=value`` options of the twin (small, seconds to fit).
+        fit_file / test_file: names (keys of the twin writer's result) of the file to fit and of
+            the held-out file to score.
+        fit_overrides / evaluate_overrides: options of ``fit`` and ``evaluate``.
+        end_link: URDF end link, where the twin's robot file needs one.
+        metric: the key of :attr:`EvaluateOutcome.metrics` to check (mm).
+        bound: the value of ``metric`` a correct fit reaches on the held-out file, from the twin's
+            noise and truth (a nominal model misses it).
+        register: score with ``evaluate --register`` (the test file comes from another set-up).
+    """
+
+    twin_overrides: list[str]
+    fit_file: str
+    test_file: str
+    metric: str
+    bound: float
+    fit_overrides: list[str] = field(default_factory=list)
+    evaluate_overrides: list[str] = field(default_factory=list)
+    end_link: str | None = None
+    register: bool = False
+
+
+class Instrument(ABC):
+    """A measuring instrument: recognise, load, fit, evaluate, simulate.
+
+    Attributes:
+        name: registry name, the subpackage's name (``"tracker"``, ``"tracer"``...).
+        description: one line saying what the instrument measures.
+        stage: the model stage its fit adds (one of :data:`STAGES`).
+        required_columns: columns (lower case) whose presence marks a file of this kind. Where the
+            columns of several instruments are present, the one requiring most of them wins (a
+            stiffness file with ``x, y, z`` is a stiffness file).
+    """
+
+    name: ClassVar[str]
+    description: ClassVar[str]
+    stage: ClassVar[str]
+    required_columns: ClassVar[frozenset[str]]
+
+    def recognises(self, columns: set[str]) -> bool:
+        """Whether a header with ``columns`` (lower case) is a file of this instrument."""
+        return self.required_columns <= columns
+
+    @abstractmethod
+    def load(self, path: Path, robot: Any, overrides: list[str] | None = None) -> Any:
+        """The validated measurements of ``path`` (SI units) for ``robot`` (a ``RobotModel``).
+
+        ``len()`` of the result is the number of measurement rows kept.
+
+        Raises:
+            DataError: naming file, row and column of the first bad cell.
+        """
+
+    @abstractmethod
+    def fit(self, request: FitRequest) -> FitOutcome:
+        """Fit the file and write a model folder (committed whole) at ``request.out``."""
+
+    @abstractmethod
+    def evaluate(self, request: EvaluateRequest) -> EvaluateOutcome:
+        """Score the model folder ``request.model`` on ``request.data``."""
+
+    @abstractmethod
+    def twin(self) -> TwinSpec:
+        """The twin writer of ``torchcal simulate instrument=<name>``."""
+
+    @abstractmethod
+    def contract_case(self) -> ContractCase:
+        """The small known-truth case of the shared contract suite."""

@@ -1,0 +1,217 @@
+"""The geometry stage: fit a robot's geometry (and joint-space terms) to measured points, store it, predict.
+
+The model-selected fit of ``torchcal fit`` on tracker points (structure chosen by grouped
+cross-validation), the same fit without selection, the stored model's predictions
+(``instrument`` frame, m) and the errors a stored model leaves on a measurement file. Every
+instrument whose fit ends in a robot geometry writes its model folder through :func:`save_fit`.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from torchcal.config.schema import FitConfig
+from torchcal.core.errors import DataError
+from torchcal.data.measurements import Measurements
+from torchcal.identify import IDENTIFIERS
+from torchcal.identify.calibrate import CalibrationResult, calibrate
+from torchcal.identify.joint_errors import JointSpaceErrors
+from torchcal.kinematics.robot import RobotModel
+from torchcal.kinematics.transforms import rigid_registration
+from torchcal.stages.store import StoredModel, save_model
+
+
+def registered_errors(predicted_base: torch.Tensor, measured: torch.Tensor) -> torch.Tensor:
+    """Errors after the best rigid registration of ``predicted_base`` onto ``measured``."""
+    transform = rigid_registration(predicted_base, measured)
+    aligned = predicted_base @ transform[:3, :3].T + transform[:3, 3]
+    return measured - aligned
+
+
+def nominal_errors(robot: RobotModel, data: Measurements) -> torch.Tensor:
+    """Nominal model errors after registering the instrument frame (the fair 'before')."""
+    return registered_errors(robot.tcp_position(data.q), data.position)
+
+
+def with_tool(robot: RobotModel, config: FitConfig) -> RobotModel:
+    """``robot`` with the configured nominal tool, if one is configured."""
+    if config.tool_mm is None:
+        return robot
+    if len(config.tool_mm) != 3:
+        raise DataError(f"tool_mm needs 3 values (x, y, z in mm), got {list(config.tool_mm)}")
+    from dataclasses import replace
+
+    return replace(robot, tool=torch.tensor(config.tool_mm, dtype=torch.float64) * 1e-3)
+
+
+def describe_structure(result: CalibrationResult) -> str:
+    """``geometry``, ``geometry + gravity compliance + joint harmonics``, ... of a fit result."""
+    terms = [t for t, present in (("gravity compliance", result.compliance is not None),
+                                  ("joint harmonics", result.harmonics is not None)) if present]
+    return "geometry" + "".join(f" + {t}" for t in terms)
+
+
+def make_config_folds(robot: RobotModel, data: Measurements, config: FitConfig):
+    """The folds every data-driven choice of this fit is judged on (``config.split``)."""
+    from torchcal.data.folds import make_folds
+
+    order = np.asarray(data.line_numbers) if data.line_numbers else None
+    return make_folds(config.split, robot, data.q, k=config.cv_folds, seed=config.seed, order=order,
+                      groups=config.cv_groups)
+
+
+def geometry_fitter(robot: RobotModel, config: FitConfig):
+    def geometry(train: Measurements) -> CalibrationResult:
+        return calibrate(robot, train, identifier=IDENTIFIERS[config.method](**_identifier_options(robot, config)),
+                         parallel_threshold_deg=config.parallel_threshold_deg, device=config.device)
+
+    return geometry
+
+
+def _identifier_options(robot: RobotModel, config: FitConfig) -> dict:
+    """LASSO's penalty is chosen by the same kind of folds as every other choice."""
+    if config.method != "lasso":
+        return {}
+    return {"folds": config.cv_folds, "seed": config.seed, "split": config.split, "robot": robot}
+
+
+def _structure_options(config: FitConfig) -> list[tuple[str, str]]:
+    from torchcal.identify.compliance import POINT_SETS
+    from torchcal.identify.harmonics import HARMONIC_SETS
+    from torchcal.identify.joint_fit import joint_error_options
+
+    sets = {"gravity_compliance": POINT_SETS, "joint_harmonics": HARMONIC_SETS}
+    for key, allowed in sets.items():
+        value = getattr(config, key)
+        if value not in allowed and value != "auto":
+            raise DataError(f"unknown {key} '{value}'; choose auto or one of {sorted(allowed)}")
+    return joint_error_options(*(tuple(allowed) if getattr(config, key) == "auto" else (getattr(config, key),)
+                                 for key, allowed in sets.items()))
+
+
+def fit_with_selection(robot: RobotModel, data: Measurements, config: FitConfig, *, progress=None):
+    """Identify the geometry and the joint-space terms the cross-validation supports.
+
+    Returns ``(result, structure_cv)``. The cross-validation (folds of ``config.split``) runs
+    when there is something to choose: several joint-space options (``auto``) or residual heads
+    to judge later (``structure_cv`` carries the per-fold fits they learn on); otherwise
+    ``structure_cv`` is ``None``. ``progress(text)`` is called before long steps.
+    """
+    from torchcal.identify.compliance import POINT_SETS
+    from torchcal.identify.harmonics import HARMONIC_SETS
+    from torchcal.identify.joint_fit import fit_joint_errors
+    from torchcal.model_selection.structure import cross_validate_structures, structure_label
+
+    if config.method not in IDENTIFIERS:
+        raise DataError(f"unknown method '{config.method}'; choose one of {sorted(IDENTIFIERS)}")
+    if config.residual != "none":
+        from torchcal.residual import head_names
+
+        head_names(config.residual)  # an unknown head is refused before anything is fitted
+    options = _structure_options(config)
+    geometry = geometry_fitter(robot, config)
+    structure = None
+    gravity, harmonics = options[0]
+    if len(options) > 1 or config.residual != "none":
+        folds = make_config_folds(robot, data, config)
+        structure = cross_validate_structures(robot, data, geometry, options, folds, progress=progress,
+                                              harmonic_min_range_deg=config.harmonic_min_range_deg)
+        gravity, harmonics = structure.chosen
+    if progress is not None:
+        progress("fitting the chosen structure on all poses")
+    result = fit_joint_errors(robot, data, geometry(data), POINT_SETS[gravity], HARMONIC_SETS[harmonics],
+                              config.harmonic_min_range_deg)
+    if structure is not None and len(options) > 1:
+        comparison = structure.comparison
+        result.notes.append(f"structure chosen by {comparison.protocol}: "
+                            + ", ".join(f"{r['name']} {r['cv_rms_mm']:.4f} mm" for r in comparison.rows)
+                            + f" -> {structure_label(gravity, harmonics)} ({comparison.reason})")
+    return result, structure
+
+
+def fit(robot: RobotModel, data: Measurements, config: FitConfig, *, progress=None) -> CalibrationResult:
+    """Geometric identification plus the joint-space errors chosen by cross-validation (:func:`fit_with_selection`)."""
+    return fit_with_selection(robot, data, config, progress=progress)[0]
+
+
+def cross_validate_stored_structure(stored: StoredModel, data: Measurements, config: FitConfig):
+    """The structure of a model folder alone, cross-validated on ``config``'s folds (for its heads)."""
+    from torchcal.identify.compliance import POINT_SETS
+    from torchcal.model_selection.structure import cross_validate_structures
+
+    terms = JointSpaceErrors.from_metadata(stored.metadata)
+    points = tuple(terms.compliance.points) if terms.compliance is not None else ()
+    gravity = next(name for name, members in POINT_SETS.items() if members == points)
+    harmonics = "first" if terms.harmonics is not None else "none"
+    folds = make_config_folds(stored.robot, data, config)
+    return cross_validate_structures(stored.robot, data, geometry_fitter(stored.robot, config), [(gravity, harmonics)],
+                                     folds, harmonic_min_range_deg=config.harmonic_min_range_deg)
+
+
+def save_fit(folder: Path, robot: RobotModel, data: Measurements, result: CalibrationResult, extra: dict) -> Path:
+    ident = result.identifiability
+    meta = {
+        "method": result.method,
+        "data": {"file": data.source, "sha256": data.sha256, "n_poses": len(data)},
+        "identifiability": {
+            "rank": ident.rank,
+            "condition_number": ident.condition_number,
+            "observability_index": ident.observability_index,
+            "base_set": ident.base_set,
+            "not_identifiable": {k: [p for p, _ in v[:3]] for k, v in ident.dependent.items()},
+            "weak": ident.weak,
+        },
+        "residual_sigma_mm": result.sigma_residual_m * 1e3,
+        "solver": {"iterations": result.solve.iterations, "message": result.solve.message, "cost_history": result.solve.history},
+        "notes": result.notes,
+        **extra,
+    }
+    meta.update(JointSpaceErrors.of(result).to_metadata())
+    folder = Path(folder)
+    # a new fit invalidates what an earlier fit into this folder learned on top of its geometry
+    for stale in ("residual.safetensors", "residual.json", "model_selection.json"):
+        (folder / stale).unlink(missing_ok=True)
+    return save_model(folder, robot, result.model, result.x, result.free, result.covariance, meta, training_q=data.q)
+
+
+def model_joints(stored: StoredModel, q: torch.Tensor) -> torch.Tensor:
+    """Joints (rad) to put through the geometric chain: ``q`` plus every stored joint-space error."""
+    return JointSpaceErrors.from_metadata(stored.metadata).effective_joints(stored.robot, q)
+
+
+def predict_positions(
+    stored: StoredModel, q: torch.Tensor, temperature: torch.Tensor | None = None, wrench: torch.Tensor | None = None
+) -> torch.Tensor:
+    """Model prediction of TCP positions (instrument frame, m), compliance and residual head included.
+
+    With a ``wrench`` ``(n, 6)`` (N, N m at the TCP, tool frame) and a stiffness stage in the
+    model, the deflection it predicts is added (the loaded TCP).
+    """
+    p = stored.model.tcp_position(model_joints(stored, q), stored.x)
+    if stored.residual is not None:
+        p = p + stored.residual.predict_base_error(q, temperature) @ stored.model.T_reference[:3, :3].T.to(p)
+    if wrench is not None and stored.stiffness is not None:
+        from torchcal.stiffness.vjm import deflection
+
+        compliance = stored.stiffness.compliance.to(p)  # type: ignore[attr-defined]
+        p = p + deflection(stored.model, q, stored.x, compliance, wrench.to(p), wrench_frame="tool")[..., :3]
+    return p
+
+
+def held_out_errors(stored: StoredModel, data: Measurements, *, register: bool = False, residual: bool = True) -> torch.Tensor:
+    """``measured - predicted`` (instrument frame, m) of a stored model on ``data``.
+
+    ``register``: first re-fit only the rigid instrument frame (Kabsch, its exact least-squares
+    optimum), for data measured with the instrument elsewhere. ``residual=False`` scores the
+    model without its learned head.
+    """
+    if residual:
+        predicted = predict_positions(stored, data.q, data.temperature, data.wrench)
+    else:
+        predicted = stored.model.tcp_position(model_joints(stored, data.q), stored.x)
+    return registered_errors(predicted, data.position) if register else data.position - predicted
+
+

@@ -1,0 +1,166 @@
+"""The learned-residual stage of ``fit``: candidate heads judged by grouped cross-validation.
+
+Targets are the poses' position errors left by the chosen structure (geometry, with its
+joint-space terms), rotated into the ``base`` frame (so a head is independent of where the
+tracker stood) and scaled to mm. Every candidate head is cross-validated on the folds of
+:mod:`torchcal.model_selection` (configuration groups by default, never a random row split): on
+each fold it learns the errors of that fold's structure fit and predicts the held-out poses. A
+head is kept only where it beats the structure by ``residual_margin`` in CV RMS with a paired
+gain beyond chance over configuration groups; the kept head is then fitted on all poses. The
+comparison table (structures and heads) is written to ``model_selection.json``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import torch
+
+from torchcal.core.io import atomic_write_json
+from torchcal.data.measurements import Measurements
+from torchcal.model_selection.compare import Comparison, compare_candidates
+from torchcal.model_selection.heads import cross_validate_heads, make_features
+from torchcal.model_selection.structure import StructureCV
+from torchcal.residual import HEADS, head_names
+from torchcal.residual.selection import fit_before_gate
+
+SELECTION_FILE = "model_selection.json"
+
+
+def _candidates(config) -> list:
+    heads = []
+    for name in head_names(config.residual):
+        if name == "mma-elm":
+            heads.append(HEADS[name](hidden=config.residual_hidden, population=config.mayfly_population,
+                                     iterations=config.mayfly_iterations, seed=config.seed, progress=False))
+        elif name == "elm":
+            heads.append(HEADS[name](hidden=config.residual_hidden, seed=config.seed))
+        else:
+            heads.append(HEADS[name](seed=config.seed, progress=False))
+    return heads
+
+
+def residual_targets_mm(model, x, data: Measurements, joints: torch.Tensor | None = None) -> torch.Tensor:
+    """Geometric residuals of ``data`` in the ``base`` frame, mm ``(n, 3)``.
+
+    ``joints``: what the chain is evaluated at (default ``data.q``; ``q`` plus the joint-space
+    errors when the model has any), while the head's features stay the commanded joints.
+    """
+    error = data.position - model.tcp_position(data.q if joints is None else joints, x)
+    return error @ model.T_reference[:3, :3].to(error) * 1e3
+
+
+def select_with_heads(robot, data: Measurements, structure: StructureCV, config, progress=None) -> Comparison:
+    """The final comparison: the structures of ``structure`` and every head on the chosen one.
+
+    A head that passes on ``structure``'s folds must pass again on contiguous blocks of row
+    (measurement) order when ``config.head_time_check`` is on and the folds were not blocks
+    already: a head can learn what drifts while a series is measured (tracker, temperature),
+    which configuration folds cannot tell from a robot property when neighbouring
+    configurations were measured minutes apart. Requiring both is never less strict than either.
+    """
+    assert structure.comparison is not None
+    parent = structure.comparison.chosen
+    heads = cross_validate_heads(robot, data, structure, parent, lambda: _candidates(config),
+                                 margin=config.residual_margin, seed=config.seed, progress=progress)
+    comparison = compare_candidates(structure.candidates + heads.candidates, structure.folds.units(),
+                                    structure.folds.description, tolerance=structure_tolerance())
+    head_rows = {c.name for c in heads.candidates}
+    if comparison.chosen not in head_rows and comparison.chosen != parent:
+        # the structures were decided without heads; heads only add rows on top of that choice
+        comparison.chosen, comparison.reason = parent, structure.comparison.reason
+    for name, why in heads.stopped.items():
+        comparison.rows.append(_stopped_row(f"{parent}+{name}", why))
+    if comparison.chosen in head_rows and config.head_time_check and structure.folds.kind != "blocks":
+        _check_on_time_blocks(robot, data, structure, comparison, config, progress)
+    return comparison
+
+
+def _stopped_row(name: str, why: str) -> dict:
+    nan = float("nan")
+    return {"name": name, "cv_rms_mm": nan, "vs_best_pct": nan, "se_pct": nan, "verdict": why, "detail": ""}
+
+
+def _check_on_time_blocks(robot, data: Measurements, structure: StructureCV, comparison: Comparison, config,
+                          progress) -> None:
+    """Repeat the chosen head's CV on blocks of row order; revert to the structure if it fails there."""
+    from torchcal.data.folds import make_folds
+    from torchcal.model_selection.structure import cross_validate_structures
+    from torchcal.stages.geometry import geometry_fitter
+
+    parent = structure.comparison.chosen
+    head_name = comparison.chosen.split("+")[-1]
+    order = torch.as_tensor(data.line_numbers).numpy() if data.line_numbers else None
+    blocks = make_folds("blocks", robot, data.q, k=config.cv_folds, order=order)
+    timed = cross_validate_structures(robot, data, geometry_fitter(robot, config), [structure.chosen], blocks,
+                                      harmonic_min_range_deg=config.harmonic_min_range_deg,
+                                      progress=progress)
+    heads = cross_validate_heads(robot, data, timed, parent,
+                                 lambda: [h for h in _candidates(config) if h.name == head_name],
+                                 margin=config.residual_margin, seed=config.seed, progress=progress)
+    check = compare_candidates(timed.candidates + heads.candidates, blocks.units(), blocks.description)
+    for row in check.rows:
+        comparison.rows.append({**row, "name": f"{row['name']} [time blocks]"})
+    for name, why in heads.stopped.items():
+        comparison.rows.append(_stopped_row(f"{parent}+{name} [time blocks]", why))
+    comparison.protocol += f"; a kept head also checked by {blocks.description}"
+    if check.chosen != comparison.chosen:
+        comparison.chosen = parent
+        comparison.reason = (f"{structure.comparison.reason}; head '{head_name}' passed on configuration regions but "
+                             "not on blocks of measurement order: it learned what changed while the series was "
+                             "measured, not the robot")
+
+
+def structure_tolerance() -> float:
+    from torchcal.identify.joint_fit import CV_TOLERANCE
+
+    return CV_TOLERANCE
+
+
+def fit_residual_stage(
+    model_dir, data: Measurements, config, progress: Callable[[str], None] | None = None, structure: StructureCV | None = None
+) -> dict:
+    """Cross-validate the heads on top of a saved model's structure; fit and write the kept one.
+
+    ``structure``: the structure CV of the fit that wrote ``model_dir`` (its folds and fold
+    fits); without it the stored structure is cross-validated alone on ``config``'s folds.
+    ``progress`` is called with a line per step (when ``config.progress``). Returns ``decision``,
+    ``kept`` (head name or ``None``), ``comparison`` (its dict) and ``table`` (printable); nothing
+    is printed here.
+    """
+    from torchcal.stages.geometry import cross_validate_stored_structure, model_joints
+    from torchcal.stages.residual_store import StoredResidual, save_residual
+    from torchcal.stages.store import load_model
+
+    stored = load_model(model_dir)
+    if structure is None:
+        structure = cross_validate_stored_structure(stored, data, config)
+    progress = progress if config.progress else None
+    comparison = select_with_heads(stored.robot, data, structure, config, progress=progress)
+    kept = None
+    parent = structure.comparison.chosen if structure.comparison else ""
+    if comparison.chosen != parent:
+        kept = comparison.chosen.split("+")[-1]
+        head = next(h for h in _candidates(config) if h.name == kept)
+        features = make_features(stored.robot, data)
+        targets = residual_targets_mm(stored.model, stored.x, data, model_joints(stored, data.q))
+        fit_before_gate(head, features(data.q, data.temperature), targets, seed=config.seed)
+        row = next(r for r in comparison.rows if r["name"] == comparison.chosen)
+        decision = (f"residual head '{kept}' kept: {comparison.reason}; CV RMS {row['cv_rms_mm']:.4f} mm; "
+                    "fitted on all training poses")
+        save_residual(model_dir, StoredResidual(head, features, {"decision": decision, "cv_rms_mm": row["cv_rms_mm"],
+                                                                 "protocol": comparison.protocol}))
+    else:
+        rejected = [r for r in comparison.rows if r["name"].startswith(parent + "+")]
+        why = "; ".join(f"{r['name']}: {r['verdict']}" for r in rejected) or "no head candidates"
+        decision = f"no residual head kept ({why})"
+    write_selection(model_dir, comparison, decision)
+    return {"decision": decision, "kept": kept, "comparison": comparison.to_dict(), "table": comparison.format_table()}
+
+
+def write_selection(model_dir, comparison: Comparison, decision: str) -> None:
+    """``model_selection.json``: the comparison table and the residual decision."""
+    from pathlib import Path
+
+    atomic_write_json(Path(model_dir) / SELECTION_FILE, {**comparison.to_dict(), "residual_decision": decision,
+                                                         "table": comparison.format_table()})

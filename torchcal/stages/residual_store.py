@@ -1,0 +1,75 @@
+"""The learned residual stored in a model folder: ``residual.safetensors`` + ``residual.json``."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import torch
+
+from torchcal.core.io import atomic_write_bytes, atomic_write_json
+from torchcal.residual import HEADS, ResidualHead
+from torchcal.residual.features import JointFeatures
+
+
+class ResidualModule(torch.nn.Module):
+    """``q (B, N) rad -> predicted TCP position error (B, 3)`` in ``base``, m (features + head)."""
+
+    def __init__(self, features: JointFeatures, head: torch.nn.Module) -> None:
+        super().__init__()
+        self.features = features
+        self.head = head
+
+    def forward(self, q: torch.Tensor, temperature: torch.Tensor | None = None) -> torch.Tensor:
+        return self.head(self.features(q, temperature)) * 1e-3
+
+
+class StoredResidual:
+    """A fitted head with its features; what ``StoredModel.residual`` holds."""
+
+    def __init__(self, head: ResidualHead, features: JointFeatures, info: dict) -> None:
+        self.head, self.features, self.info = head, features, info
+
+    def to_torch_module(self) -> ResidualModule:
+        return ResidualModule(self.features, self.head.module()).eval()
+
+    def predict_base_error(self, q: torch.Tensor, temperature: torch.Tensor | None = None) -> torch.Tensor:
+        """Predicted TCP position error ``(B, 3)`` in ``base``, m."""
+        with torch.no_grad():
+            module = self.to_torch_module().to(q.dtype)
+            return module(q, temperature if self.features.uses_temperature else None)
+
+
+def save_residual(folder: str | Path, residual: StoredResidual) -> None:
+    from safetensors.torch import save
+
+    folder = Path(folder)
+    tensors = {f"head.{k}": v for k, v in residual.head.state().items()}
+    tensors.update({f"features.{k}": v.detach().cpu().contiguous() for k, v in residual.features.state_dict().items()})
+    atomic_write_bytes(folder / "residual.safetensors", save(tensors))
+    atomic_write_json(folder / "residual.json", {
+        "head": residual.head.name,
+        "settings": residual.head.settings(),
+        "uses_temperature": residual.features.uses_temperature,
+        "output": "TCP position error in the base frame, m (head outputs mm)",
+        **residual.info,
+    })
+
+
+def load_residual(folder: str | Path) -> StoredResidual:
+    from safetensors.torch import load_file
+
+    folder = Path(folder)
+    info = json.loads((folder / "residual.json").read_text())
+    tensors = load_file(str(folder / "residual.safetensors"))
+    head_state = {k.removeprefix("head."): v for k, v in tensors.items() if k.startswith("head.")}
+    feat_state = {k.removeprefix("features."): v for k, v in tensors.items() if k.startswith("features.")}
+    n = feat_state["mid"].shape[0]
+    limits = torch.stack([feat_state["mid"] - feat_state["half_span"], feat_state["mid"] + feat_state["half_span"]], 1)
+    temperature = (float(feat_state["t_mean"]), float(feat_state["t_scale"])) if info["uses_temperature"] else None
+    features = JointFeatures(limits, temperature)
+    features.load_state_dict(feat_state)
+    head_cls = HEADS[info["head"]]
+    head = head_cls.from_state(info["settings"], head_state)
+    assert features.mid.shape[0] == n
+    return StoredResidual(head, features, {k: v for k, v in info.items() if k not in ("head", "settings", "uses_temperature", "output")})

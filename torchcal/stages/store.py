@@ -1,0 +1,158 @@
+"""Saving and loading a calibrated model folder (no pickles anywhere).
+
+A model folder holds:
+
+* ``robot.yaml`` or ``robot.urdf``: the nominal robot it was calibrated from;
+* ``calibration.safetensors``: tensors ``x`` (full parameter vector, SI), ``T_reference``
+  (instrument-from-base, 4x4), ``free`` (estimated parameter indices), ``covariance`` and,
+  for fits from measured poses, ``training_q`` (their commanded joints, rad);
+* ``calibration.json``: metadata (parameter names, units, identifiability, data hash, metrics);
+* ``calibrated_robot.yaml``: the calibrated MDH table in the contract's units, for people;
+* optionally ``residual.safetensors`` + ``residual.json``: a learned residual head;
+* optionally ``model_selection.json``: the cross-validated comparison the fit chose by;
+* optionally ``stiffness.safetensors`` + ``stiffness.json``: joint stiffness
+  (:mod:`torchcal.stages.stiffness_store`).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import torch
+
+from torchcal.core.errors import ModelError
+from torchcal.core.io import atomic_write_bytes, atomic_write_json, atomic_write_text
+from torchcal.kinematics.error_model import ErrorModel
+from torchcal.kinematics.robot import RobotModel, load_robot, robot_to_yaml
+
+
+@dataclass
+class StoredModel:
+    """A calibrated model as loaded from disk."""
+
+    robot: RobotModel
+    model: ErrorModel
+    x: torch.Tensor
+    free: torch.Tensor
+    covariance: torch.Tensor
+    metadata: dict
+    folder: Path
+    residual: object | None = None
+    stiffness: object | None = None
+    extras: dict = field(default_factory=dict)
+    training_q: torch.Tensor | None = None
+
+    @property
+    def free_names(self) -> list[str]:
+        return [self.model.layout.names[i] for i in self.free.tolist()]
+
+
+def save_model(
+    folder: str | Path,
+    robot: RobotModel,
+    model: ErrorModel,
+    x: torch.Tensor,
+    free: torch.Tensor,
+    cov: torch.Tensor,
+    metadata: dict,
+    training_q: torch.Tensor | None = None,
+) -> Path:
+    """Write a model folder; every file is written atomically.
+
+    ``training_q`` ``(n, N)`` rad: the commanded joints of the poses fitted, kept so that
+    ``evaluate`` can say how close scored poses sit to them
+    (:mod:`torchcal.model_selection.leakage`).
+    """
+    from safetensors.torch import save
+
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    if robot.source and Path(robot.source).suffix.lower() in (".urdf", ".xml"):
+        robot_file = folder / "robot.urdf"
+        atomic_write_text(robot_file, robot.urdf or Path(robot.source).read_text())
+    else:
+        robot_file = folder / "robot.yaml"
+        atomic_write_text(robot_file, robot_to_yaml(robot))
+    tensors = {
+        "x": x.detach().cpu().contiguous(),
+        "T_reference": model.T_reference.detach().cpu().contiguous(),
+        "free": free.detach().cpu().contiguous(),
+        "covariance": cov.detach().cpu().contiguous(),
+    }
+    if training_q is not None:
+        tensors["training_q"] = training_q.detach().to("cpu", torch.float64).contiguous()
+    atomic_write_bytes(folder / "calibration.safetensors", save(tensors))
+    table = model.table(x.cpu())
+    scale = model.layout.unit_scale()
+    sigma = torch.zeros(model.layout.size, dtype=torch.float64)
+    sigma[free] = cov.diagonal().clamp_min(0).sqrt().cpu()
+    meta = {
+        "format": "torchcal-model/1",
+        "robot_file": robot_file.name,
+        "robot_name": robot.name,
+        "base_link": robot.base_link,
+        "end_link": robot.end_link,
+        "parallel_threshold_deg": model.parallel_threshold_deg,
+        "with_orientation": model.with_orientation,
+        "parameter_names": list(model.layout.names),
+        "units": {"lengths": "mm", "angles": "deg"},
+        "parameters": {
+            n: {"value": float(v * s), "sigma": float(sg * s), "estimated": bool(i in set(free.tolist()))}
+            for i, (n, v, s, sg) in enumerate(zip(model.layout.names, x.cpu().tolist(), scale.tolist(), sigma.tolist()))
+        },
+        **metadata,
+    }
+    atomic_write_json(folder / "calibration.json", meta)
+    tool = x[model.layout.tool_slice][:3].cpu()
+    header = "# calibrated by torchcal; T_instrument_base and sigmas are in calibration.json\n"
+    atomic_write_text(folder / "calibrated_robot.yaml", header + robot_to_yaml(robot, table=table, tool=tool))
+    return folder
+
+
+def load_model(folder: str | Path, device: str | torch.device = "cpu") -> StoredModel:
+    """Read a model folder written by :func:`save_model` (safetensors + JSON only)."""
+    from safetensors.torch import load_file
+
+    folder = Path(folder)
+    meta_path = folder / "calibration.json"
+    if not meta_path.is_file():
+        raise ModelError(f"{folder}: not a torchcal model folder (no calibration.json)")
+    meta = json.loads(meta_path.read_text())
+    robot_path = folder / meta["robot_file"]
+    robot = load_robot(robot_path, base_link=meta.get("base_link"), end_link=meta.get("end_link"))
+    tensors = load_file(str(folder / "calibration.safetensors"))
+    model = ErrorModel(
+        robot,
+        with_orientation=meta.get("with_orientation", False),
+        parallel_threshold_deg=meta.get("parallel_threshold_deg", 2.0),
+        T_instrument_base=tensors["T_reference"],
+        device=device,
+    )
+    if list(model.layout.names) != meta["parameter_names"]:
+        raise ModelError(f"{folder}: parameter layout does not match robot {robot.name}")
+    stored = StoredModel(
+        robot=robot, model=model, x=tensors["x"].to(device), free=tensors["free"],
+        covariance=tensors["covariance"].to(device), metadata=meta, folder=folder,
+        training_q=tensors.get("training_q"),
+    )
+    if (folder / "residual.json").is_file():
+        from torchcal.stages.residual_store import load_residual
+
+        stored.residual = load_residual(folder)
+    from torchcal.stages.stiffness_store import load_stiffness_stage
+
+    stored.stiffness = load_stiffness_stage(folder, device=device)
+    return stored
+
+
+def copy_model(src: str | Path, dst: str | Path) -> None:
+    """Copy a model folder (used when exporting next to its source)."""
+    shutil.copytree(src, dst, dirs_exist_ok=True)
+
+
+def degrees(v: float) -> float:
+    return v * 180.0 / math.pi

@@ -1,0 +1,1 @@
+"""Test suites that implementations of torchcal's extension points import and run."""
