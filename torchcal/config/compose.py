@@ -21,11 +21,13 @@ CONFIG_DIR_ENV = "TORCHCAL_CONFIG_DIR"
 
 
 def config_dir() -> Path | None:
-    """The ``configs/`` folder: ``$TORCHCAL_CONFIG_DIR``, ``./configs``, or the source tree's."""
+    """The ``configs/`` folder: ``$TORCHCAL_CONFIG_DIR``, ``./configs``, the source tree's, or the
+    copy an installed wheel carries (``torchcal/configs``, written by the build)."""
     candidates = []
     if os.environ.get(CONFIG_DIR_ENV):
         candidates.append(Path(os.environ[CONFIG_DIR_ENV]))
-    candidates += [Path.cwd() / "configs", Path(__file__).resolve().parents[2] / "configs"]
+    package = Path(__file__).resolve().parents[1]
+    candidates += [Path.cwd() / "configs", package.parent / "configs", package / "configs"]
     for candidate in candidates:
         if (candidate / "config.yaml").is_file():
             return candidate.resolve()

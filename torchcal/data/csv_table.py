@@ -68,7 +68,7 @@ def read_csv_table(path: str | Path) -> CsvTable:
                 raise DataError("header has an empty column name", path=str(path), row=line_no)
             dupes = sorted({h for h in header if header.count(h) > 1})
             if dupes:
-                raise DataError(f"header repeats column(s) {dupes}", path=str(path), row=line_no)
+                raise DataError(f"header repeats column(s) {dupes}", path=str(path), row=line_no, column=dupes[0])
             continue
         if len(row) != len(header):
             raise DataError(
@@ -130,3 +130,41 @@ def read_header(path: str | Path) -> list[str]:
             if any(cell.strip() for cell in row):
                 return [cell.strip().lower() for cell in row]
     raise DataError("the file is empty (no header row)", path=str(path))
+
+
+def check_joint_limits(
+    q_file: np.ndarray,
+    joint_unit: str,
+    limits_rad: np.ndarray,
+    *,
+    path: str | Path,
+    lines: list[int] | tuple[int, ...],
+    columns: list[str] | None = None,
+    robot_name: str | None = None,
+    tolerance_deg: float = 0.01,
+) -> None:
+    """Refuse the first joint value outside the robot's limits, in the file's own unit.
+
+    Args:
+        q_file: ``(B, N)`` joints as written in the file (``joint_unit``: ``deg`` or ``rad``).
+        limits_rad: ``(N, 2)`` lower and upper limits, rad.
+        lines: file line of each row; ``columns`` the name of each joint column (``q1..qN``).
+        tolerance_deg: how far outside a limit a value may be (rounding in files), deg.
+
+    Raises:
+        DataError: value, limits (file unit), file, line and column of the first violation.
+    """
+    to_rad = math.pi / 180.0 if joint_unit == "deg" else 1.0
+    tol = math.radians(tolerance_deg)
+    q = q_file * to_rad
+    bad = (q < limits_rad[:, 0] - tol) | (q > limits_rad[:, 1] + tol)
+    if not bad.any():
+        return
+    k, j = map(int, np.argwhere(bad)[0])
+    f = 1.0 / to_rad
+    of_robot = f" of robot '{robot_name}'" if robot_name else ""
+    raise DataError(
+        f"{q_file[k, j]:g} {joint_unit} is outside joint {j + 1}'s limits "
+        f"[{limits_rad[j, 0] * f:g}, {limits_rad[j, 1] * f:g}] {joint_unit}{of_robot}",
+        path=str(path), row=lines[k], column=(columns or [f"q{i + 1}" for i in range(q.shape[1])])[j],
+    )

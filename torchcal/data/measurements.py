@@ -17,7 +17,7 @@ import torch
 
 from torchcal.core.errors import DataError
 from torchcal.core.hashing import sha256_file
-from torchcal.data.csv_table import check_units, joint_columns, read_csv_table
+from torchcal.data.csv_table import check_joint_limits, check_units, joint_columns, read_csv_table
 from torchcal.kinematics.robot import RobotModel
 from torchcal.kinematics.transforms import euler_xyz_to_matrix
 
@@ -125,18 +125,8 @@ def load_measurements(
     pos = np.stack([table.column(c) for c in POSITION], 1) * scale
 
     if check_limits:
-        lim = robot.joint_limits.numpy()
-        tol = math.radians(limit_tolerance_deg)
-        bad = (q < lim[:, 0] - tol) | (q > lim[:, 1] + tol)
-        if bad.any():
-            k, j = map(int, np.argwhere(bad)[0])
-            unit = "deg" if joint_unit == "deg" else "rad"
-            f = (180.0 / math.pi) if joint_unit == "deg" else 1.0
-            raise DataError(
-                f"{q_deg[k, j]:g} {unit} is outside joint {j + 1}'s limits "
-                f"[{lim[j, 0] * f:g}, {lim[j, 1] * f:g}] {unit} of robot '{robot.name}'",
-                path=p, row=table.line_numbers[k], column=f"q{j + 1}",
-            )
+        check_joint_limits(q_deg, joint_unit, robot.joint_limits.numpy(), path=p, lines=table.line_numbers,
+                           robot_name=robot.name, tolerance_deg=limit_tolerance_deg)
 
     rotation = None
     if present_or:

@@ -43,6 +43,17 @@ class IdentifiabilityReport:
     dependent: dict[str, list[tuple[str, float]]] = field(default_factory=dict)
     weak: dict[str, float] = field(default_factory=dict)
 
+    def to_metadata(self) -> dict:
+        """What a model folder's ``calibration.json`` keeps of this report (JSON-ready)."""
+        return {
+            "rank": self.rank,
+            "condition_number": self.condition_number,
+            "observability_index": self.observability_index,
+            "base_set": self.base_set,
+            "not_identifiable": {k: [p for p, _ in v[:3]] for k, v in self.dependent.items()},
+            "weak": self.weak,
+        }
+
     def summary(self) -> str:
         lines = [
             f"rank {self.rank}, condition number {self.condition_number:.3g}, "

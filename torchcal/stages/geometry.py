@@ -156,14 +156,7 @@ def save_fit(folder: Path, robot: RobotModel, data: Measurements, result: Calibr
     meta = {
         "method": result.method,
         "data": {"file": data.source, "sha256": data.sha256, "n_poses": len(data)},
-        "identifiability": {
-            "rank": ident.rank,
-            "condition_number": ident.condition_number,
-            "observability_index": ident.observability_index,
-            "base_set": ident.base_set,
-            "not_identifiable": {k: [p for p, _ in v[:3]] for k, v in ident.dependent.items()},
-            "weak": ident.weak,
-        },
+        "identifiability": ident.to_metadata(),
         "residual_sigma_mm": result.sigma_residual_m * 1e3,
         "solver": {"iterations": result.solve.iterations, "message": result.solve.message, "cost_history": result.solve.history},
         "notes": result.notes,

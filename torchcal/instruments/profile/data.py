@@ -26,7 +26,13 @@ import torch
 
 from torchcal.core.errors import DataError
 from torchcal.core.hashing import sha256_file
-from torchcal.data.csv_table import CsvTable, check_units, joint_columns, read_csv_table
+from torchcal.data.csv_table import (
+    CsvTable,
+    check_joint_limits,
+    check_units,
+    joint_columns,
+    read_csv_table,
+)
 
 REQUIRED = ("scan", "u", "w")
 OPTIONAL = ("plane",)
@@ -209,15 +215,8 @@ def load_profile(
         lim = joint_limits_rad.detach().cpu().numpy()
         if lim.shape[0] != q.shape[1]:
             raise DataError(f"has {q.shape[1]} joint columns but the robot has {lim.shape[0]} joints", path=p, row=1)
-        tol = math.radians(limit_tolerance_deg)
-        out = (q < lim[:, 0] - tol) | (q > lim[:, 1] + tol)
-        if out.any():
-            s, j = map(int, np.argwhere(out)[0])
-            f = 1.0 / angle
-            raise DataError(
-                f"{q_scan[s, j]:g} {joint_unit} is outside joint {j + 1}'s limits [{lim[j, 0] * f:g}, {lim[j, 1] * f:g}] {joint_unit}",
-                path=p, row=lines[first[s]], column=joints[j],
-            )
+        check_joint_limits(q_scan, joint_unit, lim, path=p, lines=[lines[i] for i in first], columns=list(joints),
+                           tolerance_deg=limit_tolerance_deg)
 
     # A scan needs two distinct points to give a line; one repeated point carries no direction.
     n_scans = len(keys)

@@ -18,52 +18,19 @@ column.
 
 from __future__ import annotations
 
-import csv
 import math
 from pathlib import Path
 
 import torch
 
 from torchcal.core.errors import DataError
-from torchcal.data.csv_table import check_units, joint_columns
+from torchcal.data.csv_table import check_units, joint_columns, read_csv_table
 from torchcal.stiffness.experiment import StiffnessData
 
 WRENCH_COLUMNS = ("fx", "fy", "fz", "tx", "ty", "tz")
 DEFLECTION_COLUMNS = ("dx", "dy", "dz")
 ROTATION_COLUMNS = ("drx", "dry", "drz")
 POSITION_COLUMNS = ("x", "y", "z")
-
-
-def _read(path: Path) -> tuple[tuple[str, ...], list[list[str]], list[int]]:
-    if not path.is_file():
-        raise DataError("file not found", path=str(path))
-    try:
-        text = path.read_text(encoding="utf-8-sig")
-    except UnicodeDecodeError:
-        raise DataError("not a UTF-8 text file", path=str(path)) from None
-    header: tuple[str, ...] | None = None
-    rows: list[list[str]] = []
-    lines: list[int] = []
-    for line_no, row in enumerate(csv.reader(text.splitlines()), start=1):
-        if not row or all(not c.strip() for c in row):
-            continue
-        if header is None:
-            header = tuple(c.strip() for c in row)
-            if any(not h for h in header):
-                raise DataError("header has an empty column name", path=str(path), row=line_no)
-            dupes = sorted({h for h in header if header.count(h) > 1})
-            if dupes:
-                raise DataError(f"header repeats column(s) {dupes}", path=str(path), row=line_no, column=dupes[0])
-            continue
-        if len(row) != len(header):
-            raise DataError(f"has {len(row)} cells but the header has {len(header)}", path=str(path), row=line_no)
-        rows.append(row)
-        lines.append(line_no)
-    if header is None:
-        raise DataError("file is empty (no header row)", path=str(path))
-    if not rows:
-        raise DataError("has a header but no data rows", path=str(path))
-    return header, rows, lines
 
 
 def _group(header: tuple[str, ...], names: tuple[str, ...], path: str, what: str, required: bool) -> bool:
@@ -99,7 +66,8 @@ def load_stiffness(
     path = Path(path)
     p = str(path)
     check_units(joint_unit, length_unit, path)
-    header, rows, lines = _read(path)
+    table = read_csv_table(path)
+    header, rows, lines = table.header, table.rows, list(table.line_numbers)
     joints = joint_columns(header, p, n_joints)
     _group(header, WRENCH_COLUMNS, p, "a wrench", required=True)
     _group(header, DEFLECTION_COLUMNS, p, "a deflection", required=True)

@@ -58,17 +58,6 @@ def tracer_config(overrides: list[str]) -> TracerFitConfig:
     return config
 
 
-def _identifiability_meta(ident) -> dict:
-    return {
-        "rank": ident.rank,
-        "condition_number": ident.condition_number,
-        "observability_index": ident.observability_index,
-        "base_set": ident.base_set,
-        "not_identifiable": {k: [p for p, _ in v[:3]] for k, v in ident.dependent.items()},
-        "weak": ident.weak,
-    }
-
-
 def _station_meta(stations, station_sigmas, dead, dead_sigmas) -> dict:
     return {
         "stations_mm": (stations * 1e3).tolist(),
@@ -147,7 +136,7 @@ def fit_tracer(robot_path, data_path, out_dir, overrides, *, base_link=None, end
         "method": "lm" if config.tracer_method == "joint" else config.method,
         "measurement": "tracer",
         "data": {"file": data.source, "sha256": data.sha256, "n_poses": len(data), "n_lengths": int(data.seen.sum())},
-        "identifiability": _identifiability_meta(ident),
+        "identifiability": ident.to_metadata(),
         "residual_sigma_mm": residual_sigma_mm,
         "solver": {"iterations": solve.iterations, "message": solve.message, "cost_history": solve.history},
         "notes": notes,

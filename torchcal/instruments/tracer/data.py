@@ -30,7 +30,7 @@ import torch
 
 from torchcal.core.errors import DataError
 from torchcal.core.hashing import sha256_file
-from torchcal.data.csv_table import check_units, joint_columns, read_csv_table
+from torchcal.data.csv_table import check_joint_limits, check_units, joint_columns, read_csv_table
 from torchcal.instruments.tracer.locate import MIN_STATIONS_PER_POSE
 from torchcal.kinematics.robot import RobotModel
 
@@ -147,18 +147,8 @@ def load_tracer_data(
     lines = list(table.line_numbers)
 
     if check_limits:
-        lim = robot.joint_limits.numpy()
-        tol = math.radians(limit_tolerance_deg)
-        bad = (q < lim[:, 0] - tol) | (q > lim[:, 1] + tol)
-        if bad.any():
-            k, j = map(int, np.argwhere(bad)[0])
-            unit = joint_unit
-            f = (180.0 / math.pi) if joint_unit == "deg" else 1.0
-            raise DataError(
-                f"{q_user[k, j]:g} {unit} is outside joint {j + 1}'s limits "
-                f"[{lim[j, 0] * f:g}, {lim[j, 1] * f:g}] {unit} of robot '{robot.name}'",
-                path=p, row=lines[k], column=f"q{j + 1}",
-            )
+        check_joint_limits(q_user, joint_unit, robot.joint_limits.numpy(), path=p, lines=lines,
+                           robot_name=robot.name, tolerance_deg=limit_tolerance_deg)
     raw = np.where(np.isfinite(lengths), lengths, -1e300)
     _, first, counts = np.unique(np.concatenate([q_user, raw], 1), axis=0, return_index=True, return_counts=True)
     if (counts > 1).any():
