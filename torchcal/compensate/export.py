@@ -388,8 +388,7 @@ def export_model(
         },
         "frames": "robot base frame (calibrated); the instrument frame of the calibration is not applied",
         "sign_convention": "dT = T_real(q) - T_nominal(q) (monitor output); T_c = T_t - dT; q_corrected = IK_nominal(T_c)",
-        "stages": {"geometry": True, "residual": stored.residual is not None, "stiffness": False,
-                   **_joint_error_stages(stored.metadata)},
+        "stages": _stages(stored),
         "inputs": {"compensator": "q_nominal", "monitor": "q"},
         "outputs": {"compensator": ["q_corrected", RESIDUAL_OUTPUT], "monitor": ["tcp_error_m"]},
         "dtypes": {key: str(dtype).replace("torch.", "") for key, (_, dtype, _, _) in GRAPHS.items()},
@@ -448,18 +447,20 @@ def _solver_description(compensator: CompensatorGraph, portable: bool) -> dict:
     }
 
 
-def _joint_error_stages(metadata: dict) -> dict:
-    """``stages`` entries of the joint-space errors the graphs carry (absent ones are ``False``)."""
+def _stages(stored) -> dict[str, bool]:
+    """``stages`` of the manifest: every stage kind, present or not, from the model's own stage list."""
     from torchcal.identify.joint_errors import METADATA_KEYS
 
-    return {key: bool(metadata.get(key)) for key in METADATA_KEYS.values()}
+    entries = {"geometry": False, "residual": False, "stiffness": False, **dict.fromkeys(METADATA_KEYS.values(), False)}
+    for stage in stored.stages():
+        entries.update(stage.describe())
+    return entries
 
 
 def _describe_stiffness(manifest: dict, stored, wrench_frame: str) -> None:
     """Manifest entries of the stiffness stage and of the ``wrench`` input (in place)."""
     stage = stored.stiffness
     axes = "the tool (TCP) axes at the commanded pose, as an F/T sensor at the TCP reports them" if wrench_frame == "tool" else "the robot base axes"
-    manifest["stages"]["stiffness"] = True
     for key in ("compensator", "monitor"):
         manifest["units"][key]["input"] += f"; {WRENCH_INPUT}, N and N m, {wrench_frame} frame"
     manifest["units"]["monitor"]["output"] += " (loaded TCP under the wrench input, minus the nominal unloaded TCP)"

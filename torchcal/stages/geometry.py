@@ -183,14 +183,18 @@ def predict_positions(
     With a ``wrench`` ``(n, 6)`` (N, N m at the TCP, tool frame) and a stiffness stage in the
     model, the deflection it predicts is added (the loaded TCP).
     """
-    p = stored.model.tcp_position(model_joints(stored, q), stored.x)
-    if stored.residual is not None:
-        p = p + stored.residual.predict_base_error(q, temperature) @ stored.model.T_reference[:3, :3].T.to(p)
-    if wrench is not None and stored.stiffness is not None:
-        from torchcal.stiffness.vjm import deflection
+    from torchcal.stages.base import GeometryStage
 
-        compliance = stored.stiffness.compliance.to(p)  # type: ignore[attr-defined]
-        p = p + deflection(stored.model, q, stored.x, compliance, wrench.to(p), wrench_frame="tool")[..., :3]
+    stages = stored.stages()
+    q_effective = q
+    for stage in stages:
+        q_effective = stage.correct_joints(stored.robot, q_effective)
+    chain = next(s for s in stages if isinstance(s, GeometryStage))
+    p = chain.position(q_effective)
+    for stage in stages:
+        offset = stage.tcp_offset(q, temperature=temperature, wrench=wrench)
+        if offset is not None:
+            p = p + offset.to(p)
     return p
 
 

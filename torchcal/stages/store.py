@@ -21,6 +21,7 @@ import math
 import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import torch
 
@@ -28,6 +29,11 @@ from torchcal.core.errors import ModelError
 from torchcal.core.io import atomic_write_bytes, atomic_write_json, atomic_write_text
 from torchcal.kinematics.error_model import ErrorModel
 from torchcal.kinematics.robot import RobotModel, load_robot, robot_to_yaml
+
+if TYPE_CHECKING:  # loaded on demand: a geometry-only folder needs neither (nor their imports)
+    from torchcal.stages.base import ModelStage
+    from torchcal.stages.residual_store import StoredResidual
+    from torchcal.stages.stiffness_store import StoredStiffness
 
 
 @dataclass
@@ -41,14 +47,30 @@ class StoredModel:
     covariance: torch.Tensor
     metadata: dict
     folder: Path
-    residual: object | None = None
-    stiffness: object | None = None
+    residual: StoredResidual | None = None
+    stiffness: StoredStiffness | None = None
     extras: dict = field(default_factory=dict)
     training_q: torch.Tensor | None = None
 
     @property
     def free_names(self) -> list[str]:
         return [self.model.layout.names[i] for i in self.free.tolist()]
+
+    def stages(self) -> list[ModelStage]:
+        """The model's stages in the order a prediction applies them (absent ones left out)."""
+        from torchcal.identify.joint_errors import JointSpaceErrors
+        from torchcal.stages.base import GeometryStage, JointErrorStage, ResidualStage, StiffnessStage
+
+        out: list[ModelStage] = []
+        errors = JointSpaceErrors.from_metadata(self.metadata)
+        if not errors.empty:
+            out.append(JointErrorStage(errors))
+        out.append(GeometryStage(self.model, self.x))
+        if self.residual is not None:
+            out.append(ResidualStage(self.residual, self.model.T_reference[:3, :3]))
+        if self.stiffness is not None:
+            out.append(StiffnessStage(self.stiffness, self.model, self.x))
+        return out
 
 
 def save_model(

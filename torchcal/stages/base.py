@@ -1,0 +1,130 @@
+"""Typed model stages: what a model folder holds, in the order a prediction applies it.
+
+A calibrated model is a chain of stages. Joint-space stages turn the commanded joints into the
+joints the arm takes (gravity compliance, gear harmonics); the geometry puts those through the
+calibrated kinematics; Cartesian stages add a TCP offset (a learned residual head, the deflection
+under a load). :func:`torchcal.stages.geometry.predict_positions`, the export manifest and the
+report loop over :meth:`torchcal.stages.store.StoredModel.stages` instead of asking which
+optional part a folder has.
+
+Frames and units: joints in rad; TCP offsets in the ``instrument`` frame of the calibration, m.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from typing import TYPE_CHECKING, ClassVar
+
+import torch
+
+if TYPE_CHECKING:
+    from torchcal.identify.joint_errors import JointSpaceErrors
+    from torchcal.kinematics.error_model import ErrorModel
+    from torchcal.kinematics.robot import RobotModel
+    from torchcal.stages.residual_store import StoredResidual
+    from torchcal.stages.stiffness_store import StoredStiffness
+
+
+class ModelStage(ABC):
+    """One stage of a calibrated model.
+
+    Attributes:
+        name: the stage's key in manifests and reports (``geometry``, ``residual``...).
+        space: ``joint`` (corrects joints before the chain), ``chain`` (the kinematics) or ``tcp``
+            (adds an offset to the TCP after it).
+    """
+
+    name: ClassVar[str]
+    space: ClassVar[str]
+
+    def correct_joints(self, robot: RobotModel, q: torch.Tensor) -> torch.Tensor:
+        """Joints ``(B, N)`` rad after this stage (joint-space stages; others return ``q``)."""
+        return q
+
+    def tcp_offset(
+        self, q: torch.Tensor, *, temperature: torch.Tensor | None = None, wrench: torch.Tensor | None = None
+    ) -> torch.Tensor | None:
+        """TCP offset ``(B, 3)`` m, instrument frame, at commanded joints ``q`` (``tcp`` stages)."""
+        return None
+
+    @abstractmethod
+    def describe(self) -> dict[str, bool]:
+        """``stages`` entries of the manifest and the report (``{name: True}`` and sub-terms)."""
+
+
+class JointErrorStage(ModelStage):
+    """Joint-space errors identified with the geometry (gravity compliance, first harmonics)."""
+
+    name: ClassVar[str] = "joint_errors"
+    space: ClassVar[str] = "joint"
+
+    def __init__(self, errors: JointSpaceErrors) -> None:
+        self.errors = errors
+
+    def correct_joints(self, robot: RobotModel, q: torch.Tensor) -> torch.Tensor:
+        return self.errors.effective_joints(robot, q)
+
+    def describe(self) -> dict[str, bool]:
+        from torchcal.identify.joint_errors import METADATA_KEYS
+
+        present = self.errors.to_metadata()
+        return {key: key in present for key in METADATA_KEYS.values()}
+
+
+class GeometryStage(ModelStage):
+    """The calibrated kinematic chain (MDH + beta, base and tool frames)."""
+
+    name: ClassVar[str] = "geometry"
+    space: ClassVar[str] = "chain"
+
+    def __init__(self, model: ErrorModel, x: torch.Tensor) -> None:
+        self.model, self.x = model, x
+
+    def position(self, q_effective: torch.Tensor) -> torch.Tensor:
+        """TCP ``(B, 3)`` m, instrument frame, at the joints the arm takes."""
+        return self.model.tcp_position(q_effective, self.x)
+
+    def describe(self) -> dict[str, bool]:
+        return {"geometry": True}
+
+
+class ResidualStage(ModelStage):
+    """A learned residual head: the TCP error the kinematics leave, predicted from the joints."""
+
+    name: ClassVar[str] = "residual"
+    space: ClassVar[str] = "tcp"
+
+    def __init__(self, residual: StoredResidual, R_instrument_base: torch.Tensor) -> None:
+        self.residual, self.R_instrument_base = residual, R_instrument_base
+
+    def tcp_offset(
+        self, q: torch.Tensor, *, temperature: torch.Tensor | None = None, wrench: torch.Tensor | None = None
+    ) -> torch.Tensor | None:
+        error_base = self.residual.predict_base_error(q, temperature)
+        return error_base @ self.R_instrument_base.T.to(error_base)
+
+    def describe(self) -> dict[str, bool]:
+        return {"residual": True}
+
+
+class StiffnessStage(ModelStage):
+    """Joint stiffness: the TCP deflection under a wrench at the tool (nothing without one)."""
+
+    name: ClassVar[str] = "stiffness"
+    space: ClassVar[str] = "tcp"
+
+    def __init__(self, stiffness: StoredStiffness, model: ErrorModel, x: torch.Tensor) -> None:
+        self.stiffness, self.model, self.x = stiffness, model, x
+
+    def tcp_offset(
+        self, q: torch.Tensor, *, temperature: torch.Tensor | None = None, wrench: torch.Tensor | None = None
+    ) -> torch.Tensor | None:
+        if wrench is None:
+            return None
+        from torchcal.stiffness.vjm import deflection
+
+        compliance = self.stiffness.compliance.to(q)
+        return deflection(self.model, q, self.x, compliance, wrench.to(q), wrench_frame="tool")[..., :3]
+
+    def describe(self) -> dict[str, bool]:
+        return {"stiffness": True}
