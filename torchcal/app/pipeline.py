@@ -111,13 +111,18 @@ def run(config: RunConfig, console=None) -> dict:
                                                if residual_summary and residual_summary["kept"] else ""),
         "elapsed_s": None,
     }
-    write_run_report(folder, robot, result, stages, summary, truth_x, console=console)
+    report = write_run_report(folder, robot, result, stages, summary, truth_x)
+    final = summary["test"][summary["final_stage"]]
+    # the model as chosen (structure and head), not the stage key: "geometric" also holds joint-space terms
+    console.log(f"report: {report}; final held-out RMS {final['position_rms_mm']:.4f} mm "
+                f"({summary.get('model') or summary['final_stage']})")
     atomic_write_json(model_dir / "metrics.json", {"held_out_data": test.source, "stages": metrics, "final_stage": summary["final_stage"]})
     if config.export:
         from torchcal.compensate.export import export_and_check
 
         export_dir = Path(config.export_dir) / config.name
-        summary["export"] = export_and_check(model_dir, export_dir, test, console=console, true_positions=twin.true_positions)
+        summary["export"] = export_and_check(model_dir, export_dir, test, true_positions=twin.true_positions)
+        console.log(summary["export"]["summary"])
         _log_compensation_on_twin(summary["export"]["compensation_on_true_robot"], console)
     summary["elapsed_s"] = time.perf_counter() - started
     atomic_write_json(folder / "metrics.json", summary)

@@ -589,7 +589,7 @@ graph: compensated TCP within {budget['compensator_tcp_mm']['max']:.2e} mm (max)
 """
 
 
-def export_and_check(model_dir: str | Path, out_dir: str | Path, test, console=None, true_positions=None) -> dict:
+def export_and_check(model_dir: str | Path, out_dir: str | Path, test, true_positions=None) -> dict:
     """Export, then run the exported graphs with onnxruntime on the test poses.
 
     Returns parity numbers (ORT against the torch graphs, mm and rad) and the held-out position
@@ -640,9 +640,7 @@ def export_and_check(model_dir: str | Path, out_dir: str | Path, test, console=N
 
         result["compensation_on_true_robot"] = compensation_on_true_robot(
             stored, graphs, out_dir, manifest, q, true_positions, wrench)
-    if console is not None:
-        console.log(
-            f"export: {out_dir} (compensator ORT vs torch {result['compensator_tcp_max_mm']:.1e} mm, "
-            f"float32 budget {manifest['float32_error_budget']['compensator_tcp_mm']['max']:.1e} mm)"
-        )
+    result["summary"] = (
+        f"export: {out_dir} (compensator ORT vs torch {result['compensator_tcp_max_mm']:.1e} mm, "
+        f"float32 budget {manifest['float32_error_budget']['compensator_tcp_mm']['max']:.1e} mm)")
     return result

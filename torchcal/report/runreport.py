@@ -13,7 +13,7 @@ from torchcal.report.markdown import metrics_table, write_report
 
 
 def write_run_report(folder: Path, robot: RobotModel, result: CalibrationResult, stages: dict[str, torch.Tensor],
-                     summary: dict, truth_x: torch.Tensor | None = None, console=None) -> Path:
+                     summary: dict, truth_x: torch.Tensor | None = None) -> Path:
     """Write ``report.md`` with figures into ``folder``; returns the report path."""
     folder = Path(folder)
     figs = folder / "figures"
@@ -33,7 +33,6 @@ def write_run_report(folder: Path, robot: RobotModel, result: CalibrationResult,
             lines.append(f"| {name} | {est:.5f} {unit} | {sg:.5f} | {tr:.5f} | {(est - tr) / sg:+.2f} |")
         else:
             lines.append(f"| {name} | {est:.5f} {unit} | {sg:.5f} | | |")
-    final = summary["test"][summary["final_stage"]]
     floor = summary.get("noise_floor_rms_mm")
     honest = []
     geo = summary["test"]["geometric"]["position_rms_mm"]
@@ -70,7 +69,4 @@ def write_run_report(folder: Path, robot: RobotModel, result: CalibrationResult,
         ("Convergence", f"{result.method}: {result.solve.iterations} iterations, {result.solve.message}.\n\n![convergence](figures/convergence.png)"),
     ]
     path = write_report(folder / "report.md", sections, f"torchcal report: {robot.name} ({summary['name']})")
-    if console is not None:
-        # the model as chosen (structure and head), not the stage key: "geometric" also holds joint-space terms
-        console.log(f"report: {path}; final held-out RMS {final['position_rms_mm']:.4f} mm ({summary.get('model') or summary['final_stage']})")
     return path
