@@ -11,6 +11,21 @@ from __future__ import annotations
 import torch
 
 
+def distance_summary(values_mm: torch.Tensor, prefix: str, *, mean_key: str = "mean") -> dict[str, float]:
+    """RMS, mean, max and 95th percentile of non-negative distances ``(n,)`` given in mm.
+
+    Keys ``{prefix}_rms_mm``, ``{prefix}_{mean_key}_mm``, ``{prefix}_max_mm``, ``{prefix}_p95_mm``;
+    every per-kind metric (positions, lengths, deflections, point-to-plane distances) uses it.
+    """
+    d = values_mm.detach().cpu().to(torch.float64)
+    return {
+        f"{prefix}_rms_mm": float(d.pow(2).mean().sqrt()),
+        f"{prefix}_{mean_key}_mm": float(d.mean()),
+        f"{prefix}_max_mm": float(d.max()),
+        f"{prefix}_p95_mm": float(torch.quantile(d, 0.95)),
+    }
+
+
 def position_metrics(error_m: torch.Tensor) -> dict[str, float]:
     """Metrics of ``(n, 3)`` position errors given in metres; values in mm."""
     e = error_m.detach().cpu().to(torch.float64) * 1e3
@@ -19,12 +34,9 @@ def position_metrics(error_m: torch.Tensor) -> dict[str, float]:
     spread = (e - mean_vec).norm(dim=-1)
     out = {
         "n_poses": int(e.shape[0]),
-        "position_rms_mm": float(dist.pow(2).mean().sqrt()),
-        "position_mean_mm": float(dist.mean()),
+        **distance_summary(dist, "position"),
         "position_std_mm": float(dist.std()) if e.shape[0] > 1 else 0.0,
         "position_median_mm": float(dist.median()),
-        "position_max_mm": float(dist.max()),
-        "position_p95_mm": float(torch.quantile(dist, 0.95)),
         "iso9283_AP_mm": float(mean_vec.norm()),
         "iso9283_AP_plus_3S_mm": float(mean_vec.norm() + 3 * (spread.pow(2).sum() / max(1, e.shape[0] - 1)).sqrt()),
     }

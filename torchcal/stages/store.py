@@ -59,7 +59,12 @@ class StoredModel:
     def stages(self) -> list[ModelStage]:
         """The model's stages in the order a prediction applies them (absent ones left out)."""
         from torchcal.identify.joint_errors import JointSpaceErrors
-        from torchcal.stages.base import GeometryStage, JointErrorStage, ResidualStage, StiffnessStage
+        from torchcal.stages.base import (
+            GeometryStage,
+            JointErrorStage,
+            ResidualStage,
+            StiffnessStage,
+        )
 
         out: list[ModelStage] = []
         errors = JointSpaceErrors.from_metadata(self.metadata)

@@ -17,6 +17,7 @@ import torch
 
 from torchcal.core.errors import ModelError, TorchcalError
 from torchcal.core.io import atomic_write_json, atomic_write_text
+from torchcal.core.metrics import distance_summary
 from torchcal.instruments.base import FitOutcome
 from torchcal.instruments.profile.closed_form import (
     ClosedFormResult,
@@ -124,13 +125,9 @@ def estimate(data: ProfileData, T_base_flange: torch.Tensor, config: ProfileFitC
 
 
 def _distance_stats(d: torch.Tensor) -> dict:
-    a = d.abs()
-    return {
-        "rms_mm": float(d.pow(2).mean().sqrt()) * 1e3,
-        "mean_abs_mm": float(a.mean()) * 1e3,
-        "max_abs_mm": float(a.max()) * 1e3,
-        "p95_abs_mm": float(torch.quantile(a, 0.95)) * 1e3,
-    }
+    """Point-to-plane distances ``d`` (m, signed): ``rms_mm``, ``mean_abs_mm``, ``max_abs_mm``, ``p95_abs_mm``."""
+    s = distance_summary(d.abs() * 1e3, "d", mean_key="mean_abs")
+    return {"rms_mm": s["d_rms_mm"], "mean_abs_mm": s["d_mean_abs_mm"], "max_abs_mm": s["d_max_mm"], "p95_abs_mm": s["d_p95_mm"]}
 
 
 def _write_robot(folder: Path, robot: RobotModel) -> str | None:

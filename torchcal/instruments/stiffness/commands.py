@@ -37,6 +37,7 @@ import torch
 from torchcal.core.errors import DataError, IdentifiabilityWarning, TorchcalError
 from torchcal.core.hashing import sha256_file
 from torchcal.core.io import atomic_write_json
+from torchcal.core.metrics import distance_summary
 from torchcal.data.folds import SPLITS, Folds, make_folds
 from torchcal.instruments.base import FitOutcome
 from torchcal.instruments.stiffness.data import StiffnessData, load_stiffness
@@ -334,11 +335,8 @@ def evaluate_stiffness(model_dir: str | Path, data_path: str | Path, overrides: 
     size = measured.norm(dim=-1) * 1e3
     metrics = {
         "n_poses": len(data),
-        "deflection_rms_mm": float(err.pow(2).mean().sqrt()),
+        **distance_summary(err, "deflection"),
         "deflection_measured_rms_mm": float(size.pow(2).mean().sqrt()),
-        "deflection_mean_mm": float(err.mean()),
-        "deflection_max_mm": float(err.max()),
-        "deflection_p95_mm": float(err.quantile(0.95)),
         "deflection_ratio": float(err.pow(2).mean().sqrt() / size.pow(2).mean().sqrt().clamp_min(1e-300)),
     }
     if data.rotation is not None:

@@ -17,7 +17,7 @@ import torch
 
 from torchcal.config.schema import FitConfig
 from torchcal.core.errors import DataError, TorchcalError
-from torchcal.core.metrics import position_metrics
+from torchcal.core.metrics import distance_summary
 from torchcal.instruments.base import FitOutcome
 from torchcal.instruments.tracer.lengths import LengthSigma
 
@@ -180,14 +180,10 @@ def evaluate_tracer(model_dir, data_path, overrides, *, register: bool = False) 
     z = LevenbergMarquardt(max_iterations=config.max_iterations).solve(problem, torch.cat([stored.x, s0.reshape(-1), d0])).x
     _, s, d = problem.split(z)
     err = (station_distances(points, s) - d - data.lengths)[used]
-    metrics = position_metrics(torch.stack([err, torch.zeros_like(err), torch.zeros_like(err)], -1))
     out = {
         "n_poses": len(data),
         "n_lengths": int(used.sum()),
-        "length_rms_mm": metrics["position_rms_mm"],
-        "length_mean_abs_mm": metrics["position_mean_mm"],
-        "length_max_mm": metrics["position_max_mm"],
-        "length_p95_mm": metrics["position_p95_mm"],
+        **distance_summary(err.abs() * 1e3, "length", mean_key="mean_abs"),
         "stations_mm": (s * 1e3).tolist(),
         "dead_paths_mm": (d * 1e3).tolist(),
         "note": "robot fixed; stations and dead paths re-fitted to this file (a tracer set-up has no fixed frame)",
