@@ -134,20 +134,65 @@ def _cmd_study(args) -> int:
     return 0
 
 
-def build_parser() -> argparse.ArgumentParser:
+def option_listing(command: str) -> str:
+    """The ``key=value`` options of ``command`` with defaults, from its configuration dataclasses."""
+    from torchcal.core.options import format_options, list_options
+
+    blocks: list[str] = []
+    if command in ("fit", "evaluate"):
+        from torchcal.config.schema import FitConfig
+        from torchcal.instruments.registry import get, names
+
+        blocks.append(format_options("key=value options (tracker points, and every kind unless listed below):",
+                                     list_options(FitConfig)))
+        common = {o.key for o in list_options(FitConfig)}
+        for name in names():
+            own = [o for o in list_options(get(name).options()) if o.key not in common]
+            blocks.append(format_options(f"options of {name} files ({get(name).description}):", own))
+    elif command == "simulate":
+        from torchcal.instruments.registry import get, names
+
+        for name in names():
+            twin = get(name).twin()
+            blocks.append(format_options(f"instrument={name}: {twin.description}", list_options(twin.config_factory)))
+    elif command == "run":
+        from torchcal.config import compose_run_config
+
+        config, _ = compose_run_config([])
+        blocks.append(format_options("key=value options, defaults as configs/ composes them (config groups: model=, "
+                                     "measurement=, experiment=):", list_options(config)))
+    elif command == "study":
+        from torchcal.config import compose_run_config
+        from torchcal.config.compose import merge_section
+        from torchcal.studies.spec import StudyConfig
+
+        base, sections = compose_run_config([], config_name="study", extra_sections=("study",))
+        blocks.append(format_options("study options (study=<configs/study file> picks a search space):",
+                                     list_options(merge_section(StudyConfig(), sections["study"]), prefix="study.")))
+        blocks.append(format_options("options of the runs it scores:", list_options(base)))
+    return "\n\n".join(b for b in blocks if b)
+
+
+def build_parser(with_options: bool = False) -> argparse.ArgumentParser:
+    """The argument parser; ``with_options`` adds each command's ``key=value`` list to its help
+    (it imports the configuration classes, so only ``--help`` pays for it)."""
     parser = argparse.ArgumentParser(prog="torchcal", description="Calibrate industrial robots: geometry, stiffness, learned residual, ONNX compensator.")
     sub = parser.add_subparsers(dest="command", required=True)
+    listing = option_listing if with_options else (lambda _command: None)
 
-    p = sub.add_parser("run", help="the main job: default twin end to end (report and ONNX export)")
+    def add(name: str, **kwargs) -> argparse.ArgumentParser:
+        return sub.add_parser(name, epilog=listing(name), formatter_class=argparse.RawDescriptionHelpFormatter, **kwargs)
+
+    p = add("run", help="the main job: default twin end to end (report and ONNX export)")
     p.add_argument("overrides", nargs="*", help="config groups and key=value, e.g. model=mlp twin.n_train=120 fit.method=lasso")
     p.set_defaults(func=_cmd_run)
 
-    p = sub.add_parser("simulate", help="write a twin case (instrument=tracker|tracer|stiffness|profile): robot.yaml, data files, truth.json")
+    p = add("simulate", help="write a twin case (instrument=tracker|tracer|stiffness|profile): robot.yaml, data files, truth.json")
     p.add_argument("--out", required=True)
     p.add_argument("overrides", nargs="*", help="key=value of the twin, e.g. gravity=true n_train=200")
     p.set_defaults(func=_cmd_simulate)
 
-    p = sub.add_parser("fit", help="identify a robot from a measurement file")
+    p = add("fit", help="identify a robot from a measurement file")
     p.add_argument("--robot", required=True, help="robot YAML (MDH) or URDF")
     p.add_argument("--data", required=True, help="measurement CSV")
     p.add_argument("--out", required=True, help="model folder to write")
@@ -156,7 +201,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("overrides", nargs="*", help="model=<configs/model file> and key=value, e.g. method=lasso residual=none")
     p.set_defaults(func=_cmd_fit)
 
-    p = sub.add_parser("evaluate", help="score a model on a measurement file")
+    p = add("evaluate", help="score a model on a measurement file")
     p.add_argument("--model", required=True)
     p.add_argument("--data", required=True)
     p.add_argument("--json", default=None, help="write the metrics to this JSON file")
@@ -164,14 +209,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("overrides", nargs="*")
     p.set_defaults(func=_cmd_evaluate)
 
-    p = sub.add_parser("study", help="Optuna study over a search space from configs/study/ (resumable)")
+    p = add("study", help="Optuna study over a search space from configs/study/ (resumable)")
     p.add_argument("--workers", type=int, default=1, help="local worker processes (default 1)")
     p.add_argument("--storage", default=None, help="RDB URL shared by workers on several machines (default: SQLite in the study folder)")
     p.add_argument("--n-trials", type=int, default=None, help="finished trials to reach (overrides study.n_trials)")
     p.add_argument("overrides", nargs="*", help="study=<name>, config groups (model=mlp) and key=value, e.g. study.n_trials=40")
     p.set_defaults(func=_cmd_study)
 
-    p = sub.add_parser("export", help="export the compensator to ONNX with a manifest")
+    p = add("export", help="export the compensator to ONNX with a manifest")
     p.add_argument("--model", required=True)
     p.add_argument("--out", required=True)
     p.add_argument("--task", choices=["position", "pose"], default="position",
@@ -190,7 +235,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from torchcal.core.errors import TorchcalError
 
-    parser = build_parser()
+    parser = build_parser(with_options=any(a in ("-h", "--help") for a in (argv if argv is not None else sys.argv[1:])))
     args, extra = parser.parse_known_args(argv)
     # key=value overrides may come before and after the options (`simulate instrument=x --out D n=3`)
     if extra and hasattr(args, "overrides") and all("=" in e and not e.startswith("-") for e in extra):

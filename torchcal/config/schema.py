@@ -76,7 +76,16 @@ class FitConfig:
 
 @dataclass
 class RunConfig:
-    """The main job: simulate the default twin, fit, evaluate on held-out poses, report, export."""
+    """The main job: simulate the default twin, fit, evaluate on held-out poses, report, export.
+
+    Attributes:
+        name: run name, the folder under ``out`` (and under ``export_dir``).
+        out: folder of the runs (report, model, metrics).
+        twin: the twin the run simulates (:class:`~torchcal.sim.twin.TwinConfig`).
+        fit: the fit's options (:class:`FitConfig`).
+        export: export the compensator and check it with onnxruntime.
+        export_dir: folder of the exported compensators.
+    """
 
     name: str = "twin-default"
     out: str = "runs"

@@ -174,6 +174,11 @@ class Instrument(ABC):
         """Score the model folder ``request.model`` on ``request.data``."""
 
     @abstractmethod
+    def options(self) -> type:
+        """The configuration dataclass of ``fit`` / ``evaluate`` on this instrument's files (their
+        ``key=value`` options; ``--help`` lists its fields)."""
+
+    @abstractmethod
     def twin(self) -> TwinSpec:
         """The twin writer of ``torchcal simulate instrument=<name>``."""
 

@@ -23,6 +23,7 @@ class StudyConfig:
         objectives: ``validation_rms_mm`` (residual head on the validation split of the training
             poses, mm), optionally ``model_size`` (parameters of the head) and ``fit_seconds``.
         sampler: ``tpe`` or ``random``; seeded with ``seed``.
+        seed: seed of the sampler (a one-worker study with a fixed seed repeats).
         pruner: ``median`` (stop a trial whose intermediate validation RMS is worse than the
             median of earlier trials at the same step) or ``none``.
         pruner_warmup_steps: optimizer iterations before a trial may be pruned.

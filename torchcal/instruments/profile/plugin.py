@@ -44,6 +44,11 @@ class ProfileInstrument(Instrument):
 
         return EvaluateOutcome(evaluate_profile(request.model, request.data, request.overrides, register=request.register))
 
+    def options(self) -> type:
+        from torchcal.instruments.profile.commands import ProfileFitConfig
+
+        return ProfileFitConfig
+
     def twin(self) -> TwinSpec:
         from torchcal.instruments.profile.twin import ProfileTwinConfig, write_profile_case
 

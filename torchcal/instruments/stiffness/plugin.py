@@ -46,6 +46,11 @@ class StiffnessInstrument(Instrument):
 
         return EvaluateOutcome(evaluate_stiffness(request.model, request.data, request.overrides, register=request.register))
 
+    def options(self) -> type:
+        from torchcal.instruments.stiffness.commands import StiffnessFitConfig
+
+        return StiffnessFitConfig
+
     def twin(self) -> TwinSpec:
         from torchcal.instruments.stiffness.twin_case import (
             StiffnessCaseConfig,

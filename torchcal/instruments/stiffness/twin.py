@@ -51,7 +51,7 @@ OFF_AXIS_LEVER_M = 0.1
 """Lever (m) of a joint's off-axis translational compliance: ``c_t = off_axis c_rz L^2``."""
 
 
-@dataclass(frozen=True)
+@dataclass
 class StiffnessTwinConfig:
     """Settings of the loading rig twin (contract units: mm, deg, N, N m).
 
@@ -143,13 +143,14 @@ class StiffnessTwin:
 
     def __init__(
         self,
-        config: StiffnessTwinConfig = StiffnessTwinConfig(),
+        config: StiffnessTwinConfig | None = None,
         *,
         robot: RobotModel | None = None,
         compliance: torch.Tensor | None = None,
         x_true: torch.Tensor | None = None,
         device: str | torch.device = "cpu",
     ) -> None:
+        config = config if config is not None else StiffnessTwinConfig()
         self.config = config
         self.device = torch.device(device)
         self.robot = robot if robot is not None else load_robot(default_robot_path())
@@ -359,7 +360,7 @@ def write_stiffness_csv(path: str | Path, data: StiffnessData) -> Path:
 
 def write_stiffness_case(
     out: str | Path,
-    config: StiffnessTwinConfig = StiffnessTwinConfig(),
+    config: StiffnessTwinConfig | None = None,
     *,
     n_train: int = 120,
     n_test: int = 200,
@@ -380,6 +381,7 @@ def write_stiffness_case(
         raise ValueError(f"plan must be 'optimal' or 'random', got {plan!r}")
     out = Path(out)
     twin = StiffnessTwin(config, robot=robot, compliance=compliance)
+    config = config if config is not None else StiffnessTwinConfig()
     gen = torch.Generator().manual_seed(config.seed + 104729)
     paths = {name: out / name for name in ("stiffness_train.csv", "stiffness_test.csv", "stiffness_truth.json")}
     truth = twin.truth_dict()

@@ -19,7 +19,7 @@ from torchcal.stiffness.vjm import classic_compliance
 
 
 @dataclass
-class StiffnessCaseConfig:
+class StiffnessCaseConfig(StiffnessTwinConfig):
     """``key=value`` settings of a stiffness twin case (contract units: mm, deg, N, N m).
 
     Attributes:
@@ -34,7 +34,7 @@ class StiffnessCaseConfig:
         off_axis: off-axis compliance of every joint as a fraction of its on-axis compliance
             (default 0: the joints yield only about their axes; see
             :func:`~torchcal.instruments.stiffness.twin.with_off_axis`).
-        The other fields are those of :class:`~torchcal.instruments.stiffness.twin.StiffnessTwinConfig`.
+        The rig's settings are inherited from :class:`~torchcal.instruments.stiffness.twin.StiffnessTwinConfig`.
     """
 
     robot: str | None = None
@@ -43,21 +43,9 @@ class StiffnessCaseConfig:
     joint_stiffness_nm_per_rad: list[float] | None = None
     plan: str = "optimal"
     plan_candidates: int | None = None
-    seed: int = 0
-    max_force_n: float = 300.0
-    max_torque_nm: float = 30.0
-    noise_mm: float = 0.012
-    rotation_noise_deg: float = 0.01
-    with_rotation: bool = True
-    with_unloaded: bool = True
-    instrument_distance_mm: float = 3000.0
-    margin_deg: float = 5.0
-    min_singular_value: float = 0.02
-    equilibrium_iterations: int = 4
-    off_axis: float = 0.0
 
     def twin_config(self) -> StiffnessTwinConfig:
-        """The rig settings as the (frozen) twin configuration."""
+        """The rig settings alone, as the twin configuration."""
         names = {f.name for f in fields(StiffnessTwinConfig)}
         return StiffnessTwinConfig(**{k: getattr(self, k) for k in names})
 

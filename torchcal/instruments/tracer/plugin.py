@@ -48,6 +48,11 @@ class TracerInstrument(Instrument):
 
         return EvaluateOutcome(evaluate_tracer(request.model, request.data, request.overrides, register=request.register))
 
+    def options(self) -> type:
+        from torchcal.instruments.tracer.commands import TracerFitConfig
+
+        return TracerFitConfig
+
     def twin(self) -> TwinSpec:
         from torchcal.instruments.tracer.twin_case import TracerTwinConfig, write_tracer_case
 

@@ -42,7 +42,8 @@ class TracerTwinConfig:
     Attributes:
         robot: robot file (default: the embedded twin-kr6).
         seed: random seed of robot errors, stations, poses and noise.
-        n_train: poses in ``lengths.csv``. n_test: tracker-measured poses in ``test.csv``.
+        n_train: poses in ``lengths.csv``.
+        n_test: tracker-measured poses in ``test.csv``.
         n_stations: tracer stations (``l1..lM``).
         sphere_center_mm / sphere_radius_mm: the sphere of the working volume (``base`` frame)
             the TCP visits.

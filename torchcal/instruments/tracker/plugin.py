@@ -93,6 +93,11 @@ class TrackerInstrument(Instrument):
             f"max {comp['orientation_deviation_max_rad']:.1e} rad")
         return EvaluateOutcome(metrics=metrics, lines=lines)
 
+    def options(self) -> type:
+        from torchcal.config.schema import FitConfig
+
+        return FitConfig
+
     def twin(self) -> TwinSpec:
         from torchcal.sim.twin import TwinConfig, write_twin_case
 
