@@ -42,7 +42,14 @@ def _tracer() -> KindHandlers:
     return handlers()
 
 
+def _sockets() -> KindHandlers:
+    from torchcal.instruments.sockets.commands import handlers
+
+    return handlers()
+
+
 KIND_HANDLERS: dict[str, Callable[[], KindHandlers]] = {
+    "sockets": _sockets,
     "profile": _profile,
     "stiffness": _stiffness,
     "tracer": _tracer,

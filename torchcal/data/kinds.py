@@ -1,7 +1,7 @@
 """Which measurement kind a CSV holds, read from its header (see the data contract).
 
 ``tracker`` (``x,y,z``), ``tracer`` (``l1..lM``), ``stiffness`` (``fx..tz`` and ``dx,dy,dz``) and
-``profile`` (``scan``, ``u``, ``w``). ``torchcal fit`` and ``evaluate`` dispatch on it, so a user
+``profile`` (``scan``, ``u``, ``w``), ``sockets`` (``placement``, ``socket``: joints only). ``torchcal fit`` and ``evaluate`` dispatch on it, so a user
 never names the instrument: the columns tell.
 """
 
@@ -12,7 +12,7 @@ from pathlib import Path
 
 from torchcal.errors import DataError
 
-KINDS = ("tracker", "tracer", "stiffness", "profile")
+KINDS = ("tracker", "tracer", "stiffness", "profile", "sockets")
 
 
 def _header(path: Path) -> list[str]:
@@ -29,6 +29,8 @@ def measurement_kind(path: str | Path) -> str:
     """The measurement kind of the CSV at ``path``, from its column names."""
     path = Path(path)
     names = set(_header(path))
+    if {"placement", "socket"} <= names:
+        return "sockets"
     if {"scan", "u", "w"} <= names:
         return "profile"
     if {"fx", "fy", "fz", "tx", "ty", "tz", "dx", "dy", "dz"} <= names:
@@ -39,7 +41,7 @@ def measurement_kind(path: str | Path) -> str:
         return "tracker"
     raise DataError(
         "cannot tell the measurement kind from the header: expected x,y,z (tracker), l1..lM (tracer), "
-        "fx..tz with dx,dy,dz (stiffness) or scan,u,w (profile)",
+        "fx..tz with dx,dy,dz (stiffness), scan,u,w (profile) or placement,socket (sockets)",
         path=str(path),
         row=1,
     )
