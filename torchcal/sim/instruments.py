@@ -51,12 +51,19 @@ def _profile() -> TwinWriter:
     return TwinWriter(ProfileTwinConfig, write_profile_case, "line-laser profile sensor on a plane target (profile.csv)")
 
 
+def _sockets() -> TwinWriter:
+    from torchcal.instruments.sockets.twin import SocketsTwinConfig, write_sockets_case
+
+    return TwinWriter(SocketsTwinConfig, write_sockets_case, "ball in two-socket fixtures (sockets.csv, sockets_test.csv)")
+
+
 # Loaders are lazy so that ``simulate`` imports only the instrument it writes.
 TWIN_WRITERS: dict[str, Callable[[], TwinWriter]] = {
     "tracker": _tracker,
     "stiffness": _stiffness,
     "tracer": _tracer,
     "profile": _profile,
+    "sockets": _sockets,
 }
 
 

@@ -93,7 +93,7 @@ def fit_sockets(robot_path, data_path, out_dir, overrides, *, base_link=None, en
                                max_iterations=config.max_iterations, tolerance=config.identifiability_tolerance,
                                gravity_points=config.gravity_points, device=config.device)
     for w in caught:
-        console.print(f"torchcal: warning: {w.message}")
+        console.print(f"torchcal: warning: {w.message}", markup=False)
     joints = JointSpaceErrors.of(res)
     nominal = socket_metrics(robot.tcp_position(data.q), data, config.distance_mm)
     calibrated = socket_metrics(res.model.tcp_position(joints.effective_joints(robot, data.q.to(res.x)), res.x), data,
@@ -126,7 +126,7 @@ def fit_sockets(robot_path, data_path, out_dir, overrides, *, base_link=None, en
         **joints.to_metadata(),
     }
     folder = save_model(Path(out_dir), robot, res.model, res.x, res.free, res.covariance, meta, training_q=data.q)
-    console.print(ident.summary())
+    console.print(ident.summary(), markup=False)
     console.print(f"sockets: consistency mean {nominal['consistency_mean_mm']:.3f} -> {calibrated['consistency_mean_mm']:.3f} mm, "
                   f"distortion {nominal['distortion_mean_mm']:.3f} -> {calibrated['distortion_mean_mm']:.3f} mm on the "
                   f"{len(data)} fitted configurations; {len(res.free)} robot parameters")
