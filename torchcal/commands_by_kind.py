@@ -48,7 +48,14 @@ def _sockets() -> KindHandlers:
     return handlers()
 
 
+def _length_station() -> KindHandlers:
+    from torchcal.instruments.length_station.commands import handlers
+
+    return handlers()
+
+
 KIND_HANDLERS: dict[str, Callable[[], KindHandlers]] = {
+    "length_station": _length_station,
     "sockets": _sockets,
     "profile": _profile,
     "stiffness": _stiffness,

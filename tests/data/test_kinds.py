@@ -13,6 +13,8 @@ from torchcal.errors import DataError
         ("q1,q2,q3,q4,q5,q6,l1,l2,l3,l4", "tracer"),
         ("q1,q2,q3,q4,q5,q6,fx,fy,fz,tx,ty,tz,dx,dy,dz,x,y,z", "stiffness"),
         ("scan,q1,q2,q3,q4,q5,q6,u,w,plane", "profile"),
+        ("q1,q2,q3,q4,q5,q6,l1", "length_station"),
+        ("placement,socket,q1,q2,q3,q4,q5,q6,q7", "sockets"),
     ],
 )
 def test_kind_from_header(tmp_path, header, kind):

@@ -1,8 +1,9 @@
 """Which measurement kind a CSV holds, read from its header (see the data contract).
 
-``tracker`` (``x,y,z``), ``tracer`` (``l1..lM``), ``stiffness`` (``fx..tz`` and ``dx,dy,dz``) and
-``profile`` (``scan``, ``u``, ``w``), ``sockets`` (``placement``, ``socket``: joints only). ``torchcal fit`` and ``evaluate`` dispatch on it, so a user
-never names the instrument: the columns tell.
+``tracker`` (``x,y,z``), ``tracer`` (``l1..lM``, M >= 2), ``length_station`` (``l1`` alone: one
+draw-wire), ``stiffness`` (``fx..tz`` and ``dx,dy,dz``), ``profile`` (``scan``, ``u``, ``w``) and
+``sockets`` (``placement``, ``socket``: joints only). ``torchcal fit`` and ``evaluate`` dispatch on
+it, so a user never names the instrument: the columns tell.
 """
 
 from __future__ import annotations
@@ -12,7 +13,7 @@ from pathlib import Path
 
 from torchcal.errors import DataError
 
-KINDS = ("tracker", "tracer", "stiffness", "profile", "sockets")
+KINDS = ("tracker", "tracer", "stiffness", "profile", "sockets", "length_station")
 
 
 def _header(path: Path) -> list[str]:
@@ -36,7 +37,7 @@ def measurement_kind(path: str | Path) -> str:
     if {"fx", "fy", "fz", "tx", "ty", "tz", "dx", "dy", "dz"} <= names:
         return "stiffness"
     if "l1" in names:
-        return "tracer"
+        return "length_station" if "l2" not in names else "tracer"
     if {"x", "y", "z"} <= names:
         return "tracker"
     raise DataError(

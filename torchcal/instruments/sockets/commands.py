@@ -35,6 +35,7 @@ class SocketsFitConfig:
             nominal (1e-3: parameters the configurations barely separate are not fitted).
         parallel_threshold_deg: Hayati switch of the error model.
         max_iterations: Levenberg-Marquardt cap.
+        check_limits: refuse joints outside the robot file's limits (``false``: accept them).
         device: torch device of the fit.
     """
 
@@ -46,6 +47,7 @@ class SocketsFitConfig:
     identifiability_tolerance: float = 1e-3
     parallel_threshold_deg: float = 2.0
     max_iterations: int = 100
+    check_limits: bool = True
     device: str = "cpu"
 
     @property
@@ -82,7 +84,7 @@ def fit_sockets(robot_path, data_path, out_dir, overrides, *, base_link=None, en
     config = _config(overrides)
     console = Console(stderr=True)
     robot = load_robot(robot_path, base_link=base_link, end_link=end_link)
-    data = load_socket_data(data_path, robot, joint_unit=config.joint_unit)
+    data = load_socket_data(data_path, robot, joint_unit=config.joint_unit, check_limits=config.check_limits)
     if config.placements:
         data = data.select_placements(config.placements)
     with console.status(f"identifying {robot.name} from {len(data)} socket configurations"), \
@@ -142,7 +144,7 @@ def evaluate_sockets(model_dir, data_path, overrides, *, register: bool = False)
 
     config = _config(overrides)
     stored = load_model(model_dir)
-    data = load_socket_data(data_path, stored.robot, joint_unit=config.joint_unit)
+    data = load_socket_data(data_path, stored.robot, joint_unit=config.joint_unit, check_limits=config.check_limits)
     if config.placements:
         data = data.select_placements(config.placements)
     distance = float(stored.metadata.get("sockets", {}).get("distance_mm", config.distance_mm))

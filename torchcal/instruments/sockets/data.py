@@ -89,10 +89,12 @@ def _assemble(q, placement, socket, source, sha256, lines) -> SocketData:
 
 
 def load_socket_data(path: str | Path, robot: RobotModel, *, joint_unit: str = "deg",
-                     min_rows_per_group: int = 2) -> SocketData:
+                     min_rows_per_group: int = 2, check_limits: bool = True) -> SocketData:
     """Read and validate a socket file against ``robot`` (joint count, limits, group sizes).
 
-    Every problem is a :class:`DataError` naming the file, row and column.
+    Every problem is a :class:`DataError` naming the file, row and column. ``check_limits=False``
+    accepts joints outside the robot file's limits (recorded joints were reached by the robot, so
+    such a row says the file's limits are narrower than the robot's).
     """
     path = Path(path)
     check_units(joint_unit, "mm", path)
@@ -121,11 +123,12 @@ def load_socket_data(path: str | Path, robot: RobotModel, *, joint_unit: str = "
     lim = robot.joint_limits
     slack = 1e-6
     outside = (q < lim[:, 0] - slack) | (q > lim[:, 1] + slack)
-    if bool(outside.any()):
+    if check_limits and bool(outside.any()):
         i, j = (int(v) for v in outside.nonzero()[0])
         unit = "deg" if joint_unit == "deg" else "rad"
         raise DataError(f"{float(q[i, j]) / scale:.4g} {unit} is outside the joint limits "
-                        f"[{float(lim[j, 0]) / scale:.4g}, {float(lim[j, 1]) / scale:.4g}] of {robot.name}",
+                        f"[{float(lim[j, 0]) / scale:.4g}, {float(lim[j, 1]) / scale:.4g}] of {robot.name} "
+                        "(check_limits=false accepts it)",
                         path=str(path), row=table.line_numbers[i], column=joints[j])
     digest = hashlib.sha256(path.read_bytes()).hexdigest()
     data = _assemble(q, tuple(placement), tuple(socket), str(path), digest, tuple(table.line_numbers))
