@@ -42,8 +42,8 @@ def test_nominal_structure_recovers_anchor_attachment_and_offset():
 
 
 def test_blocked_choice_is_never_worse_than_nominal_on_its_folds():
-    robot, data, _ = _station_data(n=120, noise_mm=0.05)
-    table = compare_structures(robot, data)
+    robot, data, _ = _station_data(n=60, noise_mm=0.05)
+    table = compare_structures(robot, data, structures=("nominal", "offsets"), max_iterations=30)
     by_name = {r["structure"]: r for r in table["rows"]}
     assert by_name[table["chosen"]]["blocks_cv_rms_mm"] <= by_name["nominal"]["blocks_cv_rms_mm"] * 1.0000001
 
