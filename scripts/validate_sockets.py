@@ -12,6 +12,7 @@ socket files (:mod:`torchcal.instruments.sockets.metrics`); the fit is the defau
 from __future__ import annotations
 
 import argparse
+import math
 import time
 import warnings
 from pathlib import Path
@@ -86,7 +87,7 @@ def run_robot(root: Path, robot_id: str, config: SocketsFitConfig) -> dict:
 
 
 def _f(v: float) -> str:
-    return "-" if v != v else f"{v:.3f}"
+    return "-" if math.isnan(v) else f"{v:.3f}"
 
 
 def section(results: list[dict]) -> str:
@@ -141,8 +142,8 @@ def drawwire(root: Path) -> dict:
 
 
 def drawwire_section(result: dict) -> str:
-    lines = [WIRE_START, "", f"`{result['file']}` ({result['n']} rows, one draw-wire): held-out length RMS (mm), "
-             f"{result['k']}-fold CV; anchor, attachment point and offset are fitted in every structure.", "",
+    lines = [WIRE_START, "", (f"`{result['file']}` ({result['n']} rows, one draw-wire): held-out length RMS (mm), "
+             f"{result['k']}-fold CV; anchor, attachment point and offset are fitted in every structure."), "",
              "| structure | robot parameters fitted | random rows | contiguous blocks of recording order |",
              "|---|---|---|---|"]
     what = {"nominal": "none (nominal robot)", "offsets": "joint zero offsets theta2..theta6",

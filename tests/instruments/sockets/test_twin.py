@@ -9,8 +9,8 @@ import pytest
 import torch
 
 from torchcal.cli import main
-from torchcal.instruments.sockets.data import load_socket_data
 from torchcal.identify.identifiability import analyze
+from torchcal.instruments.sockets.data import load_socket_data
 from torchcal.instruments.sockets.fit import fit_sockets_data, make_problem
 from torchcal.instruments.sockets.twin import SocketsTwinConfig, write_sockets_case
 from torchcal.kinematics.robot import load_robot

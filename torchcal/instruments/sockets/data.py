@@ -65,7 +65,7 @@ class SocketData:
                 out.append((name, members[0][1], members[1][1]))
         return out
 
-    def subset(self, rows: np.ndarray | torch.Tensor | list[int]) -> "SocketData":
+    def subset(self, rows: np.ndarray | torch.Tensor | list[int]) -> SocketData:
         """The rows ``rows`` (indices) as a new data set; groups renumbered by first appearance."""
         idx = [int(i) for i in (rows.tolist() if hasattr(rows, "tolist") else rows)]
         placement = tuple(self.placement[i] for i in idx)
@@ -73,7 +73,7 @@ class SocketData:
         return _assemble(self.q[idx], placement, socket, self.source, self.sha256,
                          tuple(self.line_numbers[i] for i in idx))
 
-    def select_placements(self, names: list[str] | tuple[str, ...]) -> "SocketData":
+    def select_placements(self, names: list[str] | tuple[str, ...]) -> SocketData:
         """Rows of the named placements only (an unknown name is an error naming the file)."""
         unknown = [n for n in names if n not in self.placements]
         if unknown:

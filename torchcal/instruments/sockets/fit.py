@@ -28,7 +28,6 @@ from torchcal.instruments.sockets.model import SocketsProblem, group_means
 from torchcal.kinematics.error_model import DEFAULT_PARALLEL_THRESHOLD_DEG, ErrorModel
 from torchcal.kinematics.robot import RobotModel
 
-
 ROW1 = ("alpha1", "a1", "beta1", "theta1", "d1")
 GAUGE_NOTE = "the base frame (a rigid motion of the robot moves every unknown point with it)"
 

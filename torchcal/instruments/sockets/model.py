@@ -150,7 +150,7 @@ class SocketsProblem:
         r = torch.cat([(p - c[self.group]).reshape(-1), dist_r])
         return r, by_column
 
-    def with_free(self, free: torch.Tensor) -> "SocketsProblem":
+    def with_free(self, free: torch.Tensor) -> SocketsProblem:
         return SocketsProblem(self.model, self.q, self.group, self.groups, self.pairs, self.distance_m,
                               self.distance_weight, free, self.basis, self.basis_names)
 
