@@ -24,6 +24,7 @@ BUILTIN: dict[str, str] = {
     "tracer": "torchcal.instruments.tracer",
     "stiffness": "torchcal.instruments.stiffness",
     "profile": "torchcal.instruments.profile",
+    "sockets": "torchcal.instruments.sockets",
 }
 
 ENTRY_POINT_GROUP = "torchcal.instruments"

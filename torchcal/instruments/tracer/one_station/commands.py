@@ -1,0 +1,123 @@
+"""``torchcal fit`` and ``evaluate`` on a single length-station file (``q1..qN, l1``).
+
+``fit`` compares the structures of :mod:`.fit` by random-split and order-blocked
+cross-validation (:mod:`.cv`), fits the one the blocked folds choose (``structure=auto``, the
+default) or the one named, and writes a normal model folder (``T_reference = I``: the model lives
+in the robot ``base`` frame; anchor, offset and the CV table in ``calibration.json`` under
+``length_station``), so ``export`` works on it. ``evaluate`` keeps the robot and re-fits anchor
+and offset to the scored file (a new set-up), or with ``refit_anchor=false`` keeps those too.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+
+from torchcal.core.errors import TorchcalError
+from torchcal.instruments.base import FitOutcome
+from torchcal.instruments.tracer.commands import TracerFitConfig
+
+
+def _config(overrides: list[str]) -> TracerFitConfig:
+    from torchcal.instruments.tracer.commands import tracer_config
+    from torchcal.instruments.tracer.one_station.fit import STRUCTURES
+
+    config = tracer_config(list(overrides))
+    if config.structure != "auto" and config.structure not in STRUCTURES:
+        raise TorchcalError(f"structure must be auto or one of {', '.join(STRUCTURES)}, got {config.structure!r}")
+    return config
+
+
+def fit_length_station(robot_path, data_path, out_dir, overrides, *, base_link=None, end_link=None, progress=None) -> FitOutcome:
+    """Fit a single length station (and what the data support of the robot); returns the folder and result lines."""
+    from torchcal.instruments.tracer.one_station.cv import compare_structures
+    from torchcal.instruments.tracer.one_station.data import load_length_data
+    from torchcal.instruments.tracer.one_station.fit import fit_station
+    from torchcal.kinematics.robot import load_robot
+    from torchcal.stages.store import save_model
+
+    config = _config(overrides)
+    robot = load_robot(robot_path, base_link=base_link, end_link=end_link)
+    data = load_length_data(data_path, robot, joint_unit=config.joint_unit, length_unit=config.length_unit,
+                            check_limits=config.check_limits)
+    if progress is not None:
+        progress(f"cross-validating structures on {len(data)} lengths (random and order-blocked folds)")
+    comparison = compare_structures(robot, data, k=config.cv_folds, seed=config.seed,
+                                    max_iterations=config.max_iterations)
+    structure = comparison["chosen"] if config.structure == "auto" else config.structure
+    fit = fit_station(robot, data, structure, max_iterations=config.max_iterations)
+    ident = fit.identifiability
+    meta = {
+        "method": "lm",
+        "measurement": "length_station",
+        "data": {"file": data.source, "sha256": data.sha256, "n_poses": len(data)},
+        "identifiability": (lambda m: {**m, "not_identifiable": {
+            "base_x, base_y, base_z, base_rx, base_ry, base_rz, alpha1, a1, theta1, d1":
+                ["the anchor (a rigid motion of the robot moves the anchor with it)"], **m["not_identifiable"]}})(
+            ident.to_metadata()),
+        "residual_sigma_mm": fit.length_rms_m * 1e3,
+        "solver": {"iterations": fit.solve.iterations, "message": fit.solve.message, "cost_history": fit.solve.history},
+        "notes": fit.notes,
+        "length_station": {
+            "model": "l1 = |P(q) - anchor| + offset; P the tool point (cable attachment), base frame",
+            "structure": structure,
+            "structure_choice": "user" if config.structure != "auto" else comparison["rule"],
+            "cross_validation": comparison,
+            "anchor_mm": (fit.anchor * 1e3).tolist(),
+            "anchor_sigma_mm": (fit.anchor_sigma * 1e3).tolist(),
+            "offset_mm": fit.offset * 1e3,
+            "offset_sigma_mm": fit.offset_sigma * 1e3,
+            "length_rms_mm": fit.length_rms_m * 1e3,
+        },
+    }
+    folder = save_model(Path(out_dir), robot, fit.model, fit.x, fit.free, fit.covariance, meta, training_q=data.q)
+    rows = [f"  {r['structure']:8s} random {r['random_cv_rms_mm']:.3f} mm   order-blocked {r['blocks_cv_rms_mm']:.3f} mm"
+            for r in comparison["rows"]]
+    return FitOutcome(folder, [
+        ident.summary(),
+        f"{config.cv_folds}-fold held-out length RMS:\n" + "\n".join(rows)
+        + f"\nstructure: {structure} ({meta['length_station']['structure_choice']}); "
+        f"fitted length RMS {fit.length_rms_m * 1e3:.3f} mm"])
+
+
+def evaluate_length_station(model_dir, data_path, overrides, *, register: bool = False) -> dict:
+    """Length residuals of a model folder on a one-station file (anchor and offset re-fitted by default)."""
+    from torchcal.identify.lm import LevenbergMarquardt
+    from torchcal.instruments.tracer.joint_fit import TracerJointProblem
+    from torchcal.instruments.tracer.lengths import station_distances
+    from torchcal.instruments.tracer.one_station.data import load_length_data
+    from torchcal.stages.store import load_model
+
+    config = _config(overrides)
+    stored = load_model(model_dir)
+    data = load_length_data(data_path, stored.robot, joint_unit=config.joint_unit, length_unit=config.length_unit,
+                            check_limits=config.check_limits)
+    meta = stored.metadata.get("length_station")
+    if meta is None:
+        raise TorchcalError(f"{model_dir}: not a length-station model (fit one on a q1..qN, l1 file)")
+    anchor = torch.tensor(meta["anchor_mm"], dtype=torch.float64) * 1e-3
+    dead = torch.tensor([-meta["offset_mm"] * 1e-3], dtype=torch.float64)
+    refit = config.refit_anchor or register
+    if refit:
+        p = stored.model.layout.size
+        problem = TracerJointProblem(stored.model, data.q, data.lengths, torch.full_like(data.lengths, 1e3),
+                                     torch.arange(p, p + 4))
+        z = LevenbergMarquardt(max_iterations=config.max_iterations).solve(problem, torch.cat([stored.x, anchor, dead])).x
+        _, s, d = problem.split(z)
+        anchor, dead = s[0], d
+    points = stored.model.tcp_position(data.q, stored.x)
+    err = station_distances(points, anchor.reshape(1, 3))[:, 0] - dead[0] - data.lengths[:, 0]
+    return {
+        "n_poses": len(data),
+        "length_rms_mm": float(err.pow(2).mean().sqrt()) * 1e3,
+        "length_mean_abs_mm": float(err.abs().mean()) * 1e3,
+        "length_max_mm": float(err.abs().max()) * 1e3,
+        "anchor_mm": (anchor * 1e3).tolist(),
+        "offset_mm": -float(dead[0]) * 1e3,
+        "note": "robot fixed; anchor and offset re-fitted to this file" if refit else "robot, anchor and offset fixed",
+        "model": str(model_dir),
+        "data": str(data_path),
+        "registered": refit,
+    }
+
