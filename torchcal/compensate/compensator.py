@@ -263,7 +263,7 @@ class CompensatorGraph(nn.Module):
         self.register_buffer("upper", limits[:, 1].to(device=device, dtype=dtype))
 
     @classmethod
-    def from_stored(cls, stored, **options) -> "CompensatorGraph":
+    def from_stored(cls, stored, **options) -> CompensatorGraph:
         """Build from a :class:`torchcal.stages.store.StoredModel` (residual head and joint-space errors included)."""
         return cls(stored.model, stored.x, **stored_parts(stored), **options)
 
@@ -362,7 +362,7 @@ class MonitorGraph(nn.Module):
         self.models = _TwoModels(model, x, residual, dtype, device, joint_errors)
 
     @classmethod
-    def from_stored(cls, stored, **options) -> "MonitorGraph":
+    def from_stored(cls, stored, **options) -> MonitorGraph:
         return cls(stored.model, stored.x, **stored_parts(stored), **options)
 
     def forward(self, q: torch.Tensor) -> torch.Tensor:
@@ -405,7 +405,7 @@ class LoadedCompensatorGraph(CompensatorGraph):
         self.deflection = DeflectionGraph(compliance, wrench_frame=wrench_frame, dtype=dtype, device=device)
 
     @classmethod
-    def from_stored(cls, stored, **options) -> "LoadedCompensatorGraph":
+    def from_stored(cls, stored, **options) -> LoadedCompensatorGraph:
         """Build from a :class:`torchcal.stages.store.StoredModel` with a stiffness stage."""
         return cls(stored.model, stored.x, stored.stiffness.compliance, **stored_parts(stored), **options)
 
@@ -442,7 +442,7 @@ class LoadedMonitorGraph(MonitorGraph):
         self.deflection = DeflectionGraph(compliance, wrench_frame=wrench_frame, dtype=dtype, device=device)
 
     @classmethod
-    def from_stored(cls, stored, **options) -> "LoadedMonitorGraph":
+    def from_stored(cls, stored, **options) -> LoadedMonitorGraph:
         return cls(stored.model, stored.x, stored.stiffness.compliance, **stored_parts(stored), **options)
 
     def forward(self, q: torch.Tensor, wrench: torch.Tensor) -> torch.Tensor:  # type: ignore[override]

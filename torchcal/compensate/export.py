@@ -213,7 +213,7 @@ def float32_budget(graphs: dict[str, torch.nn.Module], out_dir: Path, stored, n_
     d_mon = (mon32 - mon64).norm(dim=-1) * 1e3
     budget = {
         "n_poses": n_poses,
-        "sampling": "uniform within joint limits, seed %d" % seed,
+        "sampling": f"uniform within joint limits, seed {seed}",
         "compensator_tcp_mm": {"max": float(d_cmd.max()), "p99": float(d_cmd.quantile(0.99)), "median": float(d_cmd.median())},
         "compensator_joint_rad_max": float((qc32 - qc64).abs().max()),
         "monitor_mm": {"max": float(d_mon.max()), "p99": float(d_mon.quantile(0.99)), "median": float(d_mon.median())},
@@ -397,7 +397,7 @@ def export_model(
         "iterations": compensator.iterations,
         "solver": _solver_description(compensator, portable),
         "runtime": "onnxruntime (the compensators use the contrib operator com.microsoft.Inverse, domain version 1)"
-                   if uses_contrib_inverse(compensator) else "any ONNX runtime (standard operators, opset %d)" % OPSET,
+                   if uses_contrib_inverse(compensator) else f"any ONNX runtime (standard operators, opset {OPSET})",
         "training_data": {"sha256": meta.get("data", {}).get("sha256"), "n_poses": meta.get("data", {}).get("n_poses")},
         "calibration": {"method": meta.get("method"), "residual_sigma_mm": meta.get("residual_sigma_mm")},
         "held_out_metrics": _held_out_metrics(model_dir, meta),
@@ -505,9 +505,9 @@ def _convergence_text(manifest: dict) -> str:
     else:
         what = ("It solves the full 6-D pose; near singular poses the damping keeps the correction small instead of exact, "
                 "for the position too.")
-    lines = [f"The compensator runs {conv['iterations']} Newton steps (fixed, no data-dependent branches; task "
-             f"`{conv['task']}`). {what} Every step moves a joint by at most "
-             f"{manifest['solver']['max_step_rad']:.2f} rad and every iterate stays within the joint limits.", "",
+    lines = [(f"The compensator runs {conv['iterations']} Newton steps (fixed, no data-dependent branches; task "
+              f"`{conv['task']}`). {what} Every step moves a joint by at most "
+              f"{manifest['solver']['max_step_rad']:.2f} rad and every iterate stays within the joint limits."), "",
              "| poses | n | within 1 um | within 1 um where solvable | unsolved p99 / max (mm) | orientation deviation p99 / max (rad) |",
              "| --- | --- | --- | --- | --- | --- |"]
     for name, s in strata.items():
@@ -518,9 +518,9 @@ def _convergence_text(manifest: dict) -> str:
                      f"{s['unsolved_tcp_mm']['p99']:.1e} / {s['unsolved_tcp_mm']['max']:.1e} | "
                      f"{s['orientation_deviation_rad']['p99']:.1e} / {s['orientation_deviation_rad']['max']:.1e} |")
     t = conv["thresholds"]
-    lines += ["", f"Solvable: the position Jacobian's smallest singular value above {t['solvable_above_m_per_rad'] * 1e3:.0f} mm/rad; "
-              f"wrist singular: the last three joints' angular Jacobian below {t['wrist_singular_below']}; position singular: "
-              f"below {t['position_singular_below_m_per_rad'] * 1e3:.0f} mm/rad. Sampling: {conv['sampling']}."]
+    lines += ["", (f"Solvable: the position Jacobian's smallest singular value above {t['solvable_above_m_per_rad'] * 1e3:.0f} mm/rad; "
+                   f"wrist singular: the last three joints' angular Jacobian below {t['wrist_singular_below']}; position singular: "
+                   f"below {t['position_singular_below_m_per_rad'] * 1e3:.0f} mm/rad. Sampling: {conv['sampling']}.")]
     return "\n".join(lines)
 
 

@@ -97,13 +97,13 @@ def compose_run_config(overrides: list[str], config_name: str = "config", extra_
     run_fields = []
     for item in field_overrides:
         head = item.split("=", 1)[0].split(".", 1)[0].strip()
-        (field_by_section[head] if head in field_by_section else run_fields).append(item)
+        field_by_section.get(head, run_fields).append(item)
     for name in extra_sections:
         node = composed.pop(name, None) if name in composed else None
         sections[name] = (node, field_by_section[name])
     try:
         dotlist = OmegaConf.from_dotlist(run_fields)
-    except Exception as exc:  # omegaconf grammar errors
+    except Exception as exc:  # noqa: BLE001 (omegaconf raises yaml, grammar and value errors: no common base)
         raise TorchcalError(f"invalid override: {str(exc).splitlines()[0]}") from None
     config = _merge(RunConfig(), composed, dotlist)
     return config, sections
@@ -152,6 +152,6 @@ def compose_fit_config(overrides: list[str]):
         nodes.append(composed.get("fit", OmegaConf.create({})))
     try:
         nodes.append(OmegaConf.from_dotlist(field_overrides))
-    except Exception as exc:  # omegaconf grammar errors
+    except Exception as exc:  # noqa: BLE001 (omegaconf raises yaml, grammar and value errors: no common base)
         raise TorchcalError(f"invalid override: {str(exc).splitlines()[0]}") from None
     return _merge(FitConfig(), *nodes)

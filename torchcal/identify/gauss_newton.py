@@ -28,7 +28,7 @@ class GaussNewton(Identifier):
         cost = 0.5 * float(r @ r)
         history = [cost]
         converged, message, iterations = False, "iteration limit", 0
-        for iterations in range(1, self.max_iterations + 1):
+        for iterations in range(1, self.max_iterations + 1):  # noqa: B007 (read after the loop)
             scale = jac.norm(dim=0).clamp_min(1e-300)
             step = torch.linalg.lstsq(jac / scale, -r.unsqueeze(-1)).solution.squeeze(-1) / scale
             t, accepted = 1.0, False

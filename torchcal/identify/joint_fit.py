@@ -92,7 +92,7 @@ class JointErrorProblem:
         r = (self.data.position - pred).reshape(-1)
         return r, -full.reshape(-1, full.shape[-1])
 
-    def with_free(self, free: torch.Tensor) -> "JointErrorProblem":
+    def with_free(self, free: torch.Tensor) -> JointErrorProblem:
         return JointErrorProblem(self.model, self.data, self.basis, free, self.columns, self.column_names)
 
 

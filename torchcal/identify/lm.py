@@ -51,7 +51,7 @@ class LevenbergMarquardt(Identifier):
         nu = 2.0
         converged, message = False, "iteration limit"
         iterations = 0
-        for iterations in range(1, self.max_iterations + 1):
+        for iterations in range(1, self.max_iterations + 1):  # noqa: B007 (read after the loop)
             grad = jac.T @ r
             if float((grad.abs() / diag.sqrt()).max()) <= self.gtol * max(1.0, (2 * cost) ** 0.5):
                 converged, message = True, "gradient below gtol"

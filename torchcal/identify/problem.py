@@ -85,7 +85,7 @@ class CalibrationProblem:
         jac[:, 3:] *= self.orientation_weight_m_per_rad
         return r, -jac.reshape(-1, jac.shape[-1])
 
-    def with_free(self, free: torch.Tensor) -> "CalibrationProblem":
+    def with_free(self, free: torch.Tensor) -> CalibrationProblem:
         return CalibrationProblem(
             self.model, self.data, free, self.use_orientation, self.orientation_weight_m_per_rad, self.whitening
         )

@@ -117,11 +117,8 @@ class ErrorModel:
     def _parallel_joints(self) -> tuple[int, ...]:
         """1-based rows whose axis is nearly parallel to the previous one (Hayati beta rows)."""
         limit = math.sin(math.radians(self.parallel_threshold_deg))
-        rows = []
-        for i in range(1, self.robot.dof):  # row 1's "previous axis" is the base z: base frame absorbs it
-            if abs(math.sin(float(self.robot.table[i, 0]))) < limit:
-                rows.append(i + 1)
-        return tuple(rows)
+        # Row 1's "previous axis" is the base z: the base frame absorbs it.
+        return tuple(i + 1 for i in range(1, self.robot.dof) if abs(math.sin(float(self.robot.table[i, 0]))) < limit)
 
     def nominal_vector(self) -> torch.Tensor:
         """``x`` of the nominal robot: datasheet table, zero base correction, nominal tool."""

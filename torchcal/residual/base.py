@@ -21,7 +21,7 @@ class ResidualHead(ABC):
     tunes_on_validation = True
 
     @abstractmethod
-    def fit(self, x_train: torch.Tensor, y_train: torch.Tensor, x_val: torch.Tensor, y_val: torch.Tensor) -> "ResidualHead":
+    def fit(self, x_train: torch.Tensor, y_train: torch.Tensor, x_val: torch.Tensor, y_val: torch.Tensor) -> ResidualHead:
         """Fit on features ``(n, F)`` and targets ``(n, K)``; the validation pair may steer early stopping."""
 
     @abstractmethod

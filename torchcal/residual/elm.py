@@ -58,7 +58,7 @@ class ELM(ResidualHead):
     def set_hidden_layer(self, weights: torch.Tensor, bias: torch.Tensor) -> None:
         self.weights, self.bias = weights, bias
 
-    def fit(self, x_train, y_train, x_val=None, y_val=None) -> "ELM":
+    def fit(self, x_train, y_train, x_val=None, y_val=None) -> ELM:
         if self.weights is None:
             gen = torch.Generator().manual_seed(self.seed)
             self.weights = torch.rand(self.hidden, x_train.shape[1], generator=gen, dtype=x_train.dtype) * 2 - 1
@@ -74,7 +74,7 @@ class ELM(ResidualHead):
         return {"hidden": self.hidden, "ridge": self.ridge, "seed": self.seed}
 
     @classmethod
-    def from_state(cls, settings: dict, state: dict[str, torch.Tensor]) -> "ELM":
+    def from_state(cls, settings: dict, state: dict[str, torch.Tensor]) -> ELM:
         head = cls(hidden=settings["hidden"], ridge=settings["ridge"], seed=settings["seed"])
         head.weights, head.bias, head.output = state["weights"], state["bias"], state["output"]
         return head

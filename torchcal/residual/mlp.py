@@ -58,7 +58,7 @@ class MLPHead(ResidualHead):
         self.network: torch.nn.Sequential | None = None
         self.epochs_trained = 0
 
-    def fit(self, x_train, y_train, x_val, y_val) -> "MLPHead":
+    def fit(self, x_train, y_train, x_val, y_val) -> MLPHead:
         import logging
         import warnings
 
@@ -137,7 +137,7 @@ class MLPHead(ResidualHead):
                 "n_out": self.network[-2].out_features, "seed": self.seed, "output_scale": self.output_scale}
 
     @classmethod
-    def from_state(cls, settings: dict, state: dict[str, torch.Tensor]) -> "MLPHead":
+    def from_state(cls, settings: dict, state: dict[str, torch.Tensor]) -> MLPHead:
         head = cls(width=settings["width"], depth=settings["depth"], seed=settings["seed"])
         net = make_network(settings["n_in"], settings["n_out"], settings["width"], settings["depth"],
                            settings["output_scale"]).to(torch.float64)

@@ -8,7 +8,7 @@ solve.
 
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable
 
 import torch
 
@@ -39,7 +39,7 @@ class MayflyELM(ResidualHead):
         self.elm = ELM(hidden=hidden, ridge=ridge, seed=seed)
         self.search = None
 
-    def fit(self, x_train, y_train, x_val, y_val) -> "MayflyELM":
+    def fit(self, x_train, y_train, x_val, y_val) -> MayflyELM:
         n_in = x_train.shape[1]
         dim = self.hidden * (n_in + 1)
         lower = torch.cat([-torch.ones(self.hidden * n_in), torch.zeros(self.hidden)]).to(x_train.dtype)
@@ -64,7 +64,7 @@ class MayflyELM(ResidualHead):
         self.elm.fit(x_train, y_train)
         return self
 
-    def refit_output(self, x: torch.Tensor, y: torch.Tensor) -> "MayflyELM":
+    def refit_output(self, x: torch.Tensor, y: torch.Tensor) -> MayflyELM:
         """Re-solve the output weights on ``(x, y)``, keeping the hidden layer the search chose."""
         if self.search is None:
             raise RuntimeError("refit_output needs a fitted MMA-ELM: call fit first (the search chooses the hidden layer)")
@@ -79,7 +79,7 @@ class MayflyELM(ResidualHead):
                 "ridge": self.ridge, "seed": self.seed}
 
     @classmethod
-    def from_state(cls, settings: dict, state: dict[str, torch.Tensor]) -> "MayflyELM":
+    def from_state(cls, settings: dict, state: dict[str, torch.Tensor]) -> MayflyELM:
         head = cls(**settings)
         head.elm = ELM.from_state({"hidden": settings["hidden"], "ridge": settings["ridge"], "seed": settings["seed"]}, state)
         return head

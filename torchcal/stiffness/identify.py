@@ -21,8 +21,8 @@ from __future__ import annotations
 
 import math
 import warnings
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Sequence
 
 import torch
 
@@ -180,7 +180,7 @@ def analyse_identifiability(
     singular_all = torch.linalg.svdvals(normalized)
     keep = [bool(n > zero_tol * float(norms.max())) for n in norms]
     removed: list[str] = [n for n, k in zip(names, keep) if not k]
-    confounded: dict[str, tuple[str, ...]] = {n: () for n in removed}
+    confounded: dict[str, tuple[str, ...]] = dict.fromkeys(removed, ())
     while any(keep):
         cols = [i for i, k in enumerate(keep) if k]
         _, s, vh = torch.linalg.svd(normalized[:, cols], full_matrices=False)
@@ -308,7 +308,7 @@ def _levenberg_marquardt(
     lam, nu = 1e-3 * float(diag.max()), 2.0
     converged = False
     iterations = 0
-    for iterations in range(1, max_iterations + 1):
+    for iterations in range(1, max_iterations + 1):  # noqa: B007 (read after the loop)
         grad = jac.T @ r
         diag = torch.maximum(diag, jtj.diagonal())
         step = torch.linalg.solve(jtj + lam * torch.diag(diag), -grad)

@@ -224,7 +224,7 @@ def _with_progress(job, study, config: StudyConfig, console) -> None:
                 try:
                     c = _counts(study)
                     progress.update(task, completed=c["COMPLETE"] + c["PRUNED"])
-                except Exception:  # the storage may be locked for a moment; the next poll catches up
+                except Exception:  # noqa: BLE001 (the storage may be locked for a moment; the next poll catches up)
                     pass
 
         watcher = threading.Thread(target=follow, daemon=True)

@@ -132,7 +132,7 @@ def group_scans(T_base_flange: torch.Tensor, plane: torch.Tensor, tol_deg: float
     for g in groups:
         p = T_base_flange[g.scans, :3, 3]
         s = torch.linalg.svdvals(p - p.mean(0)) * 1e3 if len(g.scans) > 1 else torch.zeros(3, dtype=p.dtype)
-        g.translation_extent_mm = (s.tolist() + [0.0, 0.0, 0.0])[:3]
+        g.translation_extent_mm = [*s.tolist(), 0.0, 0.0, 0.0][:3]
     return groups
 
 

@@ -82,7 +82,7 @@ class ProfileProblem:
         cols = self.free if columns is None else columns
         return self.residuals(x), jac[:, cols]
 
-    def recentred(self, x: torch.Tensor) -> tuple["ProfileProblem", torch.Tensor]:
+    def recentred(self, x: torch.Tensor) -> tuple[ProfileProblem, torch.Tensor]:
         """The same problem with references moved to ``x``, and the equivalent ``x`` (zero angles)."""
         R, t, normals, offsets = self.unpack(x)
         problem = ProfileProblem(self.data, self.T_base_flange, R, normals)
