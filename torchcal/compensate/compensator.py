@@ -59,6 +59,7 @@ over the joint range, with the singular neighbourhoods as separate strata.
 from __future__ import annotations
 
 import copy
+from typing import Any
 
 import torch
 from torch import nn
@@ -212,6 +213,17 @@ class CompensatorGraph(nn.Module):
         device: where the constants live (CPU by default).
     """
 
+    # buffers, registered in __init__ (declared so that type checkers see tensors, not Tensor | Module)
+    eye6: torch.Tensor
+    eye3: torch.Tensor
+    damping_floor_sq: torch.Tensor
+    damping_gain: torch.Tensor
+    orientation_damping_sq: torch.Tensor
+    max_step: torch.Tensor
+    max_orientation_step: torch.Tensor
+    lower: torch.Tensor
+    upper: torch.Tensor
+
     def __init__(
         self,
         model: ErrorModel,
@@ -249,7 +261,7 @@ class CompensatorGraph(nn.Module):
         self.solver = solver
         self.dtype = dtype
         gain = DEFAULT_DAMPING_GAIN[task] if damping_gain is None else float(damping_gain)
-        f64 = {"dtype": torch.float64, "device": device}
+        f64: dict[str, Any] = {"dtype": torch.float64, "device": device}
         # the solve's constants are float64 whatever the graph's dtype (see the module docstring)
         self.register_buffer("eye6", torch.eye(6, **f64))
         self.register_buffer("eye3", torch.eye(3, **f64))
@@ -415,6 +427,8 @@ class LoadedCompensatorGraph(CompensatorGraph):
     def loaded_error(self, target: torch.Tensor, pose: torch.Tensor, joint_frames: torch.Tensor, q: torch.Tensor,
                      wrench: torch.Tensor | None) -> torch.Tensor:
         """The error measured at the loaded TCP (the Jacobian stays rigid)."""
+        if wrench is None:
+            raise ValueError("a loaded compensator needs the wrench")
         position, rotation = self.deflection.loaded_pose(pose, joint_frames, wrench)
         return self.pose_error(target, position, rotation, q).unsqueeze(-1)
 

@@ -55,7 +55,8 @@ def split_foreign_keys(overrides: list[str], own: Any, foreign: Any, *, what: st
         what: the file kind, for the warning (``"a stiffness file"``).
     """
     foreign_only = field_names(foreign) - field_names(own)
-    kept, ignored = [], []
+    kept: list[str] = []
+    ignored: list[str] = []
     for item in overrides:
         key = item.partition("=")[0].strip().split(".")[0]
         (ignored if key in foreign_only else kept).append(item)

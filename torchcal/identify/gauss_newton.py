@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 
 from torchcal.identify.base import Identifier, SolveResult
-from torchcal.identify.problem import CalibrationProblem
+from torchcal.identify.problem import LeastSquaresProblem
 
 
 class GaussNewton(Identifier):
@@ -21,7 +21,7 @@ class GaussNewton(Identifier):
         self.max_iterations = max_iterations
         self.ftol = ftol
 
-    def solve(self, problem: CalibrationProblem, x0: torch.Tensor) -> SolveResult:
+    def solve(self, problem: LeastSquaresProblem, x0: torch.Tensor) -> SolveResult:
         x = x0.clone()
         free = problem.free
         r, jac = problem.jacobian(x)

@@ -274,7 +274,7 @@ class ErrorModel:
             return torch.cat([pose[..., :3, 3], w], -1)
 
         with torch.enable_grad():
-            _, vjp_fn = torch.func.vjp(pose_vector, free)
+            vjp_fn = torch.func.vjp(pose_vector, free)[1]  # (value, vjp function): no has_aux
             basis = torch.eye(6, dtype=x.dtype, device=x.device)
             (jac,) = torch.vmap(vjp_fn)(basis[:, None, :].expand(6, batch, 6))
         return current, jac.permute(1, 0, 2).detach()

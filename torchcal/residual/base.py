@@ -32,6 +32,11 @@ class ResidualHead(ABC):
     def settings(self) -> dict:
         """JSON-able hyperparameters needed to rebuild the module."""
 
+    @classmethod
+    def from_state(cls, settings: dict, state: dict[str, torch.Tensor]) -> ResidualHead:
+        """The fitted head that :meth:`settings` and :meth:`state` describe (a model folder's head)."""
+        raise NotImplementedError(f"{cls.__name__} cannot be rebuilt from a stored state")
+
     def predict(self, features: torch.Tensor) -> torch.Tensor:
         with torch.no_grad():
             return self.module().to(features.dtype)(features)

@@ -18,6 +18,11 @@ from torchcal.residual.base import ResidualHead
 
 
 class ELMModule(torch.nn.Module):
+    # buffers, registered in __init__ (declared so that type checkers see tensors, not Tensor | Module)
+    weights: torch.Tensor
+    bias: torch.Tensor
+    output: torch.Tensor
+
     def __init__(self, weights: torch.Tensor, bias: torch.Tensor, output: torch.Tensor) -> None:
         super().__init__()
         self.register_buffer("weights", weights)
@@ -53,7 +58,9 @@ class ELM(ResidualHead):
 
     def __init__(self, hidden: int = 80, ridge: float | None = 1e-6, seed: int = 0) -> None:
         self.hidden, self.ridge, self.seed = hidden, ridge, seed
-        self.weights = self.bias = self.output = None
+        self.weights: torch.Tensor | None = None
+        self.bias: torch.Tensor | None = None
+        self.output: torch.Tensor | None = None
 
     def set_hidden_layer(self, weights: torch.Tensor, bias: torch.Tensor) -> None:
         self.weights, self.bias = weights, bias
@@ -68,6 +75,8 @@ class ELM(ResidualHead):
         return self
 
     def module(self) -> torch.nn.Module:
+        if self.weights is None or self.bias is None or self.output is None:
+            raise RuntimeError("the ELM is not fitted: call fit first")
         return ELMModule(self.weights, self.bias, self.output)
 
     def settings(self) -> dict:

@@ -12,6 +12,7 @@ from collections.abc import Callable
 
 import torch
 
+from torchcal.optimize.base import OptimizeResult
 from torchcal.optimize.mayfly import Mayfly
 from torchcal.residual.base import ResidualHead
 from torchcal.residual.elm import ELM, solve_output_weights
@@ -37,7 +38,7 @@ class MayflyELM(ResidualHead):
         # Optional observer of the search, (iteration, best validation RMS mm); a study prunes with it.
         self.on_iteration: Callable[[int, float], None] | None = None
         self.elm = ELM(hidden=hidden, ridge=ridge, seed=seed)
-        self.search = None
+        self.search: OptimizeResult | None = None
 
     def fit(self, x_train, y_train, x_val, y_val) -> MayflyELM:
         n_in = x_train.shape[1]
@@ -57,9 +58,10 @@ class MayflyELM(ResidualHead):
             return err.norm(dim=-1).pow(2).mean(-1).sqrt()
 
         optimizer = Mayfly(population=self.population, iterations=self.iterations)
-        self.search = optimizer.minimize(fitness, lower, upper, seed=self.seed, progress=self.progress,
-                                         on_iteration=self.on_iteration)
-        w, b = unpack(self.search.best_x.unsqueeze(0))
+        search = optimizer.minimize(fitness, lower, upper, seed=self.seed, progress=self.progress,
+                                    on_iteration=self.on_iteration)
+        self.search = search
+        w, b = unpack(search.best_x.unsqueeze(0))
         self.elm.set_hidden_layer(w[0], b[0])
         self.elm.fit(x_train, y_train)
         return self
