@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 from torchcal.core.errors import TorchcalError
 
@@ -94,7 +94,7 @@ def compose_run_config(overrides: list[str], config_name: str = "config", extra_
     OmegaConf.set_struct(composed, False)
     sections = {}
     field_by_section: dict[str, list[str]] = {name: [] for name in extra_sections}
-    run_fields = []
+    run_fields: list[str] = []
     for item in field_overrides:
         head = item.split("=", 1)[0].split(".", 1)[0].strip()
         field_by_section.get(head, run_fields).append(item)
@@ -121,13 +121,13 @@ def merge_section(schema: Any, section: tuple[Any, list[str]]):
 
 def save_resolved_config(path: str | Path, config: Any, **sections: Any) -> Path:
     """Write the fully resolved configuration (dataclasses) as YAML, atomically."""
-    from omegaconf import OmegaConf
+    from omegaconf import DictConfig, OmegaConf
 
     from torchcal.core.io import atomic_write_text
 
     tree = OmegaConf.structured(config)
     if sections:
-        tree = OmegaConf.merge(OmegaConf.create({}), tree)
+        tree = cast(DictConfig, OmegaConf.merge(OmegaConf.create({}), tree))  # merged onto a mapping
         OmegaConf.set_struct(tree, False)
         for key, value in sections.items():
             tree[key] = OmegaConf.structured(value) if not isinstance(value, dict) else OmegaConf.create(value)

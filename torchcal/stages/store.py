@@ -21,6 +21,7 @@ import math
 import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import torch
 
@@ -28,6 +29,10 @@ from torchcal.core.errors import ModelError
 from torchcal.core.io import atomic_write_bytes, atomic_write_json, atomic_write_text
 from torchcal.kinematics.error_model import ErrorModel
 from torchcal.kinematics.robot import RobotModel, load_robot, robot_to_yaml
+
+if TYPE_CHECKING:
+    from torchcal.stages.residual_store import StoredResidual
+    from torchcal.stages.stiffness_store import StoredStiffness
 
 
 @dataclass
@@ -41,8 +46,8 @@ class StoredModel:
     covariance: torch.Tensor
     metadata: dict
     folder: Path
-    residual: object | None = None
-    stiffness: object | None = None
+    residual: StoredResidual | None = None
+    stiffness: StoredStiffness | None = None
     extras: dict = field(default_factory=dict)
     training_q: torch.Tensor | None = None
 

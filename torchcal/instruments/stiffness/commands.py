@@ -30,6 +30,7 @@ import math
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -255,7 +256,7 @@ def fit_stiffness(
             parameters, selection = comparison.chosen, comparison.to_dict()
     estimate = _identify(geometry, data, config, parameters, x)
     wrench = data.wrench
-    meta = {
+    meta: dict[str, Any] = {
         "data": {
             "file": str(data_path),
             "sha256": sha256_file(data_path),
@@ -272,7 +273,7 @@ def fit_stiffness(
     }
     if selection is not None:
         meta["model_selection"] = selection
-    if stored is not None:
+    if config.model is not None:  # stored was loaded from it
         if out.resolve() != Path(config.model).resolve():
             copy_model(config.model, out)
     else:
@@ -290,6 +291,7 @@ def fit_stiffness(
     save_stiffness(out, estimate, meta)
     if comparison is not None:
         table = comparison.format_table()
+        assert selection is not None  # set with the comparison
         selection = {**selection, "table": table}
     _write_selection(out, selection)
     lines = [table] if comparison is not None else []
@@ -332,7 +334,7 @@ def evaluate_stiffness(model_dir: str | Path, data_path: str | Path, overrides: 
     measured = data.deflection.to(predicted)
     err = (predicted[:, :3] - measured).norm(dim=-1) * 1e3
     size = measured.norm(dim=-1) * 1e3
-    metrics = {
+    metrics: dict[str, Any] = {
         "n_poses": len(data),
         "deflection_rms_mm": float(err.pow(2).mean().sqrt()),
         "deflection_measured_rms_mm": float(size.pow(2).mean().sqrt()),

@@ -176,7 +176,7 @@ def load_tracer_data(
         )
         keep = ~blind
         q, q_user, lengths = q[keep], q_user[keep], lengths[keep]
-        lines = [ln for ln, k in zip(lines, keep) if k]
+        lines = [lines[i] for i in np.flatnonzero(keep)]
     data = TracerData(
         q=torch.from_numpy(q), lengths=torch.from_numpy(lengths), source=p, line_numbers=tuple(lines),
         sha256=sha256_file(p),
