@@ -421,7 +421,7 @@ class LoadedCompensatorGraph(CompensatorGraph):
         """Build from a :class:`torchcal.stages.store.StoredModel` with a stiffness stage."""
         return cls(stored.model, stored.x, stored.stiffness.compliance, **stored_parts(stored), **options)
 
-    def forward(self, q_nominal: torch.Tensor, wrench: torch.Tensor) -> torch.Tensor:  # type: ignore[override]
+    def forward(self, q_nominal: torch.Tensor, wrench: torch.Tensor) -> torch.Tensor:  # type: ignore[override]  # wrench: 2nd graph input
         return self.solve(q_nominal, wrench)[0]
 
     def loaded_error(self, target: torch.Tensor, pose: torch.Tensor, joint_frames: torch.Tensor, q: torch.Tensor,
@@ -459,7 +459,7 @@ class LoadedMonitorGraph(MonitorGraph):
     def from_stored(cls, stored, **options) -> LoadedMonitorGraph:
         return cls(stored.model, stored.x, stored.stiffness.compliance, **stored_parts(stored), **options)
 
-    def forward(self, q: torch.Tensor, wrench: torch.Tensor) -> torch.Tensor:  # type: ignore[override]
+    def forward(self, q: torch.Tensor, wrench: torch.Tensor) -> torch.Tensor:  # type: ignore[override]  # wrench: 2nd graph input
         nominal, pose, frames, _ = self.models.nominal_and_calibrated(q)
         dp, _ = self.deflection(pose, frames, wrench)
         return self.models.add_residual(pose[:, :3, 3] - nominal[:, :3, 3] + dp, q)

@@ -196,7 +196,7 @@ def predict_positions(
     if wrench is not None and stored.stiffness is not None:
         from torchcal.stiffness.vjm import deflection
 
-        compliance = stored.stiffness.compliance.to(p)  # type: ignore[attr-defined]
+        compliance = stored.stiffness.compliance.to(p)
         p = p + deflection(stored.model, q, stored.x, compliance, wrench.to(p), wrench_frame="tool")[..., :3]
     return p
 

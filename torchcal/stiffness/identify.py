@@ -237,7 +237,7 @@ class StiffnessEstimate:
     iterations: int
     converged: bool
     with_rotation: bool = False
-    wrench_frame: str = "tool"
+    wrench_frame: WrenchFrame = "tool"
     extra: dict = field(default_factory=dict)
 
     def stiffness_by_name(self) -> dict[str, float]:
@@ -251,7 +251,7 @@ class StiffnessEstimate:
     def predict(self, q: torch.Tensor, wrench: torch.Tensor) -> torch.Tensor:
         """Predicted deflection ``(..., 6)`` ``[dp (m); dphi (rad)]``, ``instrument`` frame."""
         frame = self.wrench_frame
-        return deflection(self.model, q, self.x, self.compliance, wrench, wrench_frame=frame)  # type: ignore[arg-type]
+        return deflection(self.model, q, self.x, self.compliance, wrench, wrench_frame=frame)
 
     def as_dict(self) -> dict:
         """JSON-ready summary (SI units)."""
@@ -382,7 +382,8 @@ def identify_stiffness(
     weights = torch.tensor(inverse_sigma, dtype=torch.float64, device=device)[:rows]
     y = data.deflection.to(device)
     if with_rotation:
-        y = torch.cat([y, data.rotation.to(device)], -1)  # type: ignore[union-attr]
+        assert data.rotation is not None  # refused above
+        y = torch.cat([y, data.rotation.to(device)], -1)
     gw = (g * weights[:, None]).reshape(-1, len(candidates))
     yw = (y * weights).reshape(-1)
 

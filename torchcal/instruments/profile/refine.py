@@ -157,7 +157,7 @@ def refine(
     problem = ProfileProblem(data, T_base_flange.to(data.uw), R0.to(data.uw), normals0.to(data.uw))
     x0 = problem.initial(t0.to(data.uw), offsets0.to(data.uw))
     solver = LevenbergMarquardt(max_iterations=max_iterations, ftol=1e-14, xtol=1e-14, gtol=1e-12)
-    sol = solver.solve(problem, x0)  # type: ignore[arg-type]  # duck-typed problem
+    sol = solver.solve(problem, x0)
     problem, x = problem.recentred(sol.x)
     r, jac = problem.jacobian(x)
     _check_rank(problem, jac)

@@ -147,7 +147,7 @@ def _identify(
         use_rotation=config.use_rotation,
         sigma_position_m=config.sigma_position_mm * 1e-3,
         sigma_rotation_rad=math.radians(config.sigma_rotation_deg),
-        wrench_frame=config.wrench_frame,  # type: ignore[arg-type]
+        wrench_frame=config.wrench_frame,  # type: ignore[arg-type]  # a str in the config schema, checked on load
         rank_tol=config.rank_tol,
         poor_relative_std=config.poor_relative_std,
         device=config.device,
@@ -232,7 +232,7 @@ def fit_stiffness(
 
     config = stiffness_config(overrides)
     out = Path(out_dir)
-    robot = with_tool(load_robot(robot_path, base_link=base_link, end_link=end_link), config)  # type: ignore[arg-type]
+    robot = with_tool(load_robot(robot_path, base_link=base_link, end_link=end_link), config)  # type: ignore[arg-type]  # reads only tool_mm
     stored = None
     if config.model is not None:
         stored = load_model(config.model, device=config.device)
@@ -320,7 +320,7 @@ def predicted_deflection(stored, data: StiffnessData) -> torch.Tensor:
         raise TorchcalError(f"{stored.folder}: the model has no stiffness stage (fit it with a stiffness file)")
     model, x = instrument_model(stored.model, data, stored.x, device=stored.x.device)
     q, wrench = data.q.to(x.device), data.wrench.to(x.device)
-    return deflection(model, q, x, stage.compliance.to(x), wrench, wrench_frame=stage.wrench_frame)  # type: ignore[arg-type]
+    return deflection(model, q, x, stage.compliance.to(x), wrench, wrench_frame=stage.wrench_frame)
 
 
 def evaluate_stiffness(model_dir: str | Path, data_path: str | Path, overrides: list[str], *, register: bool = False) -> dict:
