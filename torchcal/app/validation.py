@@ -26,6 +26,7 @@ import tempfile
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -129,7 +130,11 @@ def _pairs(data: Measurements, protocol: Protocol, robot, folder: Path, seed: in
         return [(data, [data.subset(np.arange(protocol.in_sample_first))])]
     if protocol.fit_rows is not None or protocol.holdout is not None:
         perm = np.random.default_rng(0).permutation(n)
-        n_fit = protocol.fit_rows if protocol.fit_rows is not None else n - round(protocol.holdout * n)
+        if protocol.fit_rows is not None:
+            n_fit = protocol.fit_rows
+        else:
+            assert protocol.holdout is not None  # one of the two, by the test above
+            n_fit = n - round(protocol.holdout * n)
         train = data.subset(np.sort(perm[:n_fit]))
         if protocol.holdout is not None:
             return [(train, [data.subset(np.sort(perm[n_fit:]))])]
@@ -166,7 +171,7 @@ def _fit_and_score(robot, train: Measurements, tests: list[Measurements], protoc
     summary = fit_residual_stage(folder, train, config, structure=structure) if config.residual != "none" else None
     stored = load_model(folder)
     sigma = result.sigma_residual_m
-    if stored.residual is not None:
+    if stored.residual is not None and summary is not None:  # a head is stored only by the residual stage
         chosen = next(r for r in summary["comparison"]["candidates"] if r["name"] == summary["comparison"]["chosen"])
         sigma = chosen["cv_rms_mm"] * 1e-3 / 3**0.5
     errors = [held_out_errors(stored, test, register=protocol.register_test) for test in tests]
@@ -220,7 +225,7 @@ def run_protocol(root: Path, protocol: Protocol, *, residual: bool = True, seed:
     for (name, k), stage in stages.items():
         key = name if n_sets == 1 else f"{name} | {labels[k]}"
         errors = torch.cat(stage.errors)
-        metrics = position_metrics(errors)
+        metrics: dict[str, Any] = position_metrics(errors)
         if stage.inside:
             metrics["inside_95_fraction"] = float(torch.cat(stage.inside).double().mean())
         if name == "default fit":

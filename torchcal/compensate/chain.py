@@ -51,6 +51,14 @@ class ChainGraph(nn.Module):
         device: where the constants live.
     """
 
+    # buffers, registered in __init__ (declared so that type checkers see tensors, not Tensor | Module)
+    k_cos: torch.Tensor
+    k_sin: torch.Tensor
+    k_one: torch.Tensor
+    t_end: torch.Tensor
+    link_rot_t: torch.Tensor
+    link_trans: torch.Tensor
+
     def __init__(
         self,
         tables: torch.Tensor,

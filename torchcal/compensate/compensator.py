@@ -59,6 +59,7 @@ over the joint range, with the singular neighbourhoods as separate strata.
 from __future__ import annotations
 
 import copy
+from typing import Any
 
 import torch
 from torch import nn
@@ -212,6 +213,17 @@ class CompensatorGraph(nn.Module):
         device: where the constants live (CPU by default).
     """
 
+    # buffers, registered in __init__ (declared so that type checkers see tensors, not Tensor | Module)
+    eye6: torch.Tensor
+    eye3: torch.Tensor
+    damping_floor_sq: torch.Tensor
+    damping_gain: torch.Tensor
+    orientation_damping_sq: torch.Tensor
+    max_step: torch.Tensor
+    max_orientation_step: torch.Tensor
+    lower: torch.Tensor
+    upper: torch.Tensor
+
     def __init__(
         self,
         model: ErrorModel,
@@ -249,7 +261,7 @@ class CompensatorGraph(nn.Module):
         self.solver = solver
         self.dtype = dtype
         gain = DEFAULT_DAMPING_GAIN[task] if damping_gain is None else float(damping_gain)
-        f64 = {"dtype": torch.float64, "device": device}
+        f64: dict[str, Any] = {"dtype": torch.float64, "device": device}
         # the solve's constants are float64 whatever the graph's dtype (see the module docstring)
         self.register_buffer("eye6", torch.eye(6, **f64))
         self.register_buffer("eye3", torch.eye(3, **f64))
@@ -263,7 +275,7 @@ class CompensatorGraph(nn.Module):
         self.register_buffer("upper", limits[:, 1].to(device=device, dtype=dtype))
 
     @classmethod
-    def from_stored(cls, stored, **options) -> "CompensatorGraph":
+    def from_stored(cls, stored, **options) -> CompensatorGraph:
         """Build from a :class:`torchcal.stages.store.StoredModel` (residual head and joint-space errors included)."""
         return cls(stored.model, stored.x, **stored_parts(stored), **options)
 
@@ -362,7 +374,7 @@ class MonitorGraph(nn.Module):
         self.models = _TwoModels(model, x, residual, dtype, device, joint_errors)
 
     @classmethod
-    def from_stored(cls, stored, **options) -> "MonitorGraph":
+    def from_stored(cls, stored, **options) -> MonitorGraph:
         return cls(stored.model, stored.x, **stored_parts(stored), **options)
 
     def forward(self, q: torch.Tensor) -> torch.Tensor:
@@ -405,16 +417,18 @@ class LoadedCompensatorGraph(CompensatorGraph):
         self.deflection = DeflectionGraph(compliance, wrench_frame=wrench_frame, dtype=dtype, device=device)
 
     @classmethod
-    def from_stored(cls, stored, **options) -> "LoadedCompensatorGraph":
+    def from_stored(cls, stored, **options) -> LoadedCompensatorGraph:
         """Build from a :class:`torchcal.stages.store.StoredModel` with a stiffness stage."""
         return cls(stored.model, stored.x, stored.stiffness.compliance, **stored_parts(stored), **options)
 
-    def forward(self, q_nominal: torch.Tensor, wrench: torch.Tensor) -> torch.Tensor:  # type: ignore[override]
+    def forward(self, q_nominal: torch.Tensor, wrench: torch.Tensor) -> torch.Tensor:  # type: ignore[override]  # wrench: 2nd graph input
         return self.solve(q_nominal, wrench)[0]
 
     def loaded_error(self, target: torch.Tensor, pose: torch.Tensor, joint_frames: torch.Tensor, q: torch.Tensor,
                      wrench: torch.Tensor | None) -> torch.Tensor:
         """The error measured at the loaded TCP (the Jacobian stays rigid)."""
+        if wrench is None:
+            raise ValueError("a loaded compensator needs the wrench")
         position, rotation = self.deflection.loaded_pose(pose, joint_frames, wrench)
         return self.pose_error(target, position, rotation, q).unsqueeze(-1)
 
@@ -442,10 +456,10 @@ class LoadedMonitorGraph(MonitorGraph):
         self.deflection = DeflectionGraph(compliance, wrench_frame=wrench_frame, dtype=dtype, device=device)
 
     @classmethod
-    def from_stored(cls, stored, **options) -> "LoadedMonitorGraph":
+    def from_stored(cls, stored, **options) -> LoadedMonitorGraph:
         return cls(stored.model, stored.x, stored.stiffness.compliance, **stored_parts(stored), **options)
 
-    def forward(self, q: torch.Tensor, wrench: torch.Tensor) -> torch.Tensor:  # type: ignore[override]
+    def forward(self, q: torch.Tensor, wrench: torch.Tensor) -> torch.Tensor:  # type: ignore[override]  # wrench: 2nd graph input
         nominal, pose, frames, _ = self.models.nominal_and_calibrated(q)
         dp, _ = self.deflection(pose, frames, wrench)
         return self.models.add_residual(pose[:, :3, 3] - nominal[:, :3, 3] + dp, q)

@@ -43,6 +43,9 @@ class DeflectionGraph(nn.Module):
         dtype / device: of the constant.
     """
 
+    # buffers, registered in __init__ (declared so that type checkers see tensors, not Tensor | Module)
+    compliance_t: torch.Tensor
+
     def __init__(
         self,
         compliance: torch.Tensor,

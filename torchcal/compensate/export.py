@@ -23,6 +23,7 @@ import math
 import platform
 import warnings
 from pathlib import Path
+from typing import Any
 
 import torch
 
@@ -82,7 +83,8 @@ def onnx_bytes(
     buffer = io.BytesIO()
     example = torch.zeros(2, n_joints, dtype=dtype)
     outputs = [output_name, *extra_outputs]
-    args, names = (example,), [input_name]
+    args: tuple[torch.Tensor, ...] = (example,)
+    names = [input_name]
     axes = {name: {0: "batch"} for name in (input_name, *outputs)}
     if wrench_input is not None:
         args, names = (example, torch.zeros(2, 6, dtype=dtype)), [input_name, wrench_input]
@@ -92,7 +94,7 @@ def onnx_bytes(
         torch.onnx.export(
             module.eval(),
             args,
-            buffer,
+            buffer,  # type: ignore[arg-type]  # the TorchScript exporter writes to a file object; the stub says paths only
             dynamo=False,
             opset_version=OPSET,
             input_names=names,
@@ -129,18 +131,22 @@ def build_graphs(
     of the compensators (``None``: the task's default); ``portable``: standard ONNX operators only
     (see :data:`SOLVER_PORTABLE`).
     """
-    solve = {"iterations": iterations, "task": task, "solver": SOLVER_PORTABLE if portable else SOLVER_DEFAULT}
+    solve: dict[str, Any] = {"iterations": iterations, "task": task,
+                             "solver": SOLVER_PORTABLE if portable else SOLVER_DEFAULT}
     parts = stored_parts(stored)
     if residual is None and use_stored_residual:
         residual = parts["residual"]
     stiffness = getattr(stored, "stiffness", None)
     joint_errors = parts["joint_errors"]
-    graphs = {}
+    graphs: dict[str, torch.nn.Module] = {}
+    graph: torch.nn.Module
     for key, (_, dtype, _, _) in GRAPHS.items():
         if stiffness is None:
-            cls = CompensatorGraph if key.startswith("compensator") else MonitorGraph
-            options = solve if key.startswith("compensator") else {}
-            graphs[key] = cls(stored.model, stored.x, residual, dtype=dtype, joint_errors=joint_errors, **options).eval()
+            if key.startswith("compensator"):
+                graph = CompensatorGraph(stored.model, stored.x, residual, dtype=dtype, joint_errors=joint_errors, **solve)
+            else:
+                graph = MonitorGraph(stored.model, stored.x, residual, dtype=dtype, joint_errors=joint_errors)
+            graphs[key] = graph.eval()
         else:
             compliance = stiffness.compliance.cpu()
             if key.startswith("compensator"):
@@ -151,6 +157,14 @@ def build_graphs(
                                            joint_errors=joint_errors)
             graphs[key] = graph.eval()
     return graphs
+
+
+def compensator_of(graphs: dict[str, torch.nn.Module], key: str = "compensator") -> CompensatorGraph:
+    """``graphs[key]``, one of the ``compensator*`` graphs of :func:`build_graphs`."""
+    graph = graphs[key]
+    if not isinstance(graph, CompensatorGraph):
+        raise TypeError(f"graphs[{key!r}] is a {type(graph).__name__}, not a compensator graph")
+    return graph
 
 
 def has_wrench_input(graphs: dict[str, torch.nn.Module]) -> bool:
@@ -202,7 +216,7 @@ def float32_budget(graphs: dict[str, torch.nn.Module], out_dir: Path, stored, n_
     with torch.no_grad():
         qc64 = graphs["compensator"](*args)
         mon64 = graphs["monitor"](*args)
-    w32 = wrench.numpy() if loaded else None
+    w32 = wrench.numpy() if wrench is not None else None
     session = ort_session(out_dir / GRAPHS["compensator_f32"][0])
     qc32 = torch.from_numpy(session.run(None, ort_feeds(session, q.float().numpy(), w32))[0]).double()
     session = ort_session(out_dir / GRAPHS["monitor_f32"][0])
@@ -213,7 +227,7 @@ def float32_budget(graphs: dict[str, torch.nn.Module], out_dir: Path, stored, n_
     d_mon = (mon32 - mon64).norm(dim=-1) * 1e3
     budget = {
         "n_poses": n_poses,
-        "sampling": "uniform within joint limits, seed %d" % seed,
+        "sampling": f"uniform within joint limits, seed {seed}",
         "compensator_tcp_mm": {"max": float(d_cmd.max()), "p99": float(d_cmd.quantile(0.99)), "median": float(d_cmd.median())},
         "compensator_joint_rad_max": float((qc32 - qc64).abs().max()),
         "monitor_mm": {"max": float(d_mon.max()), "p99": float(d_mon.quantile(0.99)), "median": float(d_mon.median())},
@@ -288,7 +302,7 @@ def convergence_report(graphs: dict[str, torch.nn.Module], stored, n_poses: int 
     robot = stored.robot
     uniform = robot.sample_joints(n_poses, gen)
     q = torch.cat([uniform, wrist_singular_samples(robot, n_poses, gen)])
-    graph = graphs["compensator"]
+    graph = compensator_of(graphs)
     wrench = budget_wrenches(stored, len(q), gen) if has_wrench_input(graphs) else None
     with torch.no_grad():
         q_c, residual = graph.solve(q, wrench)
@@ -364,15 +378,15 @@ def export_model(
     robot = stored.robot
     files, digests = {}, {}
     for key, (name, dtype, input_name, output_name) in GRAPHS.items():
-        compensator = key.startswith("compensator")
-        module = CompensatorWithResidual(graphs[key]) if compensator else graphs[key]
+        is_compensator = key.startswith("compensator")
+        module = CompensatorWithResidual(compensator_of(graphs, key)) if is_compensator else graphs[key]
         data = onnx_bytes(module, robot.dof, dtype, input_name, output_name, wrench_input=WRENCH_INPUT if loaded else None,
-                          extra_outputs=(RESIDUAL_OUTPUT,) if compensator else ())
+                          extra_outputs=(RESIDUAL_OUTPUT,) if is_compensator else ())
         atomic_write_bytes(out_dir / name, data)
         files[key] = name
         digests[key] = sha256_bytes(data)
     meta = stored.metadata
-    compensator = graphs["compensator"]
+    compensator = compensator_of(graphs)
     manifest = {
         "format": MANIFEST_FORMAT,
         "robot": robot.name,
@@ -396,7 +410,7 @@ def export_model(
         "iterations": compensator.iterations,
         "solver": _solver_description(compensator, portable),
         "runtime": "onnxruntime (the compensators use the contrib operator com.microsoft.Inverse, domain version 1)"
-                   if uses_contrib_inverse(compensator) else "any ONNX runtime (standard operators, opset %d)" % OPSET,
+                   if uses_contrib_inverse(compensator) else f"any ONNX runtime (standard operators, opset {OPSET})",
         "training_data": {"sha256": meta.get("data", {}).get("sha256"), "n_poses": meta.get("data", {}).get("n_poses")},
         "calibration": {"method": meta.get("method"), "residual_sigma_mm": meta.get("residual_sigma_mm")},
         "held_out_metrics": _held_out_metrics(model_dir, meta),
@@ -506,9 +520,9 @@ def _convergence_text(manifest: dict) -> str:
     else:
         what = ("It solves the full 6-D pose; near singular poses the damping keeps the correction small instead of exact, "
                 "for the position too.")
-    lines = [f"The compensator runs {conv['iterations']} Newton steps (fixed, no data-dependent branches; task "
-             f"`{conv['task']}`). {what} Every step moves a joint by at most "
-             f"{manifest['solver']['max_step_rad']:.2f} rad and every iterate stays within the joint limits.", "",
+    lines = [(f"The compensator runs {conv['iterations']} Newton steps (fixed, no data-dependent branches; task "
+              f"`{conv['task']}`). {what} Every step moves a joint by at most "
+              f"{manifest['solver']['max_step_rad']:.2f} rad and every iterate stays within the joint limits."), "",
              "| poses | n | within 1 um | within 1 um where solvable | unsolved p99 / max (mm) | orientation deviation p99 / max (rad) |",
              "| --- | --- | --- | --- | --- | --- |"]
     for name, s in strata.items():
@@ -519,9 +533,9 @@ def _convergence_text(manifest: dict) -> str:
                      f"{s['unsolved_tcp_mm']['p99']:.1e} / {s['unsolved_tcp_mm']['max']:.1e} | "
                      f"{s['orientation_deviation_rad']['p99']:.1e} / {s['orientation_deviation_rad']['max']:.1e} |")
     t = conv["thresholds"]
-    lines += ["", f"Solvable: the position Jacobian's smallest singular value above {t['solvable_above_m_per_rad'] * 1e3:.0f} mm/rad; "
-              f"wrist singular: the last three joints' angular Jacobian below {t['wrist_singular_below']}; position singular: "
-              f"below {t['position_singular_below_m_per_rad'] * 1e3:.0f} mm/rad. Sampling: {conv['sampling']}."]
+    lines += ["", (f"Solvable: the position Jacobian's smallest singular value above {t['solvable_above_m_per_rad'] * 1e3:.0f} mm/rad; "
+                   f"wrist singular: the last three joints' angular Jacobian below {t['wrist_singular_below']}; position singular: "
+                   f"below {t['position_singular_below_m_per_rad'] * 1e3:.0f} mm/rad. Sampling: {conv['sampling']}.")]
     return "\n".join(lines)
 
 

@@ -34,23 +34,29 @@ class JointErrorGraph(nn.Module):
         dtype / device: of the graph's constants.
     """
 
+    # buffers, registered in __init__ (declared so that type checkers see tensors, not Tensor | Module)
+    gravity_coefficients: torch.Tensor
+    harmonic_sin: torch.Tensor
+    harmonic_cos: torch.Tensor
+
     def __init__(self, errors: JointSpaceErrors, n_joints: int, *, dtype: torch.dtype = torch.float64,
                  device: str | torch.device = "cpu") -> None:
         super().__init__()
-        if errors.empty:
+        compliance, harmonics = errors.compliance, errors.harmonics
+        self.points: tuple[str, ...] = compliance.points if compliance is not None else ()
+        self.has_harmonics = harmonics is not None
+        if not (self.points or self.has_harmonics):
             raise ValueError("no joint-space errors to build a graph of")
-        self.points: tuple[str, ...] = errors.compliance.points if errors.compliance is not None else ()
-        self.has_harmonics = errors.harmonics is not None
-        if self.points:
-            coefficients = errors.compliance.coefficients.to(torch.float64).clone()  # (K, N) rad/m
+        if compliance is not None and self.points:
+            coefficients = compliance.coefficients.to(torch.float64).clone()  # (K, N) rad/m
             for k, name in enumerate(self.points):
                 if name == "elbow":  # the upper-arm weight loads only the joints before the elbow frame
                     coefficients[k, ELBOW_FRAME - 1 :] = 0.0
                 elif name != "tcp":
                     raise ValueError(f"unknown gravity point '{name}'")
             self.register_buffer("gravity_coefficients", coefficients.to(device, dtype))
-        if self.has_harmonics:
-            a, b = errors.harmonics.coefficients.to(torch.float64).clone()  # rows a (sin), b (cos), rad
+        if harmonics is not None:
+            a, b = harmonics.coefficients.to(torch.float64).clone()  # rows a (sin), b (cos), rad
             a[-1] = b[-1] = 0.0  # as harmonic_basis: the last joint has none
             self.register_buffer("harmonic_sin", a.to(device, dtype))
             self.register_buffer("harmonic_cos", b.to(device, dtype))
@@ -71,10 +77,18 @@ class JointErrorGraph(nn.Module):
                 (needed with gravity terms).
             tcp: ``(B, 3)`` nominal TCP position at ``q``, ``base``, m (needed with a ``tcp`` point).
         """
-        dq = None
+        dq: torch.Tensor | None = None
         if self.points:
+            if frames is None:
+                raise ValueError("gravity terms need the nominal joint frames")
             axes, origins = frames[..., :3, 2], frames[..., :3, 3]  # (B, N, 3)
-            named = {"tcp": tcp, "elbow": origins[:, min(ELBOW_FRAME, self.n_joints) - 1] if "elbow" in self.points else None}
+            named: dict[str, torch.Tensor] = {}
+            if "tcp" in self.points:
+                if tcp is None:
+                    raise ValueError("a 'tcp' gravity term needs the nominal TCP position")
+                named["tcp"] = tcp
+            if "elbow" in self.points:
+                named["elbow"] = origins[:, min(ELBOW_FRAME, self.n_joints) - 1]
             points = torch.stack([named[name] for name in self.points], 1)  # (B, K, 3)
             lever = points.unsqueeze(2) - origins.unsqueeze(1)  # (B, K, N, 3)
             ax, ay = axes[..., 0].unsqueeze(1), axes[..., 1].unsqueeze(1)  # (B, 1, N)
@@ -86,4 +100,6 @@ class JointErrorGraph(nn.Module):
             harmonic = self.harmonic_sin * sin + self.harmonic_cos * cos
             dq = harmonic if dq is None else dq + harmonic
             slope = self.harmonic_sin * cos - self.harmonic_cos * sin
+        if dq is None:  # unreachable: __init__ refuses a graph with neither term
+            raise RuntimeError("joint error graph without terms")
         return dq, slope

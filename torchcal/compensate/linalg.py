@@ -28,11 +28,11 @@ class _Inverse(torch.autograd.Function):
     """``torch.linalg.inv`` in eager mode, exported as one ``com.microsoft.Inverse`` node."""
 
     @staticmethod
-    def forward(ctx, a: torch.Tensor) -> torch.Tensor:  # noqa: D102
+    def forward(ctx, a: torch.Tensor) -> torch.Tensor:
         return torch.linalg.inv(a)
 
     @staticmethod
-    def symbolic(g, a):  # noqa: D102
+    def symbolic(g, a):
         out = g.op(f"{CONTRIB_DOMAIN}::Inverse", a)
         out.setType(a.type())  # same shape and dtype as the input: the exporter cannot infer a contrib op's
         return out

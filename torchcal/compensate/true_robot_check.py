@@ -10,8 +10,8 @@ poses, so the export's cost is read off directly.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 import torch

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 from torchcal.core.errors import TorchcalError
 
@@ -96,16 +96,16 @@ def compose_run_config(overrides: list[str], config_name: str = "config", extra_
     OmegaConf.set_struct(composed, False)
     sections = {}
     field_by_section: dict[str, list[str]] = {name: [] for name in extra_sections}
-    run_fields = []
+    run_fields: list[str] = []
     for item in field_overrides:
         head = item.split("=", 1)[0].split(".", 1)[0].strip()
-        (field_by_section[head] if head in field_by_section else run_fields).append(item)
+        field_by_section.get(head, run_fields).append(item)
     for name in extra_sections:
         node = composed.pop(name, None) if name in composed else None
         sections[name] = (node, field_by_section[name])
     try:
         dotlist = OmegaConf.from_dotlist(run_fields)
-    except Exception as exc:  # omegaconf grammar errors
+    except Exception as exc:  # noqa: BLE001 (omegaconf raises yaml, grammar and value errors: no common base)
         raise TorchcalError(f"invalid override: {str(exc).splitlines()[0]}") from None
     config = _merge(RunConfig(), composed, dotlist)
     return config, sections
@@ -123,13 +123,13 @@ def merge_section(schema: Any, section: tuple[Any, list[str]]):
 
 def save_resolved_config(path: str | Path, config: Any, **sections: Any) -> Path:
     """Write the fully resolved configuration (dataclasses) as YAML, atomically."""
-    from omegaconf import OmegaConf
+    from omegaconf import DictConfig, OmegaConf
 
     from torchcal.core.io import atomic_write_text
 
     tree = OmegaConf.structured(config)
     if sections:
-        tree = OmegaConf.merge(OmegaConf.create({}), tree)
+        tree = cast(DictConfig, OmegaConf.merge(OmegaConf.create({}), tree))  # merged onto a mapping
         OmegaConf.set_struct(tree, False)
         for key, value in sections.items():
             tree[key] = OmegaConf.structured(value) if not isinstance(value, dict) else OmegaConf.create(value)
@@ -154,6 +154,6 @@ def compose_fit_config(overrides: list[str]):
         nodes.append(composed.get("fit", OmegaConf.create({})))
     try:
         nodes.append(OmegaConf.from_dotlist(field_overrides))
-    except Exception as exc:  # omegaconf grammar errors
+    except Exception as exc:  # noqa: BLE001 (omegaconf raises yaml, grammar and value errors: no common base)
         raise TorchcalError(f"invalid override: {str(exc).splitlines()[0]}") from None
     return _merge(FitConfig(), *nodes)

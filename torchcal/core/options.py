@@ -38,7 +38,7 @@ def attribute_docs(cls: type) -> dict[str, str]:
         current: list[str] = []
         text: list[str] = []
         base_indent: int | None = None
-        for line in section + [""]:
+        for line in [*section, ""]:
             if not line.strip() and base_indent is not None and not text:
                 continue
             match = _ENTRY.match(line)

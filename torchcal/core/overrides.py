@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import fields, is_dataclass
-from typing import Any, TypeVar
+from typing import Any, TypeVar, cast
 
 from torchcal.core.errors import TorchcalError
 
@@ -35,7 +35,7 @@ def apply_overrides(config: T, overrides: list[str]) -> T:
     except OmegaConfBaseException as exc:
         msg = str(exc).splitlines()[0]
         raise TorchcalError(f"invalid override: {msg}") from None
-    return OmegaConf.to_object(merged)  # type: ignore[return-value]
+    return cast(T, OmegaConf.to_object(merged))  # the structured config's own dataclass
 
 
 def field_names(config_class: Any) -> set[str]:
@@ -55,7 +55,8 @@ def split_foreign_keys(overrides: list[str], own: Any, foreign: Any, *, what: st
         what: the file kind, for the warning (``"a stiffness file"``).
     """
     foreign_only = field_names(foreign) - field_names(own)
-    kept, ignored = [], []
+    kept: list[str] = []
+    ignored: list[str] = []
     for item in overrides:
         key = item.partition("=")[0].strip().split(".")[0]
         (ignored if key in foreign_only else kept).append(item)

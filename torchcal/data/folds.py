@@ -145,16 +145,16 @@ def grouped_folds(robot, q: torch.Tensor, k: int = 5, *, seed: int = 0, groups: 
         # fewer distinct configurations than clusters: refused below with a message that says so
         warnings.simplefilter("ignore", ConvergenceWarning)
         labels = KMeans(n_clusters=n_clusters, n_init=1, random_state=seed).fit_predict(points)
-    groups = _merge_twins(labels, points, twin_radius_mm * 1e-3)
-    n_groups = int(groups.max()) + 1
+    group_of = _merge_twins(labels, points, twin_radius_mm * 1e-3)  # `groups` was the requested count
+    n_groups = int(group_of.max()) + 1
     if n_groups < k:
         raise DataError(f"grouped cross-validation needs at least {k} configuration groups; these {n} poses form "
                         f"{n_groups} (near-twins within {twin_radius_mm:g} mm of tool motion are one group): "
                         "measure more distinct configurations or use split=blocks")
-    fold = _assign_groups(groups, k, seed)
+    fold = _assign_groups(group_of, k, seed)
     desc = (f"{k}-fold CV over {n_groups} configuration regions (k-means on lever-arm-weighted joints; "
             f"whole regions held out, twins within {twin_radius_mm:g} mm merged)")
-    return Folds(fold, "grouped", desc, groups)
+    return Folds(fold, "grouped", desc, group_of)
 
 
 def block_folds(order: np.ndarray, k: int = 5) -> Folds:

@@ -52,7 +52,7 @@ class Measurements:
     def __len__(self) -> int:
         return int(self.q.shape[0])
 
-    def subset(self, index: torch.Tensor | np.ndarray | list[int]) -> "Measurements":
+    def subset(self, index: torch.Tensor | np.ndarray | list[int]) -> Measurements:
         idx = torch.as_tensor(index, dtype=torch.long)
 
         def pick(t):
@@ -65,7 +65,7 @@ class Measurements:
             line_numbers=lines, sha256=self.sha256,
         )
 
-    def to(self, device: str | torch.device) -> "Measurements":
+    def to(self, device: str | torch.device) -> Measurements:
         def move(t):
             return None if t is None else t.to(device)
 

@@ -74,5 +74,5 @@ class GravityCompliance:
                 "model": "dq_j = c_j * tau_j, tau_j unit-weight gravity torque about joint j (m), base z up"}
 
     @classmethod
-    def from_json(cls, data: dict) -> "GravityCompliance":
+    def from_json(cls, data: dict) -> GravityCompliance:
         return cls(tuple(data["points"]), torch.tensor(data["coefficients_rad_per_m"], dtype=torch.float64))

@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 
 from torchcal.identify.base import Identifier, SolveResult
-from torchcal.identify.problem import CalibrationProblem
+from torchcal.identify.problem import LeastSquaresProblem
 
 
 class GaussNewton(Identifier):
@@ -21,14 +21,14 @@ class GaussNewton(Identifier):
         self.max_iterations = max_iterations
         self.ftol = ftol
 
-    def solve(self, problem: CalibrationProblem, x0: torch.Tensor) -> SolveResult:
+    def solve(self, problem: LeastSquaresProblem, x0: torch.Tensor) -> SolveResult:
         x = x0.clone()
         free = problem.free
         r, jac = problem.jacobian(x)
         cost = 0.5 * float(r @ r)
         history = [cost]
         converged, message, iterations = False, "iteration limit", 0
-        for iterations in range(1, self.max_iterations + 1):
+        for iterations in range(1, self.max_iterations + 1):  # noqa: B007 (read after the loop)
             scale = jac.norm(dim=0).clamp_min(1e-300)
             step = torch.linalg.lstsq(jac / scale, -r.unsqueeze(-1)).solution.squeeze(-1) / scale
             t, accepted = 1.0, False

@@ -61,7 +61,7 @@ class JointHarmonics:
         return data
 
     @classmethod
-    def from_json(cls, data: dict) -> "JointHarmonics":
+    def from_json(cls, data: dict) -> JointHarmonics:
         sigma = data.get("sigma_rad")
         return cls(torch.tensor(data["coefficients_rad"], dtype=torch.float64),
                    None if sigma is None else torch.tensor(sigma, dtype=torch.float64))

@@ -56,8 +56,8 @@ class IdentifiabilityReport:
 
     def summary(self) -> str:
         lines = [
-            f"rank {self.rank}, condition number {self.condition_number:.3g}, "
-            f"observability index {self.observability_index:.3g}",
+            (f"rank {self.rank}, condition number {self.condition_number:.3g}, "
+             f"observability index {self.observability_index:.3g}"),
             f"identifiable ({len(self.base_set)}): {', '.join(self.base_set)}",
         ]
         for name, partners in self.dependent.items():

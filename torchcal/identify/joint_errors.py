@@ -39,12 +39,12 @@ class JointSpaceErrors:
         return q + dq
 
     @classmethod
-    def of(cls, result) -> "JointSpaceErrors":
+    def of(cls, result) -> JointSpaceErrors:
         """The terms of a fit result (anything with ``compliance`` / ``harmonics`` attributes)."""
         return cls(getattr(result, "compliance", None), getattr(result, "harmonics", None))
 
     @classmethod
-    def from_metadata(cls, metadata: dict) -> "JointSpaceErrors":
+    def from_metadata(cls, metadata: dict) -> JointSpaceErrors:
         """The terms stored in a model folder's ``calibration.json``."""
         compliance = metadata.get(METADATA_KEYS["compliance"])
         harmonics = metadata.get(METADATA_KEYS["harmonics"])

@@ -92,7 +92,7 @@ class JointErrorProblem:
         r = (self.data.position - pred).reshape(-1)
         return r, -full.reshape(-1, full.shape[-1])
 
-    def with_free(self, free: torch.Tensor) -> "JointErrorProblem":
+    def with_free(self, free: torch.Tensor) -> JointErrorProblem:
         return JointErrorProblem(self.model, self.data, self.basis, free, self.columns, self.column_names)
 
 
@@ -171,9 +171,9 @@ def fit_joint_errors(robot: RobotModel, data: Measurements, geometric, points: t
     terms = ([f"gravity compliance at {'+'.join(points)}"] if points else []) + (["first joint harmonics"] if harmonics else [])
     notes.append(f"{' and '.join(terms)} identified with the geometry ({len(kept)} coefficients)")
     compliance = GravityCompliance(points, values[: len(points)]) if points else None
-    harmonic = JointHarmonics(values[len(points) :], sigmas[len(points) :]) if harmonics else None
+    fitted = JointHarmonics(values[len(points) :], sigmas[len(points) :]) if harmonics else None
     return replace(geometric, model=model, x=x, covariance=cov[:n_geo, :n_geo], sigma_residual_m=sigma,
-                   notes=notes, compliance=compliance, harmonics=harmonic)
+                   notes=notes, compliance=compliance, harmonics=fitted)
 
 
 def predicted_positions(result, q: torch.Tensor) -> torch.Tensor:

@@ -11,7 +11,7 @@ from __future__ import annotations
 import torch
 
 from torchcal.identify.base import Identifier, SolveResult
-from torchcal.identify.problem import CalibrationProblem
+from torchcal.identify.problem import LeastSquaresProblem
 
 
 class LevenbergMarquardt(Identifier):
@@ -39,7 +39,7 @@ class LevenbergMarquardt(Identifier):
         self.ftol, self.xtol, self.gtol = ftol, xtol, gtol
         self.initial_damping = initial_damping
 
-    def solve(self, problem: CalibrationProblem, x0: torch.Tensor) -> SolveResult:
+    def solve(self, problem: LeastSquaresProblem, x0: torch.Tensor) -> SolveResult:
         x = x0.clone()
         free = problem.free
         r, jac = problem.jacobian(x)
@@ -51,7 +51,7 @@ class LevenbergMarquardt(Identifier):
         nu = 2.0
         converged, message = False, "iteration limit"
         iterations = 0
-        for iterations in range(1, self.max_iterations + 1):
+        for iterations in range(1, self.max_iterations + 1):  # noqa: B007 (read after the loop)
             grad = jac.T @ r
             if float((grad.abs() / diag.sqrt()).max()) <= self.gtol * max(1.0, (2 * cost) ** 0.5):
                 converged, message = True, "gradient below gtol"

@@ -9,12 +9,39 @@ e.g. multilaterated points) the position rows are ``W_i r_i`` and carry no unit.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Protocol
 
 import torch
 
 from torchcal.data.measurements import Measurements
 from torchcal.kinematics import transforms as tf
 from torchcal.kinematics.error_model import ErrorModel
+
+
+class LeastSquaresProblem(Protocol):
+    """What the damped Gauss-Newton identifiers need of a problem.
+
+    :class:`CalibrationProblem` is one; the joint-error, tracer-length and profile problems are
+    others, with their own parameter vectors.
+    """
+
+    @property
+    def free(self) -> torch.Tensor:
+        """``(K,)`` long indices of the estimated entries of the parameter vector."""
+        ...
+
+    @property
+    def names(self) -> list[str]:
+        """Names of the free parameters, in the order of ``free``."""
+        ...
+
+    def residuals(self, x: torch.Tensor) -> torch.Tensor:
+        """Residual vector ``(m,)`` at the full parameter vector ``x``."""
+        ...
+
+    def jacobian(self, x: torch.Tensor, columns: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """Residuals ``(m,)`` and their Jacobian ``(m, K)`` with respect to ``x[columns]`` (default ``free``)."""
+        ...
 
 
 @dataclass
@@ -45,6 +72,12 @@ class CalibrationProblem:
             return r
         return self.whitening.to(r) @ r
 
+    def _rotation(self) -> torch.Tensor:
+        """The measured rotations ``(n, 3, 3)`` the orientation rows compare with."""
+        if self.data.rotation is None:
+            raise ValueError("orientation residuals need measured rotations (data.rotation is None)")
+        return self.data.rotation
+
     @property
     def rows_per_pose(self) -> int:
         return 6 if self.use_orientation else 3
@@ -62,7 +95,7 @@ class CalibrationProblem:
             return self._whiten(r).reshape(-1)
         pose = self.model.tcp_pose(q, x)
         dp = self.data.position.to(x) - pose[..., :3, 3]
-        dr = tf.so3_log(self.data.rotation.to(x) @ pose[..., :3, :3].transpose(-1, -2))
+        dr = tf.so3_log(self._rotation().to(x) @ pose[..., :3, :3].transpose(-1, -2))
         return torch.cat([dp, dr * self.orientation_weight_m_per_rad], -1).reshape(-1)
 
     def jacobian(self, x: torch.Tensor, columns: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
@@ -79,13 +112,13 @@ class CalibrationProblem:
             return r, -self._whiten(jac).reshape(-1, jac.shape[-1])
         pose, jac = self.model.pose_jacobian(q, x, columns)
         dp = self.data.position.to(x) - pose[..., :3, 3]
-        dr = tf.so3_log(self.data.rotation.to(x) @ pose[..., :3, :3].transpose(-1, -2))
+        dr = tf.so3_log(self._rotation().to(x) @ pose[..., :3, :3].transpose(-1, -2))
         r = torch.cat([dp, dr * self.orientation_weight_m_per_rad], -1).reshape(-1)
         jac = jac.clone()
         jac[:, 3:] *= self.orientation_weight_m_per_rad
         return r, -jac.reshape(-1, jac.shape[-1])
 
-    def with_free(self, free: torch.Tensor) -> "CalibrationProblem":
+    def with_free(self, free: torch.Tensor) -> CalibrationProblem:
         return CalibrationProblem(
             self.model, self.data, free, self.use_orientation, self.orientation_weight_m_per_rad, self.whitening
         )

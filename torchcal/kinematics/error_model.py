@@ -117,11 +117,8 @@ class ErrorModel:
     def _parallel_joints(self) -> tuple[int, ...]:
         """1-based rows whose axis is nearly parallel to the previous one (Hayati beta rows)."""
         limit = math.sin(math.radians(self.parallel_threshold_deg))
-        rows = []
-        for i in range(1, self.robot.dof):  # row 1's "previous axis" is the base z: base frame absorbs it
-            if abs(math.sin(float(self.robot.table[i, 0]))) < limit:
-                rows.append(i + 1)
-        return tuple(rows)
+        # Row 1's "previous axis" is the base z: the base frame absorbs it.
+        return tuple(i + 1 for i in range(1, self.robot.dof) if abs(math.sin(float(self.robot.table[i, 0]))) < limit)
 
     def nominal_vector(self) -> torch.Tensor:
         """``x`` of the nominal robot: datasheet table, zero base correction, nominal tool."""
@@ -277,7 +274,7 @@ class ErrorModel:
             return torch.cat([pose[..., :3, 3], w], -1)
 
         with torch.enable_grad():
-            _, vjp_fn = torch.func.vjp(pose_vector, free)
+            vjp_fn = torch.func.vjp(pose_vector, free)[1]  # (value, vjp function): no has_aux
             basis = torch.eye(6, dtype=x.dtype, device=x.device)
             (jac,) = torch.vmap(vjp_fn)(basis[:, None, :].expand(6, batch, 6))
         return current, jac.permute(1, 0, 2).detach()

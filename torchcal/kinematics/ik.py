@@ -58,7 +58,7 @@ def solve_ik(
     rows = 3 if position_only else 6
     eye = torch.eye(rows, dtype=q.dtype, device=q.device)
     iterations = 0
-    for iterations in range(1, max_iterations + 1):
+    for iterations in range(1, max_iterations + 1):  # noqa: B007 (read after the loop)
         pose, jac = geometric_jacobian(model, q, x)
         if position_only:
             err = target - pose[..., :3, 3]

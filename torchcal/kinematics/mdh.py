@@ -130,7 +130,7 @@ def _propagate(
         o = torch.zeros((3,) + (1,) * nb, dtype=q.dtype, device=q.device)
     else:
         o = to_components(p_start, nb)
-    records = []
+    records: list[tuple[torch.Tensor, ...]] = []
     for i in range(q.shape[-1]):
         x_prev, o_prev = x, o
         m = torch.addcmul(o, a[i], x)

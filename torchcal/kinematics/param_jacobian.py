@@ -227,7 +227,7 @@ def tcp_position_jacobian(
     # Columns are written into blk (3, K, n), pose index last: contiguous elementwise writes.
     # Viewed as (3K, n) its transpose is exactly the block's (n, 3, K) rows of the result, a
     # plain 2-D transpose that torch copies with its blocked kernel.
-    ws = blk = cols = None
+    ws: _Workspace | None = None  # and blk, cols: allocated with it, on the first block
     for start in range(0, batch, chunk):
         n = min(chunk, batch - start)
         if ws is None or ws.n != n:  # first block, and the last if shorter

@@ -276,7 +276,7 @@ def robot_from_urdf(
     text = path.read_text()
     try:
         full = pk.build_chain_from_urdf(text.encode())
-    except Exception as exc:  # the parser raises many types; the user needs the file name
+    except Exception as exc:  # noqa: BLE001 (the parser raises many types; the user needs the file name)
         raise ModelError(f"{path}: cannot parse URDF ({exc})") from None
     names = full.get_frame_names(exclude_fixed=False)
     root = full._root.name if hasattr(full, "_root") else names[0]
@@ -288,7 +288,7 @@ def robot_from_urdf(
             raise ModelError(f"{path}: {label} '{link}' is not a link of this URDF (links: {', '.join(names)})")
     try:
         chain = pk.build_serial_chain_from_urdf(text.encode(), end_link, base_link)
-    except Exception as exc:
+    except Exception as exc:  # noqa: BLE001 (as above)
         raise ModelError(f"{path}: no serial chain from '{base_link}' to '{end_link}' ({exc})") from None
     chain = chain.to(dtype=torch.float64)
     joint_names = tuple(chain.get_joint_parameter_names())

@@ -10,7 +10,7 @@ of exactly the structure that will carry it, with the same folds.
 from __future__ import annotations
 
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -39,12 +39,11 @@ class StructureCV:
     folds: Folds
     options: list[tuple[str, str]]
     candidates: list[Candidate]
-    fold_results: dict[str, list] = field(default_factory=dict)
-    comparison: Comparison | None = None
+    fold_results: dict[str, list]
+    comparison: Comparison
 
     @property
     def chosen(self) -> tuple[str, str]:
-        assert self.comparison is not None
         return next(o for o in self.options if structure_label(*o) == self.comparison.chosen)
 
 

@@ -15,13 +15,13 @@ from torchcal.motion.profiles import SpeedProfile, make_profile, quintic, scurve
 from torchcal.motion.trajectory import JointTrajectory, load_csv
 
 __all__ = [
+    "KR6_SPEED_LIMITS_DEG_S",
     "ArcPath",
     "CLIKResult",
     "CartesianLimits",
     "CartesianTrajectory",
     "DLSInverse",
     "JointTrajectory",
-    "KR6_SPEED_LIMITS_DEG_S",
     "LinePath",
     "MotionConfig",
     "MotionMetrics",

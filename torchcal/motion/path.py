@@ -89,7 +89,7 @@ class CartesianPath:
 
     def sample(
         self, profile: str | SpeedProfile = "trapezoid", limits: CartesianLimits | None = None, rate_hz: float = DEFAULT_RATE_HZ
-    ) -> "CartesianTrajectory":
+    ) -> CartesianTrajectory:
         """Desired poses and twists at ``rate_hz`` from start to end (last sample at the end pose)."""
         if not rate_hz > 0.0:
             raise ModelError(f"control rate must be positive, got {rate_hz} Hz")

@@ -51,7 +51,8 @@ class JointTrajectory:
     def save_npz(self, path: str | Path) -> Path:
         """Write ``t, q, qdot, rate_hz`` (SI) to a ``.npz`` file, atomically."""
         buffer = io.BytesIO()
-        np.savez(buffer, rate_hz=np.float64(self.rate_hz), **self.to_numpy())
+        arrays = self.to_numpy()
+        np.savez(buffer, rate_hz=np.float64(self.rate_hz), t=arrays["t"], q=arrays["q"], qdot=arrays["qdot"])
         return _atomic_write(Path(path), buffer.getvalue())
 
     def save_csv(self, path: str | Path, angle_unit: str = "deg") -> Path:

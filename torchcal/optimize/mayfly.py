@@ -20,7 +20,7 @@ union is kept. Every improvement can be switched off for ablation.
 
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable
 
 import torch
 

@@ -21,7 +21,7 @@ class ResidualHead(ABC):
     tunes_on_validation = True
 
     @abstractmethod
-    def fit(self, x_train: torch.Tensor, y_train: torch.Tensor, x_val: torch.Tensor, y_val: torch.Tensor) -> "ResidualHead":
+    def fit(self, x_train: torch.Tensor, y_train: torch.Tensor, x_val: torch.Tensor, y_val: torch.Tensor) -> ResidualHead:
         """Fit on features ``(n, F)`` and targets ``(n, K)``; the validation pair may steer early stopping."""
 
     @abstractmethod
@@ -31,6 +31,11 @@ class ResidualHead(ABC):
     @abstractmethod
     def settings(self) -> dict:
         """JSON-able hyperparameters needed to rebuild the module."""
+
+    @classmethod
+    def from_state(cls, settings: dict, state: dict[str, torch.Tensor]) -> ResidualHead:
+        """The fitted head that :meth:`settings` and :meth:`state` describe (a model folder's head)."""
+        raise NotImplementedError(f"{cls.__name__} cannot be rebuilt from a stored state")
 
     def predict(self, features: torch.Tensor) -> torch.Tensor:
         with torch.no_grad():

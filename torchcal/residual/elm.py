@@ -18,6 +18,11 @@ from torchcal.residual.base import ResidualHead
 
 
 class ELMModule(torch.nn.Module):
+    # buffers, registered in __init__ (declared so that type checkers see tensors, not Tensor | Module)
+    weights: torch.Tensor
+    bias: torch.Tensor
+    output: torch.Tensor
+
     def __init__(self, weights: torch.Tensor, bias: torch.Tensor, output: torch.Tensor) -> None:
         super().__init__()
         self.register_buffer("weights", weights)
@@ -53,12 +58,14 @@ class ELM(ResidualHead):
 
     def __init__(self, hidden: int = 80, ridge: float | None = 1e-6, seed: int = 0) -> None:
         self.hidden, self.ridge, self.seed = hidden, ridge, seed
-        self.weights = self.bias = self.output = None
+        self.weights: torch.Tensor | None = None
+        self.bias: torch.Tensor | None = None
+        self.output: torch.Tensor | None = None
 
     def set_hidden_layer(self, weights: torch.Tensor, bias: torch.Tensor) -> None:
         self.weights, self.bias = weights, bias
 
-    def fit(self, x_train, y_train, x_val=None, y_val=None) -> "ELM":
+    def fit(self, x_train, y_train, x_val=None, y_val=None) -> ELM:
         if self.weights is None:
             gen = torch.Generator().manual_seed(self.seed)
             self.weights = torch.rand(self.hidden, x_train.shape[1], generator=gen, dtype=x_train.dtype) * 2 - 1
@@ -68,13 +75,15 @@ class ELM(ResidualHead):
         return self
 
     def module(self) -> torch.nn.Module:
+        if self.weights is None or self.bias is None or self.output is None:
+            raise RuntimeError("the ELM is not fitted: call fit first")
         return ELMModule(self.weights, self.bias, self.output)
 
     def settings(self) -> dict:
         return {"hidden": self.hidden, "ridge": self.ridge, "seed": self.seed}
 
     @classmethod
-    def from_state(cls, settings: dict, state: dict[str, torch.Tensor]) -> "ELM":
+    def from_state(cls, settings: dict, state: dict[str, torch.Tensor]) -> ELM:
         head = cls(hidden=settings["hidden"], ridge=settings["ridge"], seed=settings["seed"])
         head.weights, head.bias, head.output = state["weights"], state["bias"], state["output"]
         return head

@@ -14,6 +14,12 @@ import torch
 class JointFeatures(torch.nn.Module):
     """``q (B, N) rad [, temperature (B,)]`` -> features ``(B, F)``; a plain module for ONNX."""
 
+    # buffers, registered in __init__ (declared so that type checkers see tensors, not Tensor | Module)
+    mid: torch.Tensor
+    half_span: torch.Tensor
+    t_mean: torch.Tensor
+    t_scale: torch.Tensor
+
     def __init__(self, joint_limits: torch.Tensor, temperature: tuple[float, float] | None = None) -> None:
         super().__init__()
         lo, hi = joint_limits[:, 0], joint_limits[:, 1]

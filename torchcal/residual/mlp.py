@@ -17,6 +17,9 @@ from torchcal.residual.base import ResidualHead
 class Scale(torch.nn.Module):
     """Multiply by a fixed factor: the network learns unit-scale targets, the head outputs mm."""
 
+    # buffers, registered in __init__ (declared so that type checkers see tensors, not Tensor | Module)
+    factor: torch.Tensor
+
     def __init__(self, factor: float) -> None:
         super().__init__()
         self.register_buffer("factor", torch.tensor(float(factor), dtype=torch.float64))
@@ -56,9 +59,10 @@ class MLPHead(ResidualHead):
         self.learning_rate, self.batch_size, self.weight_decay = learning_rate, batch_size, weight_decay
         self.seed, self.progress = seed, progress
         self.network: torch.nn.Sequential | None = None
+        self.output_scale = 1.0  # the targets' spread, set by fit (the network learns unit-scale targets)
         self.epochs_trained = 0
 
-    def fit(self, x_train, y_train, x_val, y_val) -> "MLPHead":
+    def fit(self, x_train, y_train, x_val, y_val) -> MLPHead:
         import logging
         import warnings
 
@@ -130,17 +134,24 @@ class MLPHead(ResidualHead):
         return self
 
     def module(self) -> torch.nn.Module:
+        return self._fitted()
+
+    def _fitted(self) -> torch.nn.Sequential:
+        if self.network is None:
+            raise RuntimeError("the MLP head is not fitted: call fit first")
         return self.network
 
     def settings(self) -> dict:
-        return {"width": self.width, "depth": self.depth, "n_in": self.network[0].in_features,
-                "n_out": self.network[-2].out_features, "seed": self.seed, "output_scale": self.output_scale}
+        network = self._fitted()
+        return {"width": self.width, "depth": self.depth, "n_in": network[0].in_features,
+                "n_out": network[-2].out_features, "seed": self.seed, "output_scale": self.output_scale}
 
     @classmethod
-    def from_state(cls, settings: dict, state: dict[str, torch.Tensor]) -> "MLPHead":
+    def from_state(cls, settings: dict, state: dict[str, torch.Tensor]) -> MLPHead:
         head = cls(width=settings["width"], depth=settings["depth"], seed=settings["seed"])
         net = make_network(settings["n_in"], settings["n_out"], settings["width"], settings["depth"],
                            settings["output_scale"]).to(torch.float64)
         net.load_state_dict(state)
         head.network = net.eval()
+        head.output_scale = float(settings["output_scale"])
         return head

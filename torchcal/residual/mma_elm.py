@@ -8,10 +8,11 @@ solve.
 
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable
 
 import torch
 
+from torchcal.optimize.base import OptimizeResult
 from torchcal.optimize.mayfly import Mayfly
 from torchcal.residual.base import ResidualHead
 from torchcal.residual.elm import ELM, solve_output_weights
@@ -37,9 +38,9 @@ class MayflyELM(ResidualHead):
         # Optional observer of the search, (iteration, best validation RMS mm); a study prunes with it.
         self.on_iteration: Callable[[int, float], None] | None = None
         self.elm = ELM(hidden=hidden, ridge=ridge, seed=seed)
-        self.search = None
+        self.search: OptimizeResult | None = None
 
-    def fit(self, x_train, y_train, x_val, y_val) -> "MayflyELM":
+    def fit(self, x_train, y_train, x_val, y_val) -> MayflyELM:
         n_in = x_train.shape[1]
         dim = self.hidden * (n_in + 1)
         lower = torch.cat([-torch.ones(self.hidden * n_in), torch.zeros(self.hidden)]).to(x_train.dtype)
@@ -57,14 +58,15 @@ class MayflyELM(ResidualHead):
             return err.norm(dim=-1).pow(2).mean(-1).sqrt()
 
         optimizer = Mayfly(population=self.population, iterations=self.iterations)
-        self.search = optimizer.minimize(fitness, lower, upper, seed=self.seed, progress=self.progress,
-                                         on_iteration=self.on_iteration)
-        w, b = unpack(self.search.best_x.unsqueeze(0))
+        search = optimizer.minimize(fitness, lower, upper, seed=self.seed, progress=self.progress,
+                                    on_iteration=self.on_iteration)
+        self.search = search
+        w, b = unpack(search.best_x.unsqueeze(0))
         self.elm.set_hidden_layer(w[0], b[0])
         self.elm.fit(x_train, y_train)
         return self
 
-    def refit_output(self, x: torch.Tensor, y: torch.Tensor) -> "MayflyELM":
+    def refit_output(self, x: torch.Tensor, y: torch.Tensor) -> MayflyELM:
         """Re-solve the output weights on ``(x, y)``, keeping the hidden layer the search chose."""
         if self.search is None:
             raise RuntimeError("refit_output needs a fitted MMA-ELM: call fit first (the search chooses the hidden layer)")
@@ -79,7 +81,7 @@ class MayflyELM(ResidualHead):
                 "ridge": self.ridge, "seed": self.seed}
 
     @classmethod
-    def from_state(cls, settings: dict, state: dict[str, torch.Tensor]) -> "MayflyELM":
+    def from_state(cls, settings: dict, state: dict[str, torch.Tensor]) -> MayflyELM:
         head = cls(**settings)
         head.elm = ELM.from_state({"hidden": settings["hidden"], "ridge": settings["ridge"], "seed": settings["seed"]}, state)
         return head

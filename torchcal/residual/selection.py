@@ -47,7 +47,7 @@ def paired_gain_z(y_val: torch.Tensor, predicted: torch.Tensor) -> float:
 def tuning_split(n: int, fraction: float = 0.2, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
     """Seeded ``(fit, tune)`` indices of the training poses (at least one of each when ``n >= 2``)."""
     perm = torch.randperm(n, generator=torch.Generator().manual_seed(seed + 7919))
-    n_tune = min(max(1, int(round(fraction * n))), n - 1)
+    n_tune = min(max(1, round(fraction * n)), n - 1)
     return perm[n_tune:], perm[:n_tune]
 
 
@@ -63,7 +63,6 @@ def select_head(candidates: list[ResidualHead], x_train, y_train, x_val, y_val, 
                 z_min: float = 2.0, seed: int = 0) -> Selection:
     """Fit each candidate on the training pair, keep the best only if it passes the gate on the validation pair."""
     baseline = rms(y_val)
-    fit_idx, tune_idx = tuning_split(len(x_train), seed=seed)
     scores: dict[str, float] = {}
     best, best_score, best_z = None, float("inf"), 0.0
     for head in candidates:

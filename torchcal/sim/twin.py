@@ -82,7 +82,7 @@ class Twin:
     gear_phase: torch.Tensor
 
     @classmethod
-    def create(cls, config: TwinConfig) -> "Twin":
+    def create(cls, config: TwinConfig) -> Twin:
         robot = load_robot(config.robot or default_robot_path())
         gen = torch.Generator().manual_seed(config.seed)
         model = ErrorModel(robot)

@@ -21,22 +21,23 @@ from torchcal.data.measurements import Measurements
 from torchcal.model_selection.compare import Comparison, compare_candidates
 from torchcal.model_selection.heads import cross_validate_heads, make_features
 from torchcal.model_selection.structure import StructureCV
-from torchcal.residual import HEADS, head_names
+from torchcal.residual import HEADS, ResidualHead, head_names
 from torchcal.residual.selection import fit_before_gate
 
 SELECTION_FILE = "model_selection.json"
 
 
-def _candidates(config) -> list:
-    heads = []
+def _candidates(config) -> list[ResidualHead]:
+    heads: list[ResidualHead] = []
     for name in head_names(config.residual):
+        make: Callable[..., ResidualHead] = HEADS[name]  # each head's constructor takes its own options
         if name == "mma-elm":
-            heads.append(HEADS[name](hidden=config.residual_hidden, population=config.mayfly_population,
-                                     iterations=config.mayfly_iterations, seed=config.seed, progress=False))
+            heads.append(make(hidden=config.residual_hidden, population=config.mayfly_population,
+                              iterations=config.mayfly_iterations, seed=config.seed, progress=False))
         elif name == "elm":
-            heads.append(HEADS[name](hidden=config.residual_hidden, seed=config.seed))
+            heads.append(make(hidden=config.residual_hidden, seed=config.seed))
         else:
-            heads.append(HEADS[name](seed=config.seed, progress=False))
+            heads.append(make(seed=config.seed, progress=False))
     return heads
 
 

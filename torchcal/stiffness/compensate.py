@@ -83,7 +83,7 @@ def compensate_deflection(
     q = q0.clone()
     done = torch.zeros(target.shape[:-2], dtype=torch.bool, device=target.device)
     iterations = 0
-    for iterations in range(1, max_iterations + 1):
+    for iterations in range(1, max_iterations + 1):  # noqa: B007 (read after the loop)
         ik_target = offset[..., :3, 3] if position_only else offset
         ik = solve_ik(model, x, ik_target, q, position_only=position_only)
         q = ik.q

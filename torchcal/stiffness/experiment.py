@@ -39,7 +39,7 @@ class StiffnessData:
     def n_joints(self) -> int:
         return int(self.q.shape[1])
 
-    def subset(self, index: torch.Tensor | slice) -> "StiffnessData":
+    def subset(self, index: torch.Tensor | slice) -> StiffnessData:
         """Rows ``index`` of every table (same path)."""
 
         def pick(t: torch.Tensor | None) -> torch.Tensor | None:

@@ -21,8 +21,8 @@ from __future__ import annotations
 
 import math
 import warnings
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Sequence
 
 import torch
 
@@ -180,7 +180,7 @@ def analyse_identifiability(
     singular_all = torch.linalg.svdvals(normalized)
     keep = [bool(n > zero_tol * float(norms.max())) for n in norms]
     removed: list[str] = [n for n, k in zip(names, keep) if not k]
-    confounded: dict[str, tuple[str, ...]] = {n: () for n in removed}
+    confounded: dict[str, tuple[str, ...]] = dict.fromkeys(removed, ())
     while any(keep):
         cols = [i for i, k in enumerate(keep) if k]
         _, s, vh = torch.linalg.svd(normalized[:, cols], full_matrices=False)
@@ -237,7 +237,7 @@ class StiffnessEstimate:
     iterations: int
     converged: bool
     with_rotation: bool = False
-    wrench_frame: str = "tool"
+    wrench_frame: WrenchFrame = "tool"
     extra: dict = field(default_factory=dict)
 
     def stiffness_by_name(self) -> dict[str, float]:
@@ -251,7 +251,7 @@ class StiffnessEstimate:
     def predict(self, q: torch.Tensor, wrench: torch.Tensor) -> torch.Tensor:
         """Predicted deflection ``(..., 6)`` ``[dp (m); dphi (rad)]``, ``instrument`` frame."""
         frame = self.wrench_frame
-        return deflection(self.model, q, self.x, self.compliance, wrench, wrench_frame=frame)  # type: ignore[arg-type]
+        return deflection(self.model, q, self.x, self.compliance, wrench, wrench_frame=frame)
 
     def as_dict(self) -> dict:
         """JSON-ready summary (SI units)."""
@@ -308,7 +308,7 @@ def _levenberg_marquardt(
     lam, nu = 1e-3 * float(diag.max()), 2.0
     converged = False
     iterations = 0
-    for iterations in range(1, max_iterations + 1):
+    for iterations in range(1, max_iterations + 1):  # noqa: B007 (read after the loop)
         grad = jac.T @ r
         diag = torch.maximum(diag, jtj.diagonal())
         step = torch.linalg.solve(jtj + lam * torch.diag(diag), -grad)
@@ -382,7 +382,8 @@ def identify_stiffness(
     weights = torch.tensor(inverse_sigma, dtype=torch.float64, device=device)[:rows]
     y = data.deflection.to(device)
     if with_rotation:
-        y = torch.cat([y, data.rotation.to(device)], -1)  # type: ignore[union-attr]
+        assert data.rotation is not None  # refused above
+        y = torch.cat([y, data.rotation.to(device)], -1)
     gw = (g * weights[:, None]).reshape(-1, len(candidates))
     yw = (y * weights).reshape(-1)
 

@@ -23,8 +23,8 @@ frame: the nominal model with ``instrument = base`` is enough.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence
 
 import torch
 

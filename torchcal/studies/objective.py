@@ -83,7 +83,7 @@ class StudyObjective:
 
     def prepare(self, config) -> PreparedData:
         """Twin data and geometric fit for ``config``, computed once per distinct setting."""
-        from torchcal.data.measurements import load_measurements
+        from torchcal.data.measurements import Measurements, load_measurements
         from torchcal.identify.joint_errors import JointSpaceErrors
         from torchcal.kinematics.robot import load_robot
         from torchcal.residual.features import JointFeatures
@@ -99,8 +99,9 @@ class StudyObjective:
                 case = self._case(config.twin)
                 robot = with_tool(load_robot(case["robot.yaml"]), config.fit)
                 train = load_measurements(case["train.csv"], robot)
-                test = load_measurements(case["test.csv"], robot)
+                test: Measurements | None = load_measurements(case["test.csv"], robot)
             else:
+                assert self.study.robot is not None  # validated: robot and train go together
                 robot = with_tool(load_robot(self.study.robot), config.fit)
                 train = load_measurements(self.study.train, robot, **units)
                 test = load_measurements(self.study.test, robot, **units) if self.study.test else None
@@ -155,7 +156,7 @@ class StudyObjective:
         seconds = time.perf_counter() - started
         size = sum(t.numel() for t in best_head.module().state_dict().values()) if best_head is not None else 0
         test_rms = None
-        if data.x_test is not None:
+        if data.x_test is not None and data.y_test is not None:  # set together
             test_rms = rms(best_head.predict(data.x_test) - data.y_test) if best_head is not None else rms(data.y_test)
         trial.set_user_attr("head", best_head.name if best_head is not None else None)
         trial.set_user_attr("validation_rms_by_head_mm", scores)

@@ -132,7 +132,11 @@ def run_study(base, config: StudyConfig, *, workers: int = 1, console=None) -> S
         procs = [ctx.Process(target=work, args=(base, config, str(study_dir), threads, k)) for k in range(workers)]
         for p in procs:
             p.start()
-        _with_progress(lambda: [p.join() for p in procs], study, config, console)
+        def join_all() -> None:
+            for p in procs:
+                p.join()
+
+        _with_progress(join_all, study, config, console)
         bad = [p.exitcode for p in procs if p.exitcode != 0]
         if bad:
             raise TorchcalError(f"study '{config.name}': {len(bad)} worker(s) exited with status {bad}")
@@ -189,6 +193,7 @@ def _refit_best_on_files(run_config, config: StudyConfig, best, study_dir: Path,
 
     fit_config = run_config.fit
     units = {"joint_unit": fit_config.joint_unit, "length_unit": fit_config.length_unit}
+    assert config.robot is not None and config.train is not None  # called with measured data; validated together
     robot = with_tool(load_robot(config.robot), fit_config)
     train = load_measurements(config.train, robot, **units)
     result, structure = fit_with_selection(robot, train, fit_config)
@@ -224,7 +229,7 @@ def _with_progress(job, study, config: StudyConfig, console) -> None:
                 try:
                     c = _counts(study)
                     progress.update(task, completed=c["COMPLETE"] + c["PRUNED"])
-                except Exception:  # the storage may be locked for a moment; the next poll catches up
+                except Exception:  # noqa: BLE001 (the storage may be locked for a moment; the next poll catches up)
                     pass
 
         watcher = threading.Thread(target=follow, daemon=True)

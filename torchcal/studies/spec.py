@@ -3,11 +3,12 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Literal
 
 from torchcal.core.errors import TorchcalError
 
-OBJECTIVES = {"validation_rms_mm": "minimize", "model_size": "minimize", "fit_seconds": "minimize"}
+Direction = Literal["minimize", "maximize"]
+OBJECTIVES: dict[str, Direction] = {"validation_rms_mm": "minimize", "model_size": "minimize", "fit_seconds": "minimize"}
 SAMPLERS = ("tpe", "random")
 PRUNERS = ("median", "none")
 
@@ -77,7 +78,7 @@ class StudyConfig:
             Distribution.parse(key, spec)
 
     @property
-    def directions(self) -> list[str]:
+    def directions(self) -> list[Direction]:
         return [OBJECTIVES[o] for o in self.objectives]
 
 
@@ -94,7 +95,7 @@ class Distribution:
     choices: tuple | None = None
 
     @classmethod
-    def parse(cls, key: str, spec: Any) -> "Distribution":
+    def parse(cls, key: str, spec: Any) -> Distribution:
         if not isinstance(spec, dict) or "type" not in spec:
             raise TorchcalError(f"study.search_space['{key}'] needs a mapping with 'type' (int, float or categorical)")
         kind = spec["type"]
@@ -112,26 +113,34 @@ class Distribution:
             raise TorchcalError(f"study.search_space['{key}']: needs low < high")
         return cls(key, kind, spec["low"], spec["high"], spec.get("step"), bool(spec.get("log", False)))
 
+    def _range(self) -> tuple[float, float]:
+        """``(low, high)`` of an int or float distribution (:meth:`parse` requires both)."""
+        if self.low is None or self.high is None:
+            raise TorchcalError(f"study.search_space['{self.key}']: needs low < high")
+        return self.low, self.high
+
     def contains(self, value: Any) -> bool:
         """Whether ``value`` is a point of this distribution (e.g. the default configuration's)."""
         if self.kind == "categorical":
-            return value in self.choices
-        if not isinstance(value, (int, float)) or isinstance(value, bool) or not self.low <= value <= self.high:
+            return value in (self.choices or ())
+        low, high = self._range()
+        if not isinstance(value, (int, float)) or isinstance(value, bool) or not low <= value <= high:
             return False
         if self.kind == "int" and int(value) != value:
             return False
         if self.step:
-            k = (value - self.low) / self.step
+            k = (value - low) / self.step
             return abs(k - round(k)) < 1e-9
         return True
 
     def suggest(self, trial) -> Any:
         """The value an Optuna trial suggests for this parameter."""
         if self.kind == "categorical":
-            return trial.suggest_categorical(self.key, list(self.choices))
+            return trial.suggest_categorical(self.key, list(self.choices or ()))
+        low, high = self._range()
         if self.kind == "int":
-            return trial.suggest_int(self.key, int(self.low), int(self.high), step=int(self.step or 1), log=self.log)
-        return trial.suggest_float(self.key, float(self.low), float(self.high), step=self.step, log=self.log)
+            return trial.suggest_int(self.key, int(low), int(high), step=int(self.step or 1), log=self.log)
+        return trial.suggest_float(self.key, float(low), float(high), step=self.step, log=self.log)
 
 
 def search_space(config: StudyConfig) -> list[Distribution]:

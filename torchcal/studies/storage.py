@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
+from typing import Any
 
 from torchcal.core.errors import TorchcalError
 from torchcal.studies.spec import StudyConfig
@@ -38,12 +39,13 @@ def open_storage(config: StudyConfig, study_dir: Path):
     if url.startswith("sqlite"):
         study_dir.mkdir(parents=True, exist_ok=True)
         # Several local workers share the file; wait for its lock instead of failing at once.
-        engine_kwargs = {"connect_args": {"timeout": 60}}
+        engine_kwargs: dict[str, Any] = {"connect_args": {"timeout": 60}}
     else:
         engine_kwargs = {"pool_pre_ping": True}
     # Workers on several machines may start together on an empty database: all of them try to
     # create Optuna's tables and all but one fail on the catalog's unique index. The tables then
     # exist, so opening again succeeds.
+    error: Exception
     for attempt in range(CREATE_ATTEMPTS):
         try:
             return optuna.storages.RDBStorage(
@@ -87,6 +89,7 @@ def open_study(config: StudyConfig, study_dir: Path, worker: int = 0):
 
     storage = open_storage(config, study_dir)
     seed = sampler_seed(config, study_dir, worker)
+    sampler: optuna.samplers.BaseSampler
     if config.sampler == "tpe":
         sampler = optuna.samplers.TPESampler(seed=seed, n_startup_trials=min(8, max(2, config.n_trials // 3)))
     else:

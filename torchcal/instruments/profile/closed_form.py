@@ -132,7 +132,7 @@ def group_scans(T_base_flange: torch.Tensor, plane: torch.Tensor, tol_deg: float
     for g in groups:
         p = T_base_flange[g.scans, :3, 3]
         s = torch.linalg.svdvals(p - p.mean(0)) * 1e3 if len(g.scans) > 1 else torch.zeros(3, dtype=p.dtype)
-        g.translation_extent_mm = (s.tolist() + [0.0, 0.0, 0.0])[:3]
+        g.translation_extent_mm = [*s.tolist(), 0.0, 0.0, 0.0][:3]
     return groups
 
 
@@ -185,7 +185,8 @@ def _rotation(data: ProfileData, T_base_flange: torch.Tensor, groups: list[Motio
             f"Only {len(usable)} plane orientation(s) are usable; need 3 (fewer than 3 plane orientations)"
         )
         raise DataError(f"degenerate motion set: {reason}", **_where(data, (bad or translated)[0].scans[0]))
-    rows, a, b, plane_normals = [], [], [], {}
+    rows, a, b = [], [], []
+    plane_normals: dict[int, list[torch.Tensor]] = {}
     for g in usable:
         n, ag, bg, _ = _group_plane(data, T_base_flange, g)
         ref = plane_normals.setdefault(g.plane, [])

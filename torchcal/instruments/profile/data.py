@@ -90,7 +90,7 @@ class ProfileData:
         """``(K,)`` placement index of each point."""
         return self.plane[self.point_scan]
 
-    def select_scans(self, keep: torch.Tensor) -> "ProfileData":
+    def select_scans(self, keep: torch.Tensor) -> ProfileData:
         """The scans where ``keep`` ``(S,)`` is true, with their points (placements kept as they are)."""
         keep = keep.to(torch.bool).cpu()
         index = keep.nonzero().squeeze(-1)

@@ -82,7 +82,7 @@ class ProfileProblem:
         cols = self.free if columns is None else columns
         return self.residuals(x), jac[:, cols]
 
-    def recentred(self, x: torch.Tensor) -> tuple["ProfileProblem", torch.Tensor]:
+    def recentred(self, x: torch.Tensor) -> tuple[ProfileProblem, torch.Tensor]:
         """The same problem with references moved to ``x``, and the equivalent ``x`` (zero angles)."""
         R, t, normals, offsets = self.unpack(x)
         problem = ProfileProblem(self.data, self.T_base_flange, R, normals)
@@ -157,7 +157,7 @@ def refine(
     problem = ProfileProblem(data, T_base_flange.to(data.uw), R0.to(data.uw), normals0.to(data.uw))
     x0 = problem.initial(t0.to(data.uw), offsets0.to(data.uw))
     solver = LevenbergMarquardt(max_iterations=max_iterations, ftol=1e-14, xtol=1e-14, gtol=1e-12)
-    sol = solver.solve(problem, x0)  # type: ignore[arg-type]  # duck-typed problem
+    sol = solver.solve(problem, x0)
     problem, x = problem.recentred(sol.x)
     r, jac = problem.jacobian(x)
     _check_rank(problem, jac)

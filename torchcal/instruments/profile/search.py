@@ -64,7 +64,7 @@ def search_start(
         normals, offsets, _ = fit_planes(base_points(T, small.point_scan, small.uw, R0, t0), point_plane, small.n_planes)
         problem = ProfileProblem(small, T, R0, normals)
         try:
-            sol = solver.solve(problem, problem.initial(t0, offsets))  # type: ignore[arg-type]
+            sol = solver.solve(problem, problem.initial(t0, offsets))
         except torch.linalg.LinAlgError:
             continue
         found.append((sol.cost, problem.unpack(sol.x)))

@@ -83,11 +83,12 @@ class ProfileTwin:
     """True sensor mounting, target placements and the planned scans of one twin case.
 
     Args:
-        config: twin settings.
+        config: twin settings (default: ``ProfileTwinConfig()``).
         robot: nominal robot (default: the embedded twin-kr6).
     """
 
-    def __init__(self, config: ProfileTwinConfig = ProfileTwinConfig(), *, robot: RobotModel | None = None) -> None:
+    def __init__(self, config: ProfileTwinConfig | None = None, *, robot: RobotModel | None = None) -> None:
+        config = config if config is not None else ProfileTwinConfig()
         if config.n_planes < 3:
             raise ValueError("the profile twin needs n_planes >= 3")
         self.config = config
@@ -189,7 +190,7 @@ class ProfileTwin:
         }
 
 
-def write_profile_case(out: str | Path, config: ProfileTwinConfig = ProfileTwinConfig()) -> dict[str, Path]:
+def write_profile_case(out: str | Path, config: ProfileTwinConfig | None = None) -> dict[str, Path]:
     """Write ``robot.yaml``, ``profile.csv`` and ``truth.json`` of a profile twin case to ``out``."""
     out = Path(out)
     twin = ProfileTwin(config)

@@ -115,9 +115,9 @@ def fit_sockets(robot_path, data_path, out_dir, overrides, *, base_link=None, en
     folder = save_model(Path(out_dir), robot, res.model, res.x, res.free, res.covariance, meta, training_q=data.q)
     return FitOutcome(folder, [
         ident.summary(),
-        f"sockets: consistency mean {nominal['consistency_mean_mm']:.3f} -> {calibrated['consistency_mean_mm']:.3f} mm, "
-        f"distortion {nominal['distortion_mean_mm']:.3f} -> {calibrated['distortion_mean_mm']:.3f} mm on the "
-        f"{len(data)} fitted configurations; {len(res.free)} robot parameters"])
+        (f"sockets: consistency mean {nominal['consistency_mean_mm']:.3f} -> {calibrated['consistency_mean_mm']:.3f} mm, "
+         f"distortion {nominal['distortion_mean_mm']:.3f} -> {calibrated['distortion_mean_mm']:.3f} mm on the "
+         f"{len(data)} fitted configurations; {len(res.free)} robot parameters")])
 
 
 def evaluate_sockets(model_dir, data_path, overrides, *, register: bool = False) -> dict:

@@ -144,6 +144,7 @@ class SocketsProblem:
         is_point = ~is_robot & (columns < size + 3 * g_count)
         by_column[:, is_point] = jac_c[:, columns[is_point] - size]
         if term_cols.numel():
+            assert self.basis is not None  # term columns exist only with a gravity basis
             rows_, joint = term_cols // dof, term_cols % dof
             cols = jac_theta[..., joint] * self.basis.to(z)[:, rows_, joint].unsqueeze(1)  # (n, 3, T)
             by_column[:, columns >= size + 3 * g_count] = torch.cat([cols.reshape(3 * n, -1), cols.new_zeros(k, cols.shape[-1])])

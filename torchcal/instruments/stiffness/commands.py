@@ -30,6 +30,7 @@ import math
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -147,7 +148,7 @@ def _identify(
         use_rotation=config.use_rotation,
         sigma_position_m=config.sigma_position_mm * 1e-3,
         sigma_rotation_rad=math.radians(config.sigma_rotation_deg),
-        wrench_frame=config.wrench_frame,  # type: ignore[arg-type]
+        wrench_frame=config.wrench_frame,  # type: ignore[arg-type]  # a str in the config schema, checked on load
         rank_tol=config.rank_tol,
         poor_relative_std=config.poor_relative_std,
         device=config.device,
@@ -232,7 +233,7 @@ def fit_stiffness(
 
     config = stiffness_config(overrides)
     out = Path(out_dir)
-    robot = with_tool(load_robot(robot_path, base_link=base_link, end_link=end_link), config)  # type: ignore[arg-type]
+    robot = with_tool(load_robot(robot_path, base_link=base_link, end_link=end_link), config)  # type: ignore[arg-type]  # reads only tool_mm
     stored = None
     if config.model is not None:
         stored = load_model(config.model, device=config.device)
@@ -256,7 +257,7 @@ def fit_stiffness(
             parameters, selection = comparison.chosen, comparison.to_dict()
     estimate = _identify(geometry, data, config, parameters, x)
     wrench = data.wrench
-    meta = {
+    meta: dict[str, Any] = {
         "data": {
             "file": str(data_path),
             "sha256": sha256_file(data_path),
@@ -273,7 +274,7 @@ def fit_stiffness(
     }
     if selection is not None:
         meta["model_selection"] = selection
-    if stored is not None:
+    if config.model is not None:  # stored was loaded from it
         if out.resolve() != Path(config.model).resolve():
             copy_model(config.model, out)
     else:
@@ -291,6 +292,7 @@ def fit_stiffness(
     save_stiffness(out, estimate, meta)
     if comparison is not None:
         table = comparison.format_table()
+        assert selection is not None  # set with the comparison
         selection = {**selection, "table": table}
     _write_selection(out, selection)
     lines = [table] if comparison is not None else []
@@ -319,7 +321,7 @@ def predicted_deflection(stored, data: StiffnessData) -> torch.Tensor:
         raise TorchcalError(f"{stored.folder}: the model has no stiffness stage (fit it with a stiffness file)")
     model, x = instrument_model(stored.model, data, stored.x, device=stored.x.device)
     q, wrench = data.q.to(x.device), data.wrench.to(x.device)
-    return deflection(model, q, x, stage.compliance.to(x), wrench, wrench_frame=stage.wrench_frame)  # type: ignore[arg-type]
+    return deflection(model, q, x, stage.compliance.to(x), wrench, wrench_frame=stage.wrench_frame)
 
 
 def evaluate_stiffness(model_dir: str | Path, data_path: str | Path, overrides: list[str], *, register: bool = False) -> dict:
@@ -333,7 +335,7 @@ def evaluate_stiffness(model_dir: str | Path, data_path: str | Path, overrides: 
     measured = data.deflection.to(predicted)
     err = (predicted[:, :3] - measured).norm(dim=-1) * 1e3
     size = measured.norm(dim=-1) * 1e3
-    metrics = {
+    metrics: dict[str, Any] = {
         "n_poses": len(data),
         **distance_summary(err, "deflection"),
         "deflection_measured_rms_mm": float(size.pow(2).mean().sqrt()),

@@ -43,7 +43,7 @@ from torchcal.stiffness.plan import (
     plan_loading,
     predicted_relative_std,
 )
-from torchcal.stiffness.vjm import classic_compliance
+from torchcal.stiffness.vjm import WrenchFrame, classic_compliance
 
 MAIN_AXIS_RANGE_NM_PER_RAD = (1e5, 5e5)
 WRIST_RANGE_NM_PER_RAD = (1e4, 5e4)
@@ -185,7 +185,7 @@ class StiffnessTwin:
         """True unloaded ``T_instrument_tool`` ``(..., 4, 4)``."""
         return self.model.tcp_pose(q, self.x_true)
 
-    def loaded_pose(self, q: torch.Tensor, wrench: torch.Tensor, wrench_frame: str = "tool") -> torch.Tensor:
+    def loaded_pose(self, q: torch.Tensor, wrench: torch.Tensor, wrench_frame: WrenchFrame = "tool") -> torch.Tensor:
         """True loaded ``T_instrument_tool`` ``(..., 4, 4)`` under ``wrench`` ``(..., 6)`` (N, N m)."""
         pose, _ = loaded_tcp_pose(
             self.model,
@@ -193,7 +193,7 @@ class StiffnessTwin:
             self.x_true,
             self.compliance,
             wrench,
-            wrench_frame=wrench_frame,  # type: ignore[arg-type]
+            wrench_frame=wrench_frame,
             iterations=self.config.equilibrium_iterations,
         )
         return pose

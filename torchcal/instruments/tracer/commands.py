@@ -153,8 +153,8 @@ def fit_tracer(robot_path, data_path, out_dir, overrides, *, base_link=None, end
     folder = save_model(Path(out_dir), robot, model, x, free, cov, meta)
     return FitOutcome(folder, [
         ident.summary(),
-        f"{config.tracer_method}: length RMS {tracer['length_rms_um']:.3f} um, variance factor {tracer['variance_factor']:.3g}, "
-        f"{len(free)} robot parameters, {data.n_stations} stations",
+        (f"{config.tracer_method}: length RMS {tracer['length_rms_um']:.3f} um, variance factor {tracer['variance_factor']:.3g}, "
+         f"{len(free)} robot parameters, {data.n_stations} stations"),
     ])
 
 

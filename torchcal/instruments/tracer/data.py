@@ -70,12 +70,12 @@ class TracerData:
         """File line of pose ``i`` (``None`` for in-memory data)."""
         return self.line_numbers[i] if self.line_numbers else None
 
-    def subset(self, index: torch.Tensor | list[int]) -> "TracerData":
+    def subset(self, index: torch.Tensor | list[int]) -> TracerData:
         idx = torch.as_tensor(index, dtype=torch.long)
         lines = tuple(self.line_numbers[i] for i in idx.tolist()) if self.line_numbers else ()
         return TracerData(self.q[idx], self.lengths[idx], self.source, lines, self.sha256)
 
-    def to(self, device: str | torch.device) -> "TracerData":
+    def to(self, device: str | torch.device) -> TracerData:
         return TracerData(self.q.to(device), self.lengths.to(device), self.source, self.line_numbers, self.sha256)
 
 
@@ -166,7 +166,7 @@ def load_tracer_data(
         )
         keep = ~blind
         q, q_user, lengths = q[keep], q_user[keep], lengths[keep]
-        lines = [ln for ln, k in zip(lines, keep) if k]
+        lines = [lines[i] for i in np.flatnonzero(keep)]
     data = TracerData(
         q=torch.from_numpy(q), lengths=torch.from_numpy(lengths), source=p, line_numbers=tuple(lines),
         sha256=sha256_file(p),
@@ -183,7 +183,7 @@ def check_solvable(data: TracerData) -> None:
     ``n`` poses seen by at least three stations need ``K >= 3n + 4m - 6 + 1`` lengths among them.
     """
     seen = data.seen
-    n, m = seen.shape
+    _, m = seen.shape
     per_station = seen.sum(0)
     for j in range(m):
         if int(per_station[j]) < MIN_POSES_PER_STATION:

@@ -123,7 +123,7 @@ class TracerJointProblem:
         used = self.used
         return r[used], jac[used][:, inverse]
 
-    def with_free(self, free: torch.Tensor) -> "TracerJointProblem":
+    def with_free(self, free: torch.Tensor) -> TracerJointProblem:
         return TracerJointProblem(self.model, self.q, self.lengths, self.inv_sigma, free)
 
 

@@ -26,7 +26,6 @@ def factorize_ranges(ranges_m: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor
     distances and the ranges (m), the score of a dead-path guess (``inf`` where no real
     configuration exists).
     """
-    n, m = ranges_m.shape[-2:]
     d2 = ranges_m**2
     rows, cols = d2.mean(-1, keepdim=True), d2.mean(-2, keepdim=True)
     b = -0.5 * (d2 - rows - cols + d2.mean((-2, -1), keepdim=True))

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import torch
 
@@ -18,7 +19,7 @@ def evaluate(model_dir: str | Path, data_path: str | Path, *, register: bool = F
     config = config or FitConfig()
     stored = load_model(model_dir)
     data = load_measurements(data_path, stored.robot, joint_unit=config.joint_unit, length_unit=config.length_unit)
-    metrics = position_metrics(held_out_errors(stored, data, register=register))
+    metrics: dict[str, Any] = position_metrics(held_out_errors(stored, data, register=register))
     metrics.update({"model": str(model_dir), "data": str(data_path), "registered": register})
     if stored.training_q is not None:
         from torchcal.model_selection.leakage import leakage_report

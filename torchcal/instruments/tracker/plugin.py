@@ -62,8 +62,8 @@ class TrackerInstrument(Instrument):
                           {"fit_metrics": {"nominal_registered": before, "geometric": after}})
         save_resolved_config(folder / "config.yaml", config)
         lines = [result.identifiability.summary(),
-                 f"training RMS {before['position_rms_mm']:.4f} mm (nominal, registered) -> "
-                 f"{after['position_rms_mm']:.4f} mm ({describe_structure(result)}, on the poses it was fitted to)"]
+                 (f"training RMS {before['position_rms_mm']:.4f} mm (nominal, registered) -> "
+                  f"{after['position_rms_mm']:.4f} mm ({describe_structure(result)}, on the poses it was fitted to)")]
         if config.residual != "none":
             request.progress("cross-validating residual heads")
             summary = fit_residual_stage(folder, data, config, progress=request.progress, structure=structure)

@@ -77,7 +77,7 @@ def fit_length_station(robot_path, data_path, out_dir, overrides, *, base_link=N
     return FitOutcome(folder, [
         ident.summary(),
         f"{config.cv_folds}-fold held-out length RMS:\n" + "\n".join(rows)
-        + f"\nstructure: {structure} ({meta['length_station']['structure_choice']}); "
+        + f"\nstructure: {structure} ({'user' if config.structure != 'auto' else comparison['rule']}); "
         f"fitted length RMS {fit.length_rms_m * 1e3:.3f} mm"])
 
 

@@ -42,12 +42,12 @@ def held_out_rms_mm(robot: RobotModel, data: TracerData, structure: str, split: 
 def compare_structures(robot: RobotModel, data: TracerData, *, k: int = 5, seed: int = 0,
                        structures: tuple[str, ...] = STRUCTURES, **fit_options) -> dict:
     """Held-out RMS of every structure under ``random`` and ``blocks`` folds, and the blocked choice."""
-    rows = []
-    for name in structures:
-        rows.append({"structure": name,
-                     "random_cv_rms_mm": held_out_rms_mm(robot, data, name, "random", k=k, seed=seed, **fit_options),
-                     "blocks_cv_rms_mm": held_out_rms_mm(robot, data, name, "blocks", k=k, seed=seed, **fit_options)})
-    best = min(r["blocks_cv_rms_mm"] for r in rows)
-    chosen = next(r["structure"] for r in rows if r["blocks_cv_rms_mm"] <= 1.01 * best)
+    rows: list[dict[str, float | str]] = [{"structure": name,
+             "random_cv_rms_mm": held_out_rms_mm(robot, data, name, "random", k=k, seed=seed, **fit_options),
+             "blocks_cv_rms_mm": held_out_rms_mm(robot, data, name, "blocks", k=k, seed=seed, **fit_options)}
+            for name in structures]
+    blocked = [float(r["blocks_cv_rms_mm"]) for r in rows]
+    best = min(blocked)
+    chosen = next(r["structure"] for r, score in zip(rows, blocked) if score <= 1.01 * best)
     return {"k": k, "rows": rows, "chosen": chosen,
             "rule": f"simplest structure within 1 % of the lowest {k}-fold order-blocked CV RMS"}
