@@ -151,6 +151,7 @@ class StudyObjective:
     def score(self, trial, config) -> float | tuple[float, ...]:
         """Fit ``config`` as ``fit`` does and record the numbers; the objective value(s)."""
         from torchcal.config import save_resolved_config
+        from torchcal.metrics import position_metrics
         from torchcal.model_store import load_model
         from torchcal.pipeline import held_out_errors, save_fit
         from torchcal.residual_stage import fit_residual_stage, head_names
@@ -173,7 +174,7 @@ class StudyObjective:
         def rms_mm(data_set, register: bool = False) -> float | None:
             if data_set is None:
                 return None
-            return float(held_out_errors(stored, data_set, register=register).norm(dim=-1).pow(2).mean().sqrt()) * 1e3
+            return position_metrics(held_out_errors(stored, data_set, register=register))["position_rms_mm"]
 
         holdout_rms = rms_mm(data.holdout, self.study.holdout_register)
         trial.set_user_attr("model", comparison["chosen"])

@@ -48,7 +48,7 @@ def _worker_process(base, config: StudyConfig, study_dir: str, threads: int) -> 
     try:
         work(base, config, study_dir, threads)
     except TorchcalError as exc:
-        print(f"error: {exc}", file=sys.stderr)
+        print(f"torchcal: error: {exc}", file=sys.stderr)
         sys.exit(1)
 
 

@@ -18,6 +18,7 @@ command is run again.
 
 from __future__ import annotations
 
+import logging
 import sys
 import threading
 import time
@@ -81,6 +82,23 @@ def _quiet_heartbeat_errors() -> None:
     threading.excepthook = hook
 
 
+class _OneLine(logging.Filter):
+    """Optuna logs a failed trial with its traceback; the message already names the error."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        record.exc_info, record.exc_text = None, None
+        return True
+
+
+def _one_line_trial_failures() -> None:
+    logger = logging.getLogger("optuna")
+    if not any(isinstance(f, _OneLine) for f in logger.filters):
+        logger.addFilter(_OneLine())
+    for handler in logger.handlers:
+        if not any(isinstance(f, _OneLine) for f in handler.filters):
+            handler.addFilter(_OneLine())
+
+
 class Worker:
     """The loop of one worker process over the shared study (see the module docstring)."""
 
@@ -135,6 +153,7 @@ class Worker:
         from torchcal.studies.storage import shown_url
 
         _quiet_heartbeat_errors()
+        _one_line_trial_failures()
         errors = _database_errors()
         ran, failures, lost_since = 0, 0, None
         while True:
