@@ -114,3 +114,20 @@ def test_one_worker_study_repeats(tmp_path):
         runs.append([(t.number, t.state, t.params, t.values) for t in _trials(outcome, "again")])
     assert runs[0] == runs[1]
     assert len({tuple(sorted(p.items())) for _, _, p, _ in runs[0]}) == 5
+
+
+def test_a_trial_killed_before_its_first_heartbeat_is_retried(tmp_path):
+    """Taken (RUNNING) but no heartbeat ever written: failed after the grace period and queued again."""
+    import time
+
+    config = _study("silent", 2, grace_period_s=2)
+    study = open_study(config, tmp_path)
+    orphan = study.ask()  # what a worker killed right after taking a trial leaves behind
+    orphan.suggest_float("fit.residual_margin", 0.03, 0.08)
+    optuna.storages.fail_stale_trials(study)
+    assert study.get_trials()[0].state == TrialState.RUNNING  # a live trial's first heartbeat may be on its way
+    time.sleep(2.5)
+    optuna.storages.fail_stale_trials(study)
+    trials = study.get_trials()
+    assert [t.state for t in trials] == [TrialState.FAIL, TrialState.WAITING]
+    assert trials[1].params == trials[0].params

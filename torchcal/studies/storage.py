@@ -41,6 +41,42 @@ def shown_url(url: str) -> str:
     return url.split("@")[-1] if "@" in url else url
 
 
+def _storage_class():
+    """Optuna's RDB storage, counting a trial that never wrote a heartbeat as stale too.
+
+    Optuna finds stale trials by their last heartbeat only; a worker killed between taking a trial
+    and its heartbeat thread's first write (milliseconds) would leave that trial RUNNING for good,
+    and the workers waiting for it would wait for ever. Here such a trial is stale once this
+    process has seen it RUNNING without any heartbeat for longer than the grace period (its own
+    monotonic clock: no comparison of clocks between machines).
+    """
+    import time as _time
+
+    import optuna
+    from optuna.storages._rdb import models
+    from optuna.trial import TrialState
+
+    class Storage(optuna.storages.RDBStorage):
+        _silent_since: dict[int, float]
+
+        def _get_stale_trial_ids(self, study_id: int) -> list[int]:
+            stale = super()._get_stale_trial_ids(study_id)
+            grace = self.grace_period or 2 * self.heartbeat_interval
+            with self.scoped_session() as session:
+                silent = {i for (i,) in session.query(models.TrialModel.trial_id)
+                          .outerjoin(models.TrialHeartbeatModel)
+                          .filter(models.TrialModel.study_id == study_id,
+                                  models.TrialModel.state == TrialState.RUNNING,
+                                  models.TrialHeartbeatModel.trial_heartbeat_id.is_(None))}
+            self.scoped_session.remove()
+            now = _time.monotonic()
+            seen = getattr(self, "_silent_since", {})
+            self._silent_since = {i: seen.get(i, now) for i in silent}
+            return stale + [i for i, since in self._silent_since.items() if now - since > grace and i not in stale]
+
+    return Storage
+
+
 def open_storage(config: StudyConfig, study_dir: Path):
     """An Optuna RDB storage with heartbeats and retry of stale trials."""
     import warnings
@@ -63,7 +99,7 @@ def open_storage(config: StudyConfig, study_dir: Path):
     # exist, so opening again succeeds.
     for attempt in range(CREATE_ATTEMPTS):
         try:
-            return optuna.storages.RDBStorage(
+            return _storage_class()(
                 url,
                 engine_kwargs=engine_kwargs,
                 heartbeat_interval=config.heartbeat_interval_s,
