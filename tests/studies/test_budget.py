@@ -27,8 +27,8 @@ def _base(tmp_path):
 
 
 def _study(name: str, n: int, space=None, **kw) -> StudyConfig:
-    return StudyConfig(name=name, n_trials=n, sampler=kw.pop("sampler", "random"), refit_best=False,
-                       heartbeat_interval_s=1, grace_period_s=3, search_space=space or MARGIN, **kw)
+    kw = {"sampler": "random", "heartbeat_interval_s": 1, "grace_period_s": 3, **kw}
+    return StudyConfig(name=name, n_trials=n, refit_best=False, search_space=space or MARGIN, **kw)
 
 
 def _trials(outcome, name):
