@@ -8,8 +8,8 @@ them creates a fresh trial past the budget. The lock makes the decision and the 
 * PostgreSQL: a session-level advisory lock (``pg_advisory_lock``) keyed by the study name, held
   on a connection of its own. The server releases it when that connection ends, so a worker killed
   while holding it (SIGKILL, a lost machine) blocks no one.
-* SQLite (one machine): ``flock`` on a file beside the database; the kernel releases it when the
-  process dies.
+* SQLite (one machine): ``flock`` on ``<database>.lock`` beside the database file; the kernel
+  releases it when the process dies.
 * Other database servers: no lock; two workers may then finish a trial more than the budget.
 """
 
@@ -33,7 +33,11 @@ class StudyLock:
         self._engine = None
         self._conn = None
         if url.startswith("sqlite"):
-            self._path = Path(study_dir) / ".study.lock"
+            from sqlalchemy.engine import make_url
+
+            database = make_url(url).database
+            in_memory = not database or database == ":memory:"
+            self._path = Path(study_dir) / ".study.lock" if in_memory else Path(database + ".lock")
         else:
             self._path = None
 
