@@ -3,11 +3,9 @@
 from __future__ import annotations
 
 import pytest
-import torch
 
 from torchcal.config import compose_run_config
 from torchcal.errors import TorchcalError
-from torchcal.residual.base import rms
 from torchcal.studies.runner import run_study
 from torchcal.studies.spec import Distribution, StudyConfig
 

@@ -5,7 +5,6 @@ from __future__ import annotations
 import time
 import uuid
 
-import optuna
 import pytest
 from optuna.storages import RetryHeartbeatStaleTrialCallback
 from optuna.trial import TrialState

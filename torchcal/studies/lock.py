@@ -96,7 +96,7 @@ class StudyLock:
             pass
         self._conn = None
 
-    def __enter__(self) -> "StudyLock":
+    def __enter__(self) -> StudyLock:
         self.acquire()
         return self
 

@@ -72,10 +72,11 @@ def _plot_pareto(trials, config: StudyConfig, path: Path) -> None:
 
 
 def _save(fig, path: Path) -> None:
+    import io
+
     import matplotlib.pyplot as plt
 
     from torchcal.io import atomic_write_bytes
-    import io
 
     buffer = io.BytesIO()
     fig.savefig(buffer, format="png", dpi=110)

@@ -108,7 +108,7 @@ class Distribution:
     choices: tuple | None = None
 
     @classmethod
-    def parse(cls, key: str, spec: Any) -> "Distribution":
+    def parse(cls, key: str, spec: Any) -> Distribution:
         if not isinstance(spec, dict) or "type" not in spec:
             raise TorchcalError(f"study.search_space['{key}'] needs a mapping with 'type' (int, float or categorical)")
         kind = spec["type"]
