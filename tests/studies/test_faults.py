@@ -11,6 +11,7 @@ import os
 import subprocess
 import time
 import uuid
+from pathlib import Path
 
 import pytest
 from optuna.storages import RetryHeartbeatStaleTrialCallback
@@ -56,13 +57,20 @@ def test_worker_killed_mid_trial_while_another_runs(tmp_path, postgres_url, rest
 
 
 def _pg(action: str) -> None:
+    """``restart``, ``stop`` or ``start`` the test server (started again with the options it had)."""
+    import glob
+    import shlex
+
     data = os.environ.get("TORCHCAL_TEST_PG_DATA")
     if not data or os.geteuid() != 0:
         pytest.skip("restarting the server needs TORCHCAL_TEST_PG_DATA (.ci/postgres.sh's data folder) and root")
-    import glob
-
     pg_ctl = sorted(glob.glob("/usr/lib/postgresql/*/bin/pg_ctl"))[-1]
-    subprocess.run(["su", "postgres", "-s", "/bin/sh", "-c", f"{pg_ctl} -D {data} -m fast -w {action}"],
+    options = ""
+    if action == "start":
+        argv = shlex.split(Path(data, "postmaster.opts").read_text())[1:]
+        keep = [a for k, a in enumerate(argv) if a != "-D" and (k == 0 or argv[k - 1] != "-D")]
+        options = f"-l {data}/server.log -o {shlex.quote(shlex.join(keep))}"
+    subprocess.run(["su", "postgres", "-s", "/bin/sh", "-c", f"{pg_ctl} -D {data} -m fast -w {options} {action}"],
                    check=True, stdout=subprocess.DEVNULL)
 
 
