@@ -61,6 +61,18 @@ def _database_errors() -> tuple[type[BaseException], ...]:
     return (SQLAlchemyError, StorageInternalError)
 
 
+def _database_cause(exc: BaseException) -> BaseException | None:
+    """The database error behind ``exc``, if any (Optuna may raise another error while handling one)."""
+    errors = _database_errors()
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        if isinstance(exc, errors):
+            return exc
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__
+    return None
+
+
 def _first_line(exc: BaseException) -> str:
     cause = exc.__cause__ or exc
     text = str(cause).strip().splitlines()
@@ -154,11 +166,11 @@ class Worker:
 
         _quiet_heartbeat_errors()
         _one_line_trial_failures()
-        errors = _database_errors()
         ran, failures, lost_since = 0, 0, None
         while True:
             try:
                 step = self._step()
+                failed = step == "run" and self._last_failed()
                 lost_since = None
             except UpdateFinishedTrialError:
                 # this worker's trial lost its heartbeat (a database outage) and another worker failed
@@ -166,12 +178,15 @@ class Worker:
                 print(f"study '{self.config.name}': trial {self.current} was taken over after its heartbeat was lost",
                       file=sys.stderr)
                 continue
-            except errors as exc:
+            except Exception as exc:
+                lost = _database_cause(exc)
+                if lost is None:
+                    raise
                 now = time.monotonic()
                 lost_since = lost_since or now
                 if now - lost_since > self.config.reconnect_s:
                     raise TorchcalError(f"study '{self.config.name}': lost the database at {shown_url(self.url)} for "
-                                        f"{self.config.reconnect_s:g} s ({_first_line(exc)}); run the command again to "
+                                        f"{self.config.reconnect_s:g} s ({_first_line(lost)}); run the command again to "
                                         "resume") from None
                 time.sleep(1.0)
                 continue
@@ -181,7 +196,7 @@ class Worker:
                 time.sleep(self.config.heartbeat_interval_s)
                 continue
             ran += 1
-            failures = failures + 1 if self._last_failed() else 0
+            failures = failures + 1 if failed else 0
             if failures >= MAX_CONSECUTIVE_FAILURES:
                 raise TorchcalError(f"study '{self.config.name}': {failures} trials in a row failed; see the failed "
                                     "trials' messages")
