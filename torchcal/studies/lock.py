@@ -15,8 +15,13 @@ them creates a fresh trial past the budget. The lock makes the decision and the 
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 from pathlib import Path
+from typing import TYPE_CHECKING, TextIO
+
+if TYPE_CHECKING:
+    from sqlalchemy.engine import Connection, Engine
 
 
 def _key(name: str) -> int:
@@ -29,17 +34,18 @@ class StudyLock:
 
     def __init__(self, url: str, study_name: str, study_dir: Path) -> None:
         self.url, self.name = url, study_name
-        self._file = None
-        self._engine = None
-        self._conn = None
+        self._file: TextIO | None = None
+        self._engine: Engine | None = None
+        self._conn: Connection | None = None
+        self._path: Path | None = None  # the lock file (SQLite only)
         if url.startswith("sqlite"):
             from sqlalchemy.engine import make_url
 
             database = make_url(url).database
-            in_memory = not database or database == ":memory:"
-            self._path = Path(study_dir) / ".study.lock" if in_memory else Path(database + ".lock")
-        else:
-            self._path = None
+            if not database or database == ":memory:":  # in memory: no database file to sit beside
+                self._path = Path(study_dir) / ".study.lock"
+            else:
+                self._path = Path(database + ".lock")
 
     @property
     def kind(self) -> str:
@@ -49,21 +55,22 @@ class StudyLock:
 
     def acquire(self) -> None:
         """Block until this worker holds the lock."""
-        if self.kind == "file":
+        if self._path is not None:  # kind "file"
             import fcntl
 
             self._path.parent.mkdir(parents=True, exist_ok=True)
-            self._file = open(self._path, "a+")
+            # the flock lives with this open file, so it stays open until release() closes it
+            self._file = open(self._path, "a+")  # noqa: SIM115
             fcntl.flock(self._file, fcntl.LOCK_EX)
         elif self.kind == "advisory":
             import sqlalchemy
 
             if self._engine is None:
                 self._engine = sqlalchemy.create_engine(self.url, pool_pre_ping=True, poolclass=sqlalchemy.pool.NullPool)
-            self._conn = self._engine.connect()
+            conn = self._conn = self._engine.connect()
             try:
-                self._conn.execute(sqlalchemy.text("SELECT pg_advisory_lock(:k)"), {"k": _key(self.name)})
-                self._conn.commit()
+                conn.execute(sqlalchemy.text("SELECT pg_advisory_lock(:k)"), {"k": _key(self.name)})
+                conn.commit()
             except BaseException:
                 self._close_conn()
                 raise
@@ -90,10 +97,9 @@ class StudyLock:
     def _close_conn(self) -> None:
         from sqlalchemy.exc import SQLAlchemyError
 
-        try:
-            self._conn.close()
-        except SQLAlchemyError:
-            pass
+        if self._conn is not None:
+            with contextlib.suppress(SQLAlchemyError):
+                self._conn.close()
         self._conn = None
 
     def __enter__(self) -> StudyLock:

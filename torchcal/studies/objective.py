@@ -95,7 +95,7 @@ class StudyObjective:
 
     def prepare(self, config) -> PreparedData:
         """Data, structure cross-validation and fit on all poses for ``config``, once per distinct setting."""
-        from torchcal.data.measurements import load_measurements
+        from torchcal.data.measurements import Measurements, load_measurements
         from torchcal.kinematics.robot import load_robot
         from torchcal.stages.geometry import fit_with_selection, with_tool
 
@@ -104,15 +104,17 @@ class StudyObjective:
         key = _digest([source, geometric_settings(config.fit)])
         if key not in self._prepared:
             units = {"joint_unit": config.fit.joint_unit, "length_unit": config.fit.length_unit}
-            holdout = None
+            test: Measurements | None
+            holdout: Measurements | None = None
             if study.train is None:
                 case = self._case(config.twin)
                 robot = with_tool(load_robot(case["robot.yaml"]), config.fit)
                 train = load_measurements(case["train.csv"], robot)
                 test = load_measurements(case["test.csv"], robot)
             else:
-                robot = with_tool(load_robot(study.robot), config.fit)
-                train = load_measurements(study.train, robot, **units)
+                robot_file, train_file = study.measured()
+                robot = with_tool(load_robot(robot_file), config.fit)
+                train = load_measurements(train_file, robot, **units)
                 test = load_measurements(study.test, robot, **units) if study.test else None
                 holdout = load_measurements(study.holdout, robot, **units) if study.holdout else None
             # the structure is cross-validated whatever the heads are (any head makes fit run it)

@@ -109,9 +109,9 @@ def write_study_report(study, config: StudyConfig, study_dir: Path, best_run: di
     if len(config.objectives) == 1 and complete:
         default = [t for t in complete if t.user_attrs.get("default_configuration")]
         best = study.best_trial
-        lines += ["## Best trial", "", f"Trial {best.number}: {config.objectives[0]} = {best.values[0]:.4f}"
-                  f" (held-out test RMS {_mm(best.user_attrs.get('test_rms_mm'))}, "
-                  f"model {best.user_attrs.get('model')}, {best.user_attrs.get('model_size')} head parameters).", ""]
+        lines += ["## Best trial", "", (f"Trial {best.number}: {config.objectives[0]} = {best.values[0]:.4f}"
+                                         f" (held-out test RMS {_mm(best.user_attrs.get('test_rms_mm'))}, "
+                                         f"model {best.user_attrs.get('model')}, {best.user_attrs.get('model_size')} head parameters)."), ""]
         lines += ["```yaml"] + [f"{k}: {v}" for k, v in best.params.items()] + ["```", ""]
         if default:
             d = default[0]
@@ -139,11 +139,11 @@ def write_study_report(study, config: StudyConfig, study_dir: Path, best_run: di
         lines += ["## Best configuration refitted", ""]
         if "test" in best_run:
             final = best_run["test"][best_run["final_stage"]]
-            lines += [f"Full run of trial {best_run['trial']} in `{best_run['run_folder']}`: held-out RMS "
-                      f"{final['position_rms_mm']:.4f} mm ({best_run['final_stage']}).", ""]
+            lines += [(f"Full run of trial {best_run['trial']} in `{best_run['run_folder']}`: held-out RMS "
+                       f"{final['position_rms_mm']:.4f} mm ({best_run['final_stage']})."), ""]
         if "holdout" in best_run:
-            lines += [f"Trial {best_run['trial']} refitted with `fit` in `{best_run['run_folder']}`: RMS on the held-out "
-                      f"series {best_run['holdout']['position_rms_mm']:.4f} mm.", ""]
+            lines += [(f"Trial {best_run['trial']} refitted with `fit` in `{best_run['run_folder']}`: RMS on the held-out "
+                       f"series {best_run['holdout']['position_rms_mm']:.4f} mm."), ""]
         elif "test" not in best_run:
             lines += [f"Trial {best_run['trial']} refitted in `{best_run['run_folder']}` (no held-out file given).", ""]
     lines += ["## All trials", "", "| trial | state | value(s) | test RMS mm | model | params |", "|---|---|---|---|---|---|"]

@@ -108,7 +108,12 @@ def run_study(base, config: StudyConfig, *, workers: int = 1, console=None) -> S
         procs = [ctx.Process(target=_worker_process, args=(base, config, str(study_dir), threads)) for _ in range(workers)]
         for p in procs:
             p.start()
-        _with_progress(lambda: [p.join() for p in procs], study, config, console)
+
+        def join_all() -> None:
+            for p in procs:
+                p.join()
+
+        _with_progress(join_all, study, config, console)
         bad = [p.exitcode for p in procs if p.exitcode != 0]
         if bad:
             raise TorchcalError(f"study '{config.name}': {len(bad)} worker(s) exited with status {bad}")
@@ -161,8 +166,9 @@ def _refit_best_on_files(run_config, config: StudyConfig, best, study_dir: Path,
 
     fit_config = run_config.fit
     units = {"joint_unit": fit_config.joint_unit, "length_unit": fit_config.length_unit}
-    robot = with_tool(load_robot(config.robot), fit_config)
-    train = load_measurements(config.train, robot, **units)
+    robot_file, train_file = config.measured()
+    robot = with_tool(load_robot(robot_file), fit_config)
+    train = load_measurements(train_file, robot, **units)
     result, structure = fit_with_selection(robot, train, fit_config)
     folder = save_fit(study_dir / "best" / "model", robot, train, result, {})
     save_resolved_config(folder / "config.yaml", fit_config)
@@ -181,9 +187,12 @@ def _refit_best_on_files(run_config, config: StudyConfig, best, study_dir: Path,
 
 def _with_progress(job, study, config: StudyConfig, console) -> None:
     """Run ``job`` (blocking) while a progress bar follows the study's finished trials."""
+    import contextlib
     import threading
 
+    from optuna.exceptions import StorageInternalError
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+    from sqlalchemy.exc import SQLAlchemyError
 
     if console is None:
         job()
@@ -195,10 +204,9 @@ def _with_progress(job, study, config: StudyConfig, console) -> None:
 
         def follow() -> None:
             while not stop.wait(1.0):
-                try:
+                # the storage may be locked or out of reach for a moment; the next poll catches up
+                with contextlib.suppress(SQLAlchemyError, StorageInternalError, OSError):
                     progress.update(task, completed=finished(_counts(study)))
-                except Exception:  # the storage may be locked for a moment; the next poll catches up
-                    pass
 
         watcher = threading.Thread(target=follow, daemon=True)
         watcher.start()

@@ -3,13 +3,15 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Literal
 
 from torchcal.core.errors import TorchcalError
 
-OBJECTIVES = {"validation_rms_mm": "minimize", "model_size": "minimize", "fit_seconds": "minimize"}
+Direction = Literal["minimize", "maximize"]
+OBJECTIVES: dict[str, Direction] = {"validation_rms_mm": "minimize", "model_size": "minimize", "fit_seconds": "minimize"}
 SAMPLERS = ("tpe", "random")
 PRUNERS = ("none",)
+_ROBOT_AND_TRAIN = "study.robot and study.train go together: give both to study measured data, or neither for the twin"
 
 
 @dataclass
@@ -79,7 +81,7 @@ class StudyConfig:
         if self.n_trials < 1:
             raise TorchcalError("study.n_trials must be at least 1")
         if (self.robot is None) != (self.train is None):
-            raise TorchcalError("study.robot and study.train go together: give both to study measured data, or neither for the twin")
+            raise TorchcalError(_ROBOT_AND_TRAIN)
         if self.test is not None and self.train is None:
             raise TorchcalError("study.test needs study.train (the twin brings its own test poses)")
         if self.holdout is not None and self.train is None:
@@ -92,8 +94,15 @@ class StudyConfig:
             Distribution.parse(key, spec)
 
     @property
-    def directions(self) -> list[str]:
+    def directions(self) -> list[Direction]:
         return [OBJECTIVES[o] for o in self.objectives]
+
+    def measured(self) -> tuple[str, str]:
+        """The robot file and the training CSV of a study on measured data (``train`` given)."""
+        if self.robot is None or self.train is None:
+            raise TorchcalError(_ROBOT_AND_TRAIN)
+        return self.robot, self.train
+
 
 
 @dataclass(frozen=True)
@@ -127,26 +136,40 @@ class Distribution:
             raise TorchcalError(f"study.search_space['{key}']: needs low < high")
         return cls(key, kind, spec["low"], spec["high"], spec.get("step"), bool(spec.get("log", False)))
 
+    def _choices(self) -> tuple:
+        """The choices of a categorical parameter (``parse`` always sets them)."""
+        if self.choices is None:
+            raise TorchcalError(f"study.search_space['{self.key}']: categorical needs a non-empty 'choices' list")
+        return self.choices
+
+    def _bounds(self) -> tuple[float, float]:
+        """``(low, high)`` of an int or float parameter (``parse`` always sets them)."""
+        if self.low is None or self.high is None:
+            raise TorchcalError(f"study.search_space['{self.key}']: needs low < high")
+        return self.low, self.high
+
     def contains(self, value: Any) -> bool:
         """Whether ``value`` is a point of this distribution (e.g. the default configuration's)."""
         if self.kind == "categorical":
-            return value in self.choices
-        if not isinstance(value, (int, float)) or isinstance(value, bool) or not self.low <= value <= self.high:
+            return value in self._choices()
+        low, high = self._bounds()
+        if not isinstance(value, (int, float)) or isinstance(value, bool) or not low <= value <= high:
             return False
         if self.kind == "int" and int(value) != value:
             return False
         if self.step:
-            k = (value - self.low) / self.step
+            k = (value - low) / self.step
             return abs(k - round(k)) < 1e-9
         return True
 
     def suggest(self, trial) -> Any:
         """The value an Optuna trial suggests for this parameter."""
         if self.kind == "categorical":
-            return trial.suggest_categorical(self.key, list(self.choices))
+            return trial.suggest_categorical(self.key, list(self._choices()))
+        low, high = self._bounds()
         if self.kind == "int":
-            return trial.suggest_int(self.key, int(self.low), int(self.high), step=int(self.step or 1), log=self.log)
-        return trial.suggest_float(self.key, float(self.low), float(self.high), step=self.step, log=self.log)
+            return trial.suggest_int(self.key, int(low), int(high), step=int(self.step or 1), log=self.log)
+        return trial.suggest_float(self.key, float(low), float(high), step=self.step, log=self.log)
 
 
 def search_space(config: StudyConfig) -> list[Distribution]:

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
+from typing import Any
 
 from torchcal.core.errors import TorchcalError
 from torchcal.studies.spec import StudyConfig
@@ -61,6 +62,9 @@ def _storage_class():
 
         def _get_stale_trial_ids(self, study_id: int) -> list[int]:
             stale = super()._get_stale_trial_ids(study_id)
+            # open_storage always passes a heartbeat interval, and Optuna looks for stale trials
+            # only when heartbeats are enabled (its own _get_stale_trial_ids asserts the same)
+            assert self.heartbeat_interval is not None
             grace = self.grace_period or 2 * self.heartbeat_interval
             with self.scoped_session() as session:
                 silent = {i for (i,) in session.query(models.TrialModel.trial_id)
@@ -91,12 +95,13 @@ def open_storage(config: StudyConfig, study_dir: Path):
     if url.startswith("sqlite"):
         study_dir.mkdir(parents=True, exist_ok=True)
         # Several local workers share the file; wait for its lock instead of failing at once.
-        engine_kwargs = {"connect_args": {"timeout": 60}}
+        engine_kwargs: dict[str, Any] = {"connect_args": {"timeout": 60}}
     else:
         engine_kwargs = {"pool_pre_ping": True}
     # Workers on several machines may start together on an empty database: all of them try to
     # create Optuna's tables and all but one fail on the catalog's unique index. The tables then
     # exist, so opening again succeeds.
+    error: Exception  # set before every break; the loop otherwise returns
     for attempt in range(CREATE_ATTEMPTS):
         try:
             return _storage_class()(

@@ -65,11 +65,12 @@ def _database_cause(exc: BaseException) -> BaseException | None:
     """The database error behind ``exc``, if any (Optuna may raise another error while handling one)."""
     errors = _database_errors()
     seen = set()
-    while exc is not None and id(exc) not in seen:
-        if isinstance(exc, errors):
-            return exc
-        seen.add(id(exc))
-        exc = exc.__cause__ or exc.__context__
+    current: BaseException | None = exc
+    while current is not None and id(current) not in seen:
+        if isinstance(current, errors):
+            return current
+        seen.add(id(current))
+        current = current.__cause__ or current.__context__
     return None
 
 
