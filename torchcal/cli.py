@@ -128,9 +128,7 @@ def _cmd_study(args) -> int:
     if args.n_trials:
         study.n_trials = args.n_trials
     outcome = run_study(base, study, workers=args.workers, console=Console(stderr=True))
-    c = outcome.counts
-    print(f"study {study.name}: {c['COMPLETE']} complete, {c['PRUNED']} pruned, {c['FAIL']} failed; "
-          f"best trial {outcome.best_trial}; report {outcome.report}")
+    print(outcome.summary(study.name))
     return 0
 
 

@@ -15,6 +15,7 @@ import pytest
 REPO = Path(__file__).resolve().parents[2]
 
 # A study small enough for CI: a 300-pose twin, Mayfly with 30 iterations, trials of about a second.
+# The float margin makes an exact repeat of a configuration a repeated sampler stream, not chance.
 SMALL = [
     "study=elm_mayfly",
     "measurement=twin_small",
@@ -22,7 +23,8 @@ SMALL = [
     "twin.n_train=300",
     "twin.n_test=100",
     "fit.mayfly_iterations=30",
-    "study.search_space={fit.residual_hidden: {type: int, low: 20, high: 60, step: 10}, fit.mayfly_population: {type: int, low: 6, high: 12, step: 2}}",
+    "study.search_space={fit.residual_hidden: {type: int, low: 20, high: 60, step: 10}, "
+    "fit.mayfly_population: {type: int, low: 6, high: 12, step: 2}, fit.residual_margin: {type: float, low: 0.03, high: 0.08}}",
     "fit.residual_hidden=40",
     "fit.mayfly_population=8",
     "study.heartbeat_interval_s=1",
@@ -31,16 +33,17 @@ SMALL = [
 ]
 
 
-def study_command(name: str, n_trials: int, storage: str | None = None, workers: int = 1) -> list[str]:
+def study_command(name: str, n_trials: int, storage: str | None = None, workers: int = 1, *extra: str) -> list[str]:
     cmd = [sys.executable, "-m", "torchcal.cli", "study", *SMALL, f"study.name={name}", f"study.n_trials={n_trials}",
-           "--workers", str(workers)]
+           "--workers", str(workers), *extra]
     if storage:
         cmd += ["--storage", storage]
     return cmd
 
 
 def start(cmd: list[str], cwd: Path) -> subprocess.Popen:
-    env = {**os.environ, "TORCHCAL_CONFIG_DIR": str(REPO / "configs"), "OMP_NUM_THREADS": "1"}
+    env = {**os.environ, "TORCHCAL_CONFIG_DIR": str(REPO / "configs"), "OMP_NUM_THREADS": "1",
+           "PYTHONPATH": os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")])}
     return subprocess.Popen(cmd, cwd=cwd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
                             start_new_session=True)
 
@@ -51,12 +54,39 @@ def finish(proc: subprocess.Popen, timeout: float = 400) -> str:
     return out
 
 
+def url(storage: str) -> str:
+    """``storage`` with the driver the study command would use."""
+    from torchcal.studies.spec import StudyConfig
+    from torchcal.studies.storage import storage_url
+
+    return storage_url(StudyConfig(storage=storage), Path("."))
+
+
 def load(name: str, storage: str) -> optuna.Study:
-    return optuna.load_study(study_name=name, storage=storage)
+    return optuna.load_study(study_name=name, storage=url(storage))
+
+
+def evaluated_twice(trials) -> list[int]:
+    """Numbers of complete trials that evaluated a configuration an earlier complete trial had evaluated."""
+    from torchcal.studies.objective import same_configuration
+
+    done = sorted((t for t in trials if t.state == optuna.trial.TrialState.COMPLETE and "repeat_of" not in t.user_attrs),
+                  key=lambda t: t.number)
+    return [t.number for k, t in enumerate(done) if any(same_configuration(t, o) for o in done[:k])]
+
+
+def assert_budget_kept(trials, n_trials: int) -> None:
+    """Exactly ``n_trials`` finished, none queued or running, nothing evaluated twice."""
+    from optuna.trial import TrialState
+
+    states = [t.state for t in trials]
+    assert sum(s in (TrialState.COMPLETE, TrialState.PRUNED) for s in states) == n_trials, states
+    assert TrialState.WAITING not in states and TrialState.RUNNING not in states, states
+    assert evaluated_twice(trials) == []
 
 
 def kill_during_second_trial(proc: subprocess.Popen, name: str, storage: str, timeout: float = 300) -> int:
-    """SIGKILL the study's process group once a trial has finished and another is running."""
+    """SIGKILL the study's process group once a trial has finished and one of its own is running."""
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         if proc.poll() is not None:
@@ -67,7 +97,8 @@ def kill_during_second_trial(proc: subprocess.Popen, name: str, storage: str, ti
             trials = []
         done = [t for t in trials if t.state.is_finished()]
         # mid-trial: its parameters are drawn and the fit is under way
-        running = [t for t in trials if t.state == optuna.trial.TrialState.RUNNING and t.params]
+        running = [t for t in trials if t.state == optuna.trial.TrialState.RUNNING and t.params
+                   and t.user_attrs.get("worker_pid") == proc.pid]
         if done and running:
             os.killpg(proc.pid, signal.SIGKILL)
             proc.wait()

@@ -3,11 +3,9 @@
 from __future__ import annotations
 
 import pytest
-import torch
 
 from torchcal.config import compose_run_config
 from torchcal.core.errors import TorchcalError
-from torchcal.residual.base import rms
 from torchcal.studies.runner import run_study
 from torchcal.studies.spec import Distribution, StudyConfig
 
@@ -41,34 +39,80 @@ def test_unknown_objective_and_empty_space_rejected():
         StudyConfig().validate()
 
 
-def test_objective_is_the_heads_validation_rms_and_size_grows_with_hidden(tmp_path):
-    from torchcal.residual.elm import ELM
-    from torchcal.studies.objective import StudyObjective
+def _fit_as_the_command_does(base, values: dict, train_csv, robot_yaml, folder):
+    """``fit`` with the study's values, independently of the study: its kept model's CV RMS and folder."""
+    import json
 
-    base = _small_base(tmp_path)
-    study = StudyConfig(name="size", n_trials=3, objectives=["validation_rms_mm", "model_size"], pruner="none",
-                        sampler="random", refit_best=False,
-                        search_space={"fit.residual_hidden": {"type": "categorical", "choices": [10, 40, 160]}})
-    outcome = run_study(base, study)
+    from torchcal.data.measurements import load_measurements
+    from torchcal.kinematics.robot import load_robot
+    from torchcal.stages.geometry import fit_with_selection, save_fit, with_tool
+    from torchcal.stages.residual import fit_residual_stage
+    from torchcal.studies.objective import apply_values
+
+    config = apply_values(base, values).fit
+    robot = with_tool(load_robot(robot_yaml), config)
+    train = load_measurements(train_csv, robot)
+    result, structure = fit_with_selection(robot, train, config)
+    save_fit(folder, robot, train, result, {})
+    fit_residual_stage(folder, train, config, structure=structure)
+    selection = json.loads((folder / "model_selection.json").read_text())
+    return next(r["cv_rms_mm"] for r in selection["candidates"] if r["name"] == selection["chosen"])
+
+
+def test_objective_is_the_cv_rms_of_what_fit_keeps(tmp_path):
+    """Each trial's value is the CV RMS that `fit` itself reports for the kept model with those settings."""
     import optuna
 
-    trials = optuna.load_study(study_name="size", storage=outcome.storage).trials
+    base = _small_base(tmp_path, residual_hidden=20)
+    study = StudyConfig(name="cv", n_trials=3, objectives=["validation_rms_mm", "model_size"], sampler="random",
+                        refit_best=False,
+                        search_space={"fit.gravity_compliance": {"type": "categorical", "choices": ["none", "wrist", "elbow+wrist"]}})
+    outcome = run_study(base, study)
+    trials = optuna.load_study(study_name="cv", storage=outcome.storage).trials
     assert len(trials) == 3 and all(t.state.name == "COMPLETE" for t in trials)
-    # independent recomputation of one trial's objective from the same split and seed
-    objective = StudyObjective(base, study, outcome.study_dir)
-    t = trials[0]
-    hidden = t.params["fit.residual_hidden"]
-    data = objective.prepare(base)
-    head = ELM(hidden=hidden, seed=base.fit.seed).fit(data.x[data.train], data.y[data.train])
-    assert t.values[0] == pytest.approx(rms(head.predict(data.x[data.val]) - data.y[data.val]), rel=1e-9)
-    # model size is the head's parameter count, so it grows with the hidden layer
-    by_hidden = sorted((tr.params["fit.residual_hidden"], tr.values[1]) for tr in trials)
-    sizes = [size for _, size in by_hidden]
-    assert len(set(h for h, _ in by_hidden)) == 1 or sizes == sorted(sizes)
-    assert sizes[0] >= 10 * 3
+    case = next((outcome.study_dir / "cases").iterdir())
+    for t in trials:
+        if "repeat_of" in t.user_attrs:
+            continue
+        expected = _fit_as_the_command_does(base, t.params, case / "train.csv", case / "robot.yaml",
+                                            tmp_path / f"fit{t.number}")
+        assert t.values[0] == pytest.approx(expected, rel=1e-9)
+        assert t.values[1] == t.user_attrs["model_size"]
+        assert "regions" in t.user_attrs["cv_protocol"]
+    values = {t.params["fit.gravity_compliance"]: t.values[0] for t in trials}
+    if "none" in values and "wrist" in values:  # the twin sags under gravity: the term lowers the CV RMS
+        assert values["wrist"] < values["none"]
     report = (outcome.study_dir / "report.md").read_text()
     assert "Pareto front" in report and (outcome.study_dir / "figures" / "tradeoff.png").is_file()
-    torch.testing.assert_close(torch.tensor(float(t.user_attrs["geometric_validation_rms_mm"])), torch.tensor(rms(data.y[data.val])))
+
+
+def test_objective_on_a_held_out_series(tmp_path):
+    """With study.holdout the value is `evaluate`'s RMS, on that file, of the model `fit` makes on train."""
+    import optuna
+
+    from torchcal.instruments.tracker.evaluate import evaluate
+    from torchcal.sim.twin import TwinConfig, write_twin_case
+
+    case = write_twin_case(tmp_path / "case", TwinConfig(seed=3, n_train=200, n_test=120, gravity=True, gear=True))
+    base = _small_base(tmp_path)
+    study = StudyConfig(name="held", n_trials=2, sampler="random", refit_best=True, robot=str(case["robot.yaml"]),
+                        train=str(case["train.csv"]), holdout=str(case["test.csv"]), holdout_register=True,
+                        search_space={"fit.gravity_compliance": {"type": "categorical", "choices": ["none", "wrist"]}})
+    outcome = run_study(base, study)
+    trials = optuna.load_study(study_name="held", storage=outcome.storage).trials
+    for t in trials:
+        if "repeat_of" in t.user_attrs:
+            continue
+        folder = tmp_path / f"fit{t.number}"
+        _fit_as_the_command_does(base, t.params, case["train.csv"], case["robot.yaml"], folder)
+        expected = evaluate(folder, case["test.csv"], register=True)["position_rms_mm"]
+        assert t.values[0] == pytest.approx(expected, rel=1e-9)
+        assert t.user_attrs["cv_rms_mm"] > 0 and t.user_attrs["holdout_rms_mm"] == t.values[0]
+    # the refitted best scores the held-out series as its trial did
+    best = min(trials, key=lambda t: t.values[0])
+    assert outcome.best_run["holdout"]["position_rms_mm"] == pytest.approx(best.values[0], rel=1e-9)
+    with pytest.raises(TorchcalError, match="holdout needs"):
+        StudyConfig(holdout="b.csv", search_space=study.search_space).validate()
 
 
 def test_distribution_contains():

@@ -1,14 +1,16 @@
-"""One trial of a study: the run configuration with the trial's values, scored on validation.
+"""One trial of a study: ``fit`` with the trial's settings, scored as ``fit`` scores its choices.
 
-The objective is the validation RMS (mm) of the residual head on a held-out part of the
-*training* poses: one fold of the fit's own folds (:mod:`torchcal.data.folds`,
-whole configuration regions by default, so that near-twins of validation poses never train the
-head), with the head fitted exactly as in the gate of ``fit`` (its own tuning on a slice of the
-training part, never on the validation poses). The twin's
-test poses are scored too but only recorded (``test_rms_mm``), so a study never selects on data
-it is judged by. Data and the
-geometric fit depend only on the twin and geometric settings, so they are computed once per
-worker process and reused by every trial that shares them.
+A trial runs what ``fit`` runs on the training poses, with the same code: the structure chosen
+by cross-validation on the folds of ``fit.split`` (grouped configuration regions by default,
+:mod:`torchcal.model_selection`), the residual heads judged on the same folds by the gate of
+:mod:`torchcal.stages.residual`, and the kept head fitted on all training poses. The objective is
+the cross-validated RMS (mm) of the model that gate keeps, so a study ranks configurations by the
+evidence ``fit`` decides by and its best trial is a model ``fit`` would keep. With
+``study.holdout`` (another measurement series of the same robot) the objective is instead the
+RMS of that model on the held-out series. The twin's test poses (or ``study.test``) are scored
+too but only recorded (``test_rms_mm``). The geometric part (data, structure cross-validation,
+fit on all poses) depends only on the data and the geometric settings, so it is computed once
+per worker process and reused by every trial that shares them.
 """
 
 from __future__ import annotations
@@ -21,14 +23,12 @@ from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
-import torch
-
 from torchcal.core.errors import TorchcalError
 from torchcal.studies.spec import StudyConfig, search_space
 
-# Fit settings that change the geometric stage; the others only change the residual head.
-GEOMETRIC_KEYS = ("method", "parallel_threshold_deg", "joint_unit", "length_unit", "device", "tool_mm",
-                  "gravity_compliance", "joint_harmonics", "split", "cv_folds", "cv_groups")
+# Fit settings that only change the residual heads; every other one changes the geometric part.
+HEAD_KEYS = ("residual", "head_time_check", "residual_hidden", "mayfly_population", "mayfly_iterations",
+             "residual_margin", "progress")
 
 
 def apply_values(config, values: dict[str, Any]):
@@ -47,27 +47,39 @@ def _digest(obj: Any) -> str:
     return hashlib.sha256(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()[:12]
 
 
+def geometric_settings(fit_config) -> dict[str, Any]:
+    """The fit settings the geometric part depends on."""
+    return {k: v for k, v in asdict(fit_config).items() if k not in HEAD_KEYS}
+
+
 @dataclass
 class PreparedData:
-    """A twin case loaded and geometrically fitted, plus the residual features and split."""
+    """Training data fitted as ``fit`` does, before its heads: structure CV and the fit on all poses."""
 
     robot: Any
+    train: Any
     result: Any
-    features: Any
-    x: torch.Tensor
-    y: torch.Tensor
-    train: torch.Tensor
-    val: torch.Tensor
-    x_test: torch.Tensor | None
-    y_test: torch.Tensor | None
+    structure: Any
+    test: Any | None
+    holdout: Any | None
+
+
+def same_configuration(trial, other) -> bool:
+    """Whether two trials have the same parameters (the same configuration)."""
+    return other.params.keys() == trial.params.keys() and all(other.params[k] == v for k, v in trial.params.items())
 
 
 class StudyObjective:
-    """Callable Optuna objective over ``base`` (a RunConfig) and ``study``'s search space."""
+    """Callable Optuna objective over ``base`` (a RunConfig) and ``study``'s search space.
 
-    def __init__(self, base, study: StudyConfig, study_dir: Path) -> None:
+    ``on_start(trial)``, if given, is called first thing in every trial (the worker hands its
+    study lock back there: the trial is taken).
+    """
+
+    def __init__(self, base, study: StudyConfig, study_dir: Path, on_start=None) -> None:
         self.base, self.study, self.study_dir = base, study, Path(study_dir)
         self.space = search_space(study)
+        self.on_start = on_start
         self._prepared: dict[str, PreparedData] = {}
 
     # -------------------------------------------------------------------- data
@@ -82,88 +94,103 @@ class StudyObjective:
         return paths
 
     def prepare(self, config) -> PreparedData:
-        """Twin data and geometric fit for ``config``, computed once per distinct setting."""
+        """Data, structure cross-validation and fit on all poses for ``config``, once per distinct setting."""
         from torchcal.data.measurements import Measurements, load_measurements
-        from torchcal.identify.joint_errors import JointSpaceErrors
         from torchcal.kinematics.robot import load_robot
-        from torchcal.residual.features import JointFeatures
-        from torchcal.stages.geometry import fit, make_config_folds, with_tool
-        from torchcal.stages.residual import residual_targets_mm
+        from torchcal.stages.geometry import fit_with_selection, with_tool
 
-        fit_geometry = {k: getattr(config.fit, k) for k in GEOMETRIC_KEYS}
-        source = asdict(config.twin) if self.study.train is None else [self.study.robot, self.study.train, self.study.test]
-        key = _digest([source, fit_geometry, config.fit.seed])
+        study = self.study
+        source = asdict(config.twin) if study.train is None else [study.robot, study.train, study.test, study.holdout]
+        key = _digest([source, geometric_settings(config.fit)])
         if key not in self._prepared:
             units = {"joint_unit": config.fit.joint_unit, "length_unit": config.fit.length_unit}
-            if self.study.train is None:
+            test: Measurements | None
+            holdout: Measurements | None = None
+            if study.train is None:
                 case = self._case(config.twin)
                 robot = with_tool(load_robot(case["robot.yaml"]), config.fit)
                 train = load_measurements(case["train.csv"], robot)
-                test: Measurements | None = load_measurements(case["test.csv"], robot)
+                test = load_measurements(case["test.csv"], robot)
             else:
-                assert self.study.robot is not None  # validated: robot and train go together
-                robot = with_tool(load_robot(self.study.robot), config.fit)
-                train = load_measurements(self.study.train, robot, **units)
-                test = load_measurements(self.study.test, robot, **units) if self.study.test else None
-            geometry_only = replace(config.fit, residual="none")
-            result = fit(robot, train, geometry_only)
-            features = JointFeatures(robot.joint_limits.to(torch.float64), None)
-            idx_train, idx_val = (torch.as_tensor(i) for i in make_config_folds(robot, train, geometry_only).splits()[0])
-            terms = JointSpaceErrors.of(result)
-
-            def targets(data):
-                return residual_targets_mm(result.model, result.x, data, terms.effective_joints(robot, data.q))
-
-            self._prepared[key] = PreparedData(
-                robot, result, features, features(train.q, None), targets(train), idx_train, idx_val,
-                features(test.q, None) if test is not None else None, targets(test) if test is not None else None,
-            )
+                robot_file, train_file = study.measured()
+                robot = with_tool(load_robot(robot_file), config.fit)
+                train = load_measurements(train_file, robot, **units)
+                test = load_measurements(study.test, robot, **units) if study.test else None
+                holdout = load_measurements(study.holdout, robot, **units) if study.holdout else None
+            # the structure is cross-validated whatever the heads are (any head makes fit run it)
+            result, structure = fit_with_selection(robot, train, replace(config.fit, residual="auto", progress=False))
+            self._prepared[key] = PreparedData(robot, train, result, structure, test, holdout)
         return self._prepared[key]
 
     # ------------------------------------------------------------------- trial
+    def _repeat_of(self, trial):
+        """A complete trial with this trial's configuration, if the sampler proposed one again."""
+        from optuna.trial import TrialState
+
+        for other in trial.study.get_trials(deepcopy=False, states=(TrialState.COMPLETE,)):
+            if other.number != trial.number and same_configuration(trial, other):
+                return other
+        return None
+
     def __call__(self, trial) -> float | tuple[float, ...]:
-        import optuna
-
-        from torchcal.config import save_resolved_config
-        from torchcal.residual.base import rms
-        from torchcal.residual.selection import fit_before_gate
-        from torchcal.stages.residual import _candidates
-
+        if self.on_start is not None:
+            self.on_start(trial)
         values = {d.key: d.suggest(trial) for d in self.space}
+        trial.set_user_attr("worker_pid", os.getpid())
+        repeat = self._repeat_of(trial)
+        if repeat is not None:
+            # Asked again for a configuration already scored (TPE converging, or a small grid):
+            # its result is known and deterministic, so it is recorded, not recomputed.
+            trial.set_user_attr("repeat_of", repeat.number)
+            for k, v in repeat.user_attrs.items():
+                if k not in ("worker_pid", "default_configuration", "repeat_of"):
+                    trial.set_user_attr(k, v)
+            return repeat.values[0] if len(self.study.objectives) == 1 else tuple(repeat.values)
         config = apply_values(self.base, values)
         config.fit.progress = False
-        trial.set_user_attr("worker_pid", os.getpid())
+        return self.score(trial, config)
+
+    def score(self, trial, config) -> float | tuple[float, ...]:
+        """Fit ``config`` as ``fit`` does and record the numbers; the objective value(s)."""
+        from torchcal.config import save_resolved_config
+        from torchcal.core.metrics import position_metrics
+        from torchcal.residual import head_names
+        from torchcal.stages.geometry import held_out_errors, save_fit
+        from torchcal.stages.residual import fit_residual_stage
+        from torchcal.stages.store import load_model
+
         trial_dir = self.study_dir / "trials" / f"{trial.number:04d}"
         save_resolved_config(trial_dir / "config.yaml", config)
         started = time.perf_counter()
         data = self.prepare(config)
-        single_objective = len(self.study.objectives) == 1
-        scores: dict[str, float] = {}
-        best_head, best_score = None, float("inf")
-        for head in _candidates(config.fit):
-            if single_objective and hasattr(head, "on_iteration"):
-                def report(step: int, value: float) -> None:
-                    trial.report(value, step)
-                    if trial.should_prune():
-                        raise optuna.TrialPruned(f"validation RMS {value:.4f} mm at iteration {step}")
-
-                head.on_iteration = report
-            # as the gate of `fit` does: tuned on a slice of the training part, scored on validation
-            fit_before_gate(head, data.x[data.train], data.y[data.train], seed=config.fit.seed)
-            scores[head.name] = rms(head.predict(data.x[data.val]) - data.y[data.val])
-            if scores[head.name] < best_score:
-                best_head, best_score = head, scores[head.name]
+        folder = save_fit(trial_dir / "model", data.robot, data.train, data.result, {})
+        if head_names(config.fit.residual):
+            selection = fit_residual_stage(folder, data.train, config.fit, structure=data.structure)
+            comparison, kept = selection["comparison"], selection["kept"]
+        else:
+            comparison, kept = data.structure.comparison.to_dict(), None
         seconds = time.perf_counter() - started
-        size = sum(t.numel() for t in best_head.module().state_dict().values()) if best_head is not None else 0
-        test_rms = None
-        if data.x_test is not None and data.y_test is not None:  # set together
-            test_rms = rms(best_head.predict(data.x_test) - data.y_test) if best_head is not None else rms(data.y_test)
-        trial.set_user_attr("head", best_head.name if best_head is not None else None)
-        trial.set_user_attr("validation_rms_by_head_mm", scores)
-        trial.set_user_attr("geometric_validation_rms_mm", rms(data.y[data.val]))
-        trial.set_user_attr("test_rms_mm", test_rms)
+        chosen = next(r for r in comparison["candidates"] if r["name"] == comparison["chosen"])
+        stored = load_model(folder)
+        size = sum(t.numel() for t in stored.residual.head.module().state_dict().values()) if stored.residual else 0
+
+        def rms_mm(data_set, register: bool = False) -> float | None:
+            if data_set is None:
+                return None
+            return position_metrics(held_out_errors(stored, data_set, register=register))["position_rms_mm"]
+
+        holdout_rms = rms_mm(data.holdout, self.study.holdout_register)
+        trial.set_user_attr("model", comparison["chosen"])
+        trial.set_user_attr("head", kept)
+        trial.set_user_attr("cv_rms_mm", chosen["cv_rms_mm"])
+        trial.set_user_attr("cv_protocol", comparison["protocol"])
+        trial.set_user_attr("cv_rms_by_candidate_mm", {r["name"]: r["cv_rms_mm"] for r in comparison["candidates"]
+                                                       if r["cv_rms_mm"] == r["cv_rms_mm"]})
+        trial.set_user_attr("test_rms_mm", rms_mm(data.test))
+        trial.set_user_attr("holdout_rms_mm", holdout_rms)
         trial.set_user_attr("model_size", size)
         trial.set_user_attr("fit_seconds", seconds)
-        measured = {"validation_rms_mm": best_score, "model_size": float(size), "fit_seconds": seconds}
+        score = holdout_rms if holdout_rms is not None else chosen["cv_rms_mm"]
+        measured = {"validation_rms_mm": score, "model_size": float(size), "fit_seconds": seconds}
         out = tuple(measured[o] for o in self.study.objectives)
-        return out[0] if single_objective else out
+        return out[0] if len(out) == 1 else out

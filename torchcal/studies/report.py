@@ -100,22 +100,24 @@ def write_study_report(study, config: StudyConfig, study_dir: Path, best_run: di
     counts = {s.name.lower(): sum(t.state == s for t in trials) for s in TrialState}
     lines.append("Trials: " + ", ".join(f"{n} {k}" for k, n in counts.items() if n) + ".")
     lines.append(f"Objective(s): {', '.join(f'{o} ({d})' for o, d in zip(config.objectives, config.directions))}; "
-                 "validation = the split of the training poses that the residual gate uses, never the test poses.")
+                 + (f"validation = RMS on the held-out series `{config.holdout}` of the model `fit` makes on the "
+                    "training file" if config.holdout else
+                    "validation = cross-validated RMS of the model `fit` keeps, on the folds it decides by")
+                 + "; test poses are never optimized.")
     lines += ["", "![history](figures/history.png)", ""]
     complete = [t for t in trials if t.state == TrialState.COMPLETE]
     if len(config.objectives) == 1 and complete:
         default = [t for t in complete if t.user_attrs.get("default_configuration")]
         best = study.best_trial
-        lines += ["## Best trial", "",
-                  (f"Trial {best.number}: {config.objectives[0]} = {best.values[0]:.4f}"
-                   f" (held-out test RMS {_mm(best.user_attrs.get('test_rms_mm'))}, "
-                   f"head {best.user_attrs.get('head')}, {best.user_attrs.get('model_size')} parameters)."), ""]
+        lines += ["## Best trial", "", (f"Trial {best.number}: {config.objectives[0]} = {best.values[0]:.4f}"
+                                         f" (held-out test RMS {_mm(best.user_attrs.get('test_rms_mm'))}, "
+                                         f"model {best.user_attrs.get('model')}, {best.user_attrs.get('model_size')} head parameters)."), ""]
         lines += ["```yaml"] + [f"{k}: {v}" for k, v in best.params.items()] + ["```", ""]
         if default:
             d = default[0]
             lines.append(f"Default configuration (trial {d.number}): {config.objectives[0]} = {d.values[0]:.4f}, "
                          f"test RMS {_mm(d.user_attrs.get('test_rms_mm'))}; the best trial is "
-                         f"{100 * (1 - best.values[0] / d.values[0]):.1f} % lower on validation.")
+                         f"{100 * (1 - best.values[0] / d.values[0]):.1f} % lower on validation." if d.values[0] > 0 else "")
             lines.append("")
         if len(complete) >= 3 and len(best.params) >= 1:
             try:
@@ -139,13 +141,20 @@ def write_study_report(study, config: StudyConfig, study_dir: Path, best_run: di
             final = best_run["test"][best_run["final_stage"]]
             lines += [(f"Full run of trial {best_run['trial']} in `{best_run['run_folder']}`: held-out RMS "
                        f"{final['position_rms_mm']:.4f} mm ({best_run['final_stage']})."), ""]
-        else:
+        if "holdout" in best_run:
+            lines += [(f"Trial {best_run['trial']} refitted with `fit` in `{best_run['run_folder']}`: RMS on the held-out "
+                       f"series {best_run['holdout']['position_rms_mm']:.4f} mm."), ""]
+        elif "test" not in best_run:
             lines += [f"Trial {best_run['trial']} refitted in `{best_run['run_folder']}` (no held-out file given).", ""]
-    lines += ["## All trials", "", "| trial | state | value(s) | test RMS mm | params |", "|---|---|---|---|---|"]
+    lines += ["## All trials", "", "| trial | state | value(s) | test RMS mm | model | params |", "|---|---|---|---|---|---|"]
     for t in trials:
         values = ", ".join(f"{v:.4f}" for v in t.values) if t.values else "-"
         test = t.user_attrs.get("test_rms_mm")
-        lines.append(f"| {t.number} | {t.state.name.lower()} | {values} | {'-' if test is None else f'{test:.4f}'} | {t.params} |")
+        model = t.user_attrs.get("model", "-")
+        if "repeat_of" in t.user_attrs:
+            model += f" (repeat of trial {t.user_attrs['repeat_of']}, not refitted)"
+        lines.append(f"| {t.number} | {t.state.name.lower()} | {values} | {'-' if test is None else f'{test:.4f}'} | "
+                     f"{model} | {t.params} |")
     path = study_dir / "report.md"
     atomic_write_text(path, "\n".join(lines) + "\n")
     return path

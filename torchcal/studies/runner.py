@@ -1,45 +1,33 @@
-"""Run a study: workers ask for trials until the budget is met, then the best trial is refitted.
+"""Run a study: local workers take trials until the budget is met, then the best trial is refitted.
 
-The budget counts finished trials (complete or pruned) plus those running or queued, over every
-worker on every machine, so two workers never overshoot by more than the trials they start at the
-same instant. A worker started again after a crash resumes: finished trials are kept, the killed
-trial (its heartbeat stale) is failed and queued again with the same parameters.
+The budget is ``n_trials`` finished trials (complete or pruned) as the database counts them, over
+every worker on every machine and every restart (:mod:`torchcal.studies.worker`). A killed trial is
+failed once its heartbeat is stale, queued again and run by whichever worker is alive. The outcome
+carries the counts of every state as the database has them, so the command's last line can say
+when a study ends short of its budget.
 """
 
 from __future__ import annotations
 
 import multiprocessing
 import os
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 
 from torchcal.core.errors import TorchcalError
 from torchcal.studies.spec import StudyConfig
-
-MAX_CONSECUTIVE_FAILURES = 3
+from torchcal.studies.worker import counts as _counts
+from torchcal.studies.worker import finished, work
 
 
 def study_folder(base, study: StudyConfig) -> Path:
     return Path(base.out) / "studies" / study.name
 
 
-def _counts(study) -> dict[str, int]:
-    from optuna.trial import TrialState
-
-    counts = {state.name: 0 for state in TrialState}
-    for trial in study.get_trials(deepcopy=False):
-        counts[trial.state.name] += 1
-    return counts
-
-
-def _budget_used(study) -> int:
-    c = _counts(study)
-    return c["COMPLETE"] + c["PRUNED"] + c["RUNNING"] + c["WAITING"]
-
-
 def _enqueue_default(study, base, config: StudyConfig) -> None:
     """Queue the run configuration's own values as the first trial, so the study compares with it
-    (only when they lie inside the search space)."""
+    (only when they lie inside the search space, and only in a new study)."""
     from torchcal.studies.spec import search_space
 
     if study.get_trials(deepcopy=False):
@@ -55,83 +43,72 @@ def _enqueue_default(study, base, config: StudyConfig) -> None:
     study.enqueue_trial(params, user_attrs={"default_configuration": True}, skip_if_exists=True)
 
 
-def work(base, config: StudyConfig, study_dir: str, threads: int = 1, worker: int = 0) -> int:
-    """One worker: run trials of the shared study until its budget is met; returns trials run."""
-    import optuna
-    import torch
-
-    from torchcal.studies.objective import StudyObjective
-    from torchcal.studies.storage import open_study
-
-    torch.set_num_threads(max(1, threads))
-    optuna.logging.set_verbosity(optuna.logging.WARNING)
-    study = open_study(config, Path(study_dir), worker)
-    objective = StudyObjective(base, config, Path(study_dir))
-    ran, failures = 0, 0
-    while True:
-        optuna.storages.fail_stale_trials(study)
-        if _budget_used(study) >= config.n_trials:
-            return ran
-        before = _counts(study)["FAIL"]
-        study.optimize(objective, n_trials=1, catch=(TorchcalError, RuntimeError, ValueError))
-        ran += 1
-        failures = failures + 1 if _counts(study)["FAIL"] > before else 0
-        if failures >= MAX_CONSECUTIVE_FAILURES:
-            raise TorchcalError(f"study '{config.name}': {failures} trials in a row failed; see the failed trials' messages")
-
-
-def _run_waiting(base, config: StudyConfig, study, study_dir: Path, threads: int) -> None:
-    from optuna.trial import TrialState
-
-    from torchcal.studies.objective import StudyObjective
-
-    objective = None
-    while study.get_trials(deepcopy=False, states=(TrialState.WAITING,)) and _budget_used(study) <= config.n_trials:
-        objective = objective or StudyObjective(base, config, study_dir)
-        study.optimize(objective, n_trials=1, catch=(TorchcalError, RuntimeError, ValueError))
+def _worker_process(base, config: StudyConfig, study_dir: str, threads: int) -> None:
+    """A local worker process: a user-facing error is one line on stderr and exit status 1."""
+    try:
+        work(base, config, study_dir, threads)
+    except TorchcalError as exc:
+        print(f"torchcal: error: {exc}", file=sys.stderr)
+        sys.exit(1)
 
 
 @dataclass
 class StudyOutcome:
-    """What a finished study produced."""
+    """What a finished study produced; ``counts`` are the database's trials per state at the end."""
 
     study_dir: Path
     storage: str
     counts: dict[str, int]
+    n_trials: int
     best_trial: int | None
     report: Path | None
     best_run: dict | None
+
+    @property
+    def short_by(self) -> int:
+        """Finished trials still missing from the budget (0 when it is met)."""
+        return max(0, self.n_trials - finished(self.counts))
+
+    def summary(self, name: str) -> str:
+        """One line: the trials per state as the database has them, and a warning when short."""
+        c = self.counts
+        line = (f"study {name}: {finished(c)} of {self.n_trials} trials finished ({c['COMPLETE']} complete, "
+                f"{c['PRUNED']} pruned); {c['FAIL']} failed, {c['RUNNING']} running, {c['WAITING']} waiting in the "
+                f"database; best trial {self.best_trial}; report {self.report}")
+        if self.short_by:
+            line += (f"; WARNING: {self.short_by} trial(s) short of the budget: run the same command again to "
+                     "finish the study")
+        return line
 
 
 def run_study(base, config: StudyConfig, *, workers: int = 1, console=None) -> StudyOutcome:
     """Create or resume the study, run ``workers`` local processes, refit the best, report."""
     from torchcal.config import save_resolved_config
+    from torchcal.studies.lock import StudyLock
     from torchcal.studies.report import write_study_report
-    from torchcal.studies.storage import open_study, storage_url
+    from torchcal.studies.storage import open_study, shown_url, storage_url
 
     config.validate()
     study_dir = study_folder(base, config)
     study_dir.mkdir(parents=True, exist_ok=True)
     save_resolved_config(study_dir / "config.yaml", base, study=config)
     study = open_study(config, study_dir)
-    _enqueue_default(study, base, config)
+    url = storage_url(config, study_dir)
+    with StudyLock(url, config.name, study_dir):
+        _enqueue_default(study, base, config)
     if console is not None:
         done = _counts(study)
-        console.log(f"study '{config.name}' at {storage_url(config, study_dir).split('@')[-1]}: "
-                    f"{done['COMPLETE'] + done['PRUNED']} of {config.n_trials} trials finished; {workers} worker(s)")
+        console.log(f"study '{config.name}' at {shown_url(url)}: {finished(done)} of {config.n_trials} trials "
+                    f"finished; {workers} worker(s)")
     threads = max(1, (os.cpu_count() or 1) // max(1, workers))
-    if workers > 1 and storage_url(config, study_dir).startswith("sqlite"):
-        # SQLite has no row locks: two processes could both take the same queued trial (the
-        # default configuration, a retry). Queued trials run here first; workers then only ask
-        # for new ones, which the storage numbers atomically.
-        _run_waiting(base, config, study, study_dir, threads)
     if workers <= 1:
         _with_progress(lambda: work(base, config, str(study_dir), threads), study, config, console)
     else:
         ctx = multiprocessing.get_context("spawn")
-        procs = [ctx.Process(target=work, args=(base, config, str(study_dir), threads, k)) for k in range(workers)]
+        procs = [ctx.Process(target=_worker_process, args=(base, config, str(study_dir), threads)) for _ in range(workers)]
         for p in procs:
             p.start()
+
         def join_all() -> None:
             for p in procs:
                 p.join()
@@ -141,16 +118,12 @@ def run_study(base, config: StudyConfig, *, workers: int = 1, console=None) -> S
         if bad:
             raise TorchcalError(f"study '{config.name}': {len(bad)} worker(s) exited with status {bad}")
     counts = _counts(study)
-    unfinished = counts["RUNNING"] + counts["WAITING"]
-    if unfinished and console is not None:
-        console.log(f"{unfinished} trial(s) still running elsewhere or killed less than {config.grace_period_s} s ago; "
-                    "run the study again later to finish them")
     best_run = None
     best_number = _best_number(study)
     if config.refit_best and best_number is not None and len(config.objectives) == 1:
         best_run = refit_best(base, config, study, study_dir, console=console)
     report = write_study_report(study, config, study_dir, best_run=best_run)
-    return StudyOutcome(study_dir, storage_url(config, study_dir), counts, best_number, report, best_run)
+    return StudyOutcome(study_dir, url, counts, config.n_trials, best_number, report, best_run)
 
 
 def _best_number(study) -> int | None:
@@ -193,9 +166,9 @@ def _refit_best_on_files(run_config, config: StudyConfig, best, study_dir: Path,
 
     fit_config = run_config.fit
     units = {"joint_unit": fit_config.joint_unit, "length_unit": fit_config.length_unit}
-    assert config.robot is not None and config.train is not None  # called with measured data; validated together
-    robot = with_tool(load_robot(config.robot), fit_config)
-    train = load_measurements(config.train, robot, **units)
+    robot_file, train_file = config.measured()
+    robot = with_tool(load_robot(robot_file), fit_config)
+    train = load_measurements(train_file, robot, **units)
     result, structure = fit_with_selection(robot, train, fit_config)
     folder = save_fit(study_dir / "best" / "model", robot, train, result, {})
     save_resolved_config(folder / "config.yaml", fit_config)
@@ -204,6 +177,8 @@ def _refit_best_on_files(run_config, config: StudyConfig, best, study_dir: Path,
     if config.test:
         metrics = evaluate(folder, config.test, config=fit_config)
         out.update({"test": {"model": metrics}, "final_stage": "model"})
+    if config.holdout:
+        out["holdout"] = evaluate(folder, config.holdout, register=config.holdout_register, config=fit_config)
     if run_config.export:
         manifest = export_model(folder, Path(run_config.export_dir) / "studies" / config.name / "best")
         out["export"] = manifest["files"]
@@ -212,9 +187,12 @@ def _refit_best_on_files(run_config, config: StudyConfig, best, study_dir: Path,
 
 def _with_progress(job, study, config: StudyConfig, console) -> None:
     """Run ``job`` (blocking) while a progress bar follows the study's finished trials."""
+    import contextlib
     import threading
 
+    from optuna.exceptions import StorageInternalError
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+    from sqlalchemy.exc import SQLAlchemyError
 
     if console is None:
         job()
@@ -226,11 +204,9 @@ def _with_progress(job, study, config: StudyConfig, console) -> None:
 
         def follow() -> None:
             while not stop.wait(1.0):
-                try:
-                    c = _counts(study)
-                    progress.update(task, completed=c["COMPLETE"] + c["PRUNED"])
-                except Exception:  # noqa: BLE001 (the storage may be locked for a moment; the next poll catches up)
-                    pass
+                # the storage may be locked or out of reach for a moment; the next poll catches up
+                with contextlib.suppress(SQLAlchemyError, StorageInternalError, OSError):
+                    progress.update(task, completed=finished(_counts(study)))
 
         watcher = threading.Thread(target=follow, daemon=True)
         watcher.start()

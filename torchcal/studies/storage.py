@@ -1,9 +1,11 @@
 """Where a study lives: SQLite in its folder by default, any RDB URL for workers on many machines.
 
 Heartbeats make a study survive a killed worker: every running trial records a heartbeat each
-``heartbeat_interval_s``; before a worker asks for a new trial, Optuna fails any running trial
-whose heartbeat is older than ``grace_period_s`` and the retry callback queues it again with the
-same parameters. Finished trials are rows in the database and are never touched again.
+``heartbeat_interval_s``; before a worker takes a trial, Optuna fails any running trial whose
+heartbeat is older than ``grace_period_s`` and the retry callback
+(``RetryHeartbeatStaleTrialCallback``) queues it again (WAITING) with the same parameters; the
+next trial any worker takes is that queued one. Finished trials are rows in the database and are
+never touched again.
 """
 
 from __future__ import annotations
@@ -19,10 +21,64 @@ CREATE_ATTEMPTS = 5
 
 
 def storage_url(config: StudyConfig, study_dir: Path) -> str:
-    """The study's storage URL: the configured one, or ``sqlite:///<study_dir>/study.db``."""
+    """The study's storage URL: the configured one, or ``sqlite:///<study_dir>/study.db``.
+
+    ``postgresql://`` without a driver means psycopg 3 (the ``postgres`` extra) when psycopg2,
+    SQLAlchemy's default, is not installed.
+    """
     if config.storage:
-        return config.storage
+        url = config.storage
+        if url.startswith("postgresql://"):
+            import importlib.util
+
+            if importlib.util.find_spec("psycopg2") is None and importlib.util.find_spec("psycopg") is not None:
+                url = "postgresql+psycopg://" + url[len("postgresql://"):]
+        return url
     return f"sqlite:///{(study_dir / 'study.db').resolve()}"
+
+
+def shown_url(url: str) -> str:
+    """``url`` without user and password, for messages."""
+    return url.split("@")[-1] if "@" in url else url
+
+
+def _storage_class():
+    """Optuna's RDB storage, counting a trial that never wrote a heartbeat as stale too.
+
+    Optuna finds stale trials by their last heartbeat only; a worker killed between taking a trial
+    and its heartbeat thread's first write (milliseconds) would leave that trial RUNNING for good,
+    and the workers waiting for it would wait for ever. Here such a trial is stale once this
+    process has seen it RUNNING without any heartbeat for longer than the grace period (its own
+    monotonic clock: no comparison of clocks between machines).
+    """
+    import time as _time
+
+    import optuna
+    from optuna.storages._rdb import models
+    from optuna.trial import TrialState
+
+    class Storage(optuna.storages.RDBStorage):
+        _silent_since: dict[int, float]
+
+        def _get_stale_trial_ids(self, study_id: int) -> list[int]:
+            stale = super()._get_stale_trial_ids(study_id)
+            # open_storage always passes a heartbeat interval, and Optuna looks for stale trials
+            # only when heartbeats are enabled (its own _get_stale_trial_ids asserts the same)
+            assert self.heartbeat_interval is not None
+            grace = self.grace_period or 2 * self.heartbeat_interval
+            with self.scoped_session() as session:
+                silent = {i for (i,) in session.query(models.TrialModel.trial_id)
+                          .outerjoin(models.TrialHeartbeatModel)
+                          .filter(models.TrialModel.study_id == study_id,
+                                  models.TrialModel.state == TrialState.RUNNING,
+                                  models.TrialHeartbeatModel.trial_heartbeat_id.is_(None))}
+            self.scoped_session.remove()
+            now = _time.monotonic()
+            seen = getattr(self, "_silent_since", {})
+            self._silent_since = {i: seen.get(i, now) for i in silent}
+            return stale + [i for i, since in self._silent_since.items() if now - since > grace and i not in stale]
+
+    return Storage
 
 
 def open_storage(config: StudyConfig, study_dir: Path):
@@ -45,10 +101,10 @@ def open_storage(config: StudyConfig, study_dir: Path):
     # Workers on several machines may start together on an empty database: all of them try to
     # create Optuna's tables and all but one fail on the catalog's unique index. The tables then
     # exist, so opening again succeeds.
-    error: Exception
+    error: Exception  # set before every break; the loop otherwise returns
     for attempt in range(CREATE_ATTEMPTS):
         try:
-            return optuna.storages.RDBStorage(
+            return _storage_class()(
                 url,
                 engine_kwargs=engine_kwargs,
                 heartbeat_interval=config.heartbeat_interval_s,
@@ -60,51 +116,45 @@ def open_storage(config: StudyConfig, study_dir: Path):
                 error = exc
                 break
             time.sleep(0.5 * (attempt + 1))
-        except (SQLAlchemyError, ImportError, ValueError) as exc:
+        except (SQLAlchemyError, ImportError, ValueError, TypeError) as exc:
             error = exc
             break
-    shown = url.split("@")[-1] if "@" in url else url
-    raise TorchcalError(f"cannot open study storage '{shown}': {str(error).splitlines()[0]}") from None
+    raise TorchcalError(f"cannot open study storage '{shown_url(url)}': {str(error).splitlines()[0]}") from None
 
 
-def sampler_seed(config: StudyConfig, study_dir: Path, worker: int = 0) -> int:
-    """The seed of one worker's sampler.
+def trial_seed(config: StudyConfig, number: int) -> int:
+    """The sampler seed of trial ``number``: a function of the study seed and the number only.
 
-    Workers with the same seed would propose the same parameters one after the other, so local
-    worker ``k`` uses ``seed + k``. Processes on several machines sharing a database server cannot
-    be told apart by an index, and their trial order is not reproducible anyway: their seed also
-    takes the process id.
+    A one-worker study thus draws the same trials every time; a resumed study, or several workers,
+    draw every new trial from its own stream (a restarted worker reseeded with the study seed would
+    propose the configurations it proposed before the restart again).
     """
-    import os
+    import numpy as np
 
-    seed = config.seed + worker
-    if not storage_url(config, study_dir).startswith("sqlite"):
-        seed += 7919 * os.getpid()
-    return seed % (2**31)
+    return int(np.random.SeedSequence([config.seed, number]).generate_state(1)[0] % (2**31))
 
 
-def open_study(config: StudyConfig, study_dir: Path, worker: int = 0):
+def make_sampler(config: StudyConfig, number: int):
+    """The sampler for the study's next new trial, ``number``."""
+    import optuna
+
+    seed = trial_seed(config, number)
+    if config.sampler == "tpe":
+        return optuna.samplers.TPESampler(seed=seed, n_startup_trials=min(8, max(2, config.n_trials // 3)))
+    return optuna.samplers.RandomSampler(seed=seed)
+
+
+def open_study(config: StudyConfig, study_dir: Path):
     """Create the study or load it when it exists (this is what makes a restart resume)."""
     import optuna
 
     storage = open_storage(config, study_dir)
-    seed = sampler_seed(config, study_dir, worker)
-    sampler: optuna.samplers.BaseSampler
-    if config.sampler == "tpe":
-        sampler = optuna.samplers.TPESampler(seed=seed, n_startup_trials=min(8, max(2, config.n_trials // 3)))
-    else:
-        sampler = optuna.samplers.RandomSampler(seed=seed)
-    pruner = (
-        optuna.pruners.MedianPruner(n_startup_trials=3, n_warmup_steps=config.pruner_warmup_steps)
-        if config.pruner == "median" and len(config.objectives) == 1
-        else optuna.pruners.NopPruner()
-    )
     try:
         return optuna.create_study(
             storage=storage,
             study_name=config.name,
-            sampler=sampler,
-            pruner=pruner,
+            sampler=make_sampler(config, 0),
+            pruner=optuna.pruners.NopPruner(),
             directions=config.directions,
             load_if_exists=True,
         )
