@@ -165,8 +165,10 @@ def save_fit(folder: Path, robot: RobotModel, data: Measurements, result: Calibr
     meta.update(JointSpaceErrors.of(result).to_metadata())
     folder = Path(folder)
     # a new fit invalidates what an earlier fit into this folder learned on top of its geometry
+    from torchcal.core.folder import remove_member
+
     for stale in ("residual.safetensors", "residual.json", "model_selection.json"):
-        (folder / stale).unlink(missing_ok=True)
+        remove_member(folder, stale)
     return save_model(folder, robot, result.model, result.x, result.free, result.covariance, meta, training_q=data.q)
 
 
