@@ -359,9 +359,8 @@ def export_model(
         raise TorchcalError(f"iterations must be >= 1, got {iterations}")
     if task not in TASKS:
         raise TorchcalError(f"task must be one of {list(TASKS)}, got {task!r}")
-    from torchcal.stages.store import load_model
-
     from torchcal.core.folder import check_output_folder, staged_folder
+    from torchcal.stages.store import load_model
 
     model_dir, out_dir = Path(model_dir), Path(out_dir)
     if out_dir.resolve() == model_dir.resolve():

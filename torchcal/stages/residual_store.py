@@ -57,7 +57,7 @@ def save_residual(folder: str | Path, residual: StoredResidual) -> None:
 
 def load_residual(folder: str | Path) -> StoredResidual:
     folder = Path(folder)
-    from torchcal.stages.store import read_json_member, read_tensors
+    from torchcal.stages.files import read_json_member, read_tensors
 
     info = read_json_member(folder / "residual.json")
     tensors = read_tensors(folder / "residual.safetensors", {})

@@ -112,7 +112,7 @@ def load_stiffness_stage(folder: str | Path, device: str | torch.device = "cpu")
     folder = Path(folder)
     if not (folder / META).is_file():
         return None
-    from torchcal.stages.store import read_json_member, read_tensors
+    from torchcal.stages.files import read_json_member, read_tensors
 
     meta = read_json_member(folder / META)
     if meta.get("format") != FORMAT:

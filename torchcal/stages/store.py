@@ -16,7 +16,6 @@ A model folder holds:
 
 from __future__ import annotations
 
-import json
 import math
 import shutil
 from dataclasses import dataclass, field
@@ -29,6 +28,7 @@ from torchcal.core.errors import ModelError
 from torchcal.core.folder import write_member, write_member_json, write_member_text
 from torchcal.kinematics.error_model import ErrorModel
 from torchcal.kinematics.robot import RobotModel, load_robot, robot_to_yaml
+from torchcal.stages.files import read_json_member, read_tensors
 
 if TYPE_CHECKING:  # loaded on demand: a geometry-only folder needs neither (nor their imports)
     from torchcal.stages.base import ModelStage
@@ -138,46 +138,6 @@ def save_model(
     header = "# calibrated by torchcal; T_instrument_base and sigmas are in calibration.json\n"
     write_member_text(folder, "calibrated_robot.yaml", header + robot_to_yaml(robot, table=table, tool=tool))
     return folder
-
-
-def read_json_member(path: Path) -> dict:
-    """A model folder's JSON object; anything else is a :class:`ModelError` naming the file."""
-    try:
-        doc = json.loads(path.read_bytes().decode("utf-8"))
-    except UnicodeDecodeError as exc:
-        raise ModelError(f"{path}: not UTF-8 text (byte {exc.start})") from None
-    except json.JSONDecodeError as exc:
-        raise ModelError(f"{path}: line {exc.lineno}, column {exc.colno}: invalid JSON ({exc.msg})") from None
-    if not isinstance(doc, dict):
-        raise ModelError(f"{path}: expected a JSON object, found {type(doc).__name__}")
-    return doc
-
-
-def read_tensors(path: Path, required: dict[str, int], finite: tuple[str, ...] | None = None) -> dict[str, torch.Tensor]:
-    """The tensors of a safetensors file, each of ``required`` present with that many dimensions.
-
-    ``required`` maps a tensor's name to its number of dimensions; the tensors named in
-    ``finite`` (``None``: every floating-point tensor) must hold finite values only. Raises
-    :class:`ModelError` naming the file and the tensor.
-    """
-    from safetensors import SafetensorError
-    from safetensors.torch import load_file
-
-    try:
-        tensors = load_file(str(path))
-    except (SafetensorError, OSError, ValueError, RuntimeError) as exc:
-        raise ModelError(f"{path}: not a readable safetensors file ({exc})") from None
-    for name, ndim in required.items():
-        t = tensors.get(name)
-        if t is None:
-            raise ModelError(f"{path}: no tensor {name!r}")
-        if t.dim() != ndim:
-            raise ModelError(f"{path}: tensor {name!r} has {t.dim()} dimensions, expected {ndim}")
-    for name in tensors if finite is None else finite:
-        t = tensors.get(name)
-        if t is not None and t.is_floating_point() and not bool(torch.isfinite(t).all()):
-            raise ModelError(f"{path}: tensor {name!r} holds NaN or infinite values")
-    return tensors
 
 
 def _member_path(folder: Path, name: object, key: str) -> Path:
