@@ -1,8 +1,8 @@
 """Kill ``torchcal fit`` / ``torchcal export`` with SIGKILL at spread-out moments; check the folder.
 
 Each trial restores an earlier result in the output folder, starts the command that replaces it,
-kills it with ``kill -9`` after ``t_i = T (i - 0.5) / n`` seconds (``T``: the uninterrupted
-command's duration, measured first) and checks that the output folder holds the earlier result or
+kills it with ``kill -9`` after ``t_i = T (i - 0.5) / n`` seconds (``T``: the shorter of two
+uninterrupted runs, measured first) and checks that the output folder holds the earlier result or
 the new one, whole: ``checksums.json`` verifies, the folder loads (``load_model`` for a fit; the
 ONNX files' hashes against ``manifest.json`` for an export), and its file list is the earlier
 one's or the new one's.
@@ -83,14 +83,18 @@ def main() -> int:
         run(["fit", "--robot", robot, "--data", data, "--out", str(model), *fast])
         run(["export", "--model", str(model), "--out", str(earlier), "--iterations", "2", "--portable"])
         command = CLI + ["export", "--model", str(model), "--out", str(out)]
-    shutil.copytree(earlier, out)
-    started = time.perf_counter()
-    subprocess.run(command, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    duration = time.perf_counter() - started
+    durations = []
+    for _ in range(2):  # the shorter of two runs, so that the later kill times still land inside a run
+        shutil.rmtree(out, ignore_errors=True)
+        shutil.copytree(earlier, out)
+        started = time.perf_counter()
+        subprocess.run(command, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        durations.append(time.perf_counter() - started)
+    duration = min(durations)
     new_files = checksums(out)
     old_files = checksums(earlier)
     print(f"{args.kind}: uninterrupted {duration:.1f} s; earlier {sorted(old_files)}; new {sorted(new_files)}")
-    good = 0
+    good = killed = 0
     for i in range(1, args.n + 1):
         shutil.rmtree(out)
         shutil.copytree(earlier, out)
@@ -103,6 +107,7 @@ def main() -> int:
             os.kill(proc.pid, signal.SIGKILL)
             proc.wait()
             state = "killed"
+            killed += 1
         why = whole(args.kind, out)
         if not why:
             files = checksums(out)
@@ -111,7 +116,8 @@ def main() -> int:
         ok = not why
         good += ok
         print(f"  t={at:6.2f} s {state:25s} -> {'whole, ' + which if ok else 'BROKEN: ' + why}", flush=True)
-    print(f"{args.kind}: {good} of {args.n} kill times leave a whole, verifiable folder")
+    print(f"{args.kind}: {good} of {args.n} kill times leave a whole, verifiable folder "
+          f"({killed} killed mid-run, {args.n - killed} finished first)")
     return 0 if good == args.n else 1
 
 

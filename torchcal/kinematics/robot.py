@@ -106,7 +106,7 @@ def _number(value, path: Path, where: str) -> float:
 #: Largest robot file read (bytes): a robot description is a few kB; a URDF with meshes inline a few MB.
 MAX_ROBOT_FILE_BYTES = 16 * 1024 * 1024
 #: Most YAML aliases (``*name``) a robot file may use: each may stand for a whole tree (alias bombs).
-MAX_YAML_ALIASES = 100
+MAX_YAML_ALIASES = 32
 
 
 def read_robot_text(path: Path) -> str:
