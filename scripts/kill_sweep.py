@@ -1,7 +1,7 @@
 """Kill ``torchcal fit`` / ``torchcal export`` with SIGKILL at spread-out moments; check the folder.
 
 Each trial restores an earlier result in the output folder, starts the command that replaces it,
-kills it with ``kill -9`` after ``t_i = T (i - 0.5) / n`` seconds (``T``: the shorter of two
+kills it with ``kill -9`` after ``t_i = 1.25 T (i - 0.5) / n`` seconds (``T``: the shorter of two
 uninterrupted runs, measured first) and checks that the output folder holds the earlier result or
 the new one, whole: ``checksums.json`` verifies, the folder loads (``load_model`` for a fit; the
 ONNX files' hashes against ``manifest.json`` for an export), and its file list is the earlier
@@ -26,6 +26,8 @@ import time
 from pathlib import Path
 
 CLI = [sys.executable, "-m", "torchcal.cli"]
+#: Kill times cover this multiple of the uninterrupted duration, so that the last ones land in or after the commit.
+SPAN = 1.25
 
 
 def run(args: list[str]) -> None:
@@ -98,7 +100,7 @@ def main() -> int:
     for i in range(1, args.n + 1):
         shutil.rmtree(out)
         shutil.copytree(earlier, out)
-        at = duration * (i - 0.5) / args.n
+        at = SPAN * duration * (i - 0.5) / args.n
         proc = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         try:
             proc.wait(timeout=at)
