@@ -107,3 +107,19 @@ def test_kill_9_leaves_a_whole_folder(fixtures, tmp_path):
     verify_folder(out)
     load_model(out)
     assert snapshot(out) == before or (out / "checksums.json").read_bytes() != before["checksums.json"]
+
+
+def test_profile_fit_into_a_model_folder_keeps_the_model(fixtures, tmp_path):
+    """A sensor fitted into a calibrated model folder is added to the model, which stays whole."""
+    import shutil
+
+    from torchcal.core.folder import verify_folder
+    from torchcal.stages.store import load_model
+
+    case, out = tmp_path / "profile", tmp_path / "model"
+    shutil.copytree(fixtures.model, out)
+    assert main(["simulate", "instrument=profile", "--out", str(case), "seed=7"]) == 0
+    assert main(["fit", "--robot", str(case / "robot.yaml"), "--data", str(case / "profile.csv"), "--out", str(out)]) == 0
+    assert (out / "sensor.json").is_file()
+    verify_folder(out)
+    assert load_model(out).x.equal(load_model(fixtures.model).x)
