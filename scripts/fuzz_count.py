@@ -36,14 +36,15 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--checkout", type=Path, required=True, help="repository root whose torchcal runs the commands")
     parser.add_argument("--work", type=Path, required=True)
-    parser.add_argument("--only", nargs="*", default=None, help="case names (default: all)")
+    parser.add_argument("--only", nargs="*", default=None, help="case names, ctrl_c included (default: all)")
+    parser.add_argument("--timeout", type=float, default=120.0, help="seconds a case may run (then: timeout)")
     args = parser.parse_args()
     args.work = args.work.resolve()
     env = {**os.environ, "PYTHONPATH": str(args.checkout.resolve())}
 
     def run(argv: list[str]) -> subprocess.CompletedProcess:
         return subprocess.run([sys.executable, "-m", "torchcal.cli", *argv], capture_output=True, text=True, env=env, cwd=args.work,
-                              timeout=600)
+                              timeout=args.timeout)
 
     shutil.rmtree(args.work, ignore_errors=True)
     args.work.mkdir(parents=True)
@@ -52,12 +53,17 @@ def main() -> int:
     fixtures = make_fixtures(args.work / "fixtures", lambda argv: here_main(argv))
     classes: Counter[str] = Counter()
     expected = 0
-    for name in args.only or sorted(CASES):
+    for name in [n for n in args.only or sorted(CASES) if n in CASES]:
         work = args.work / name
         work.mkdir()
         case = CASES[name](fixtures, work)
         before = snapshot(case.out)
-        proc = run(case.argv)
+        try:
+            proc = run(case.argv)
+        except subprocess.TimeoutExpired:
+            classes["timeout"] += 1
+            print(f"{name:32s} rc=-   timeout   NOT as expected | still running after {args.timeout:g} s", flush=True)
+            continue
         err = proc.stderr
         errors = [line for line in err.splitlines() if line.startswith("torchcal: error:")]
         warned = [line for line in err.splitlines() if line.startswith("torchcal: warning:") and case.message in line]
@@ -79,7 +85,7 @@ def main() -> int:
         last = (errors or [ln for ln in err.splitlines() if ln.strip()] or [""])[-1]
         print(f"{name:32s} rc={proc.returncode:<3d} {kind:9s} {'as expected' if ok else 'NOT as expected'}"
               f"{'; ' + state if state else ''} | {last[:150]}", flush=True)
-    if args.only is None:  # Ctrl-C 8 s into a refit over an earlier model folder
+    if args.only is None or "ctrl_c" in args.only:  # Ctrl-C 8 s into a refit over an earlier model folder
         import signal
         import time
 
