@@ -94,7 +94,9 @@ def main() -> int:
         before = snapshot(out)
         proc = subprocess.Popen([sys.executable, "-m", "torchcal.cli", "fit", "--robot", str(fixtures.robot), "--data",
                                  str(fixtures.train), "--out", str(out)], stderr=subprocess.PIPE, stdout=subprocess.DEVNULL,
-                                text=True, env=env, cwd=args.work)
+                                text=True, env=env, cwd=args.work,
+                                # a shell without job control starts background commands with SIGINT ignored
+                                preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
         time.sleep(8)
         proc.send_signal(signal.SIGINT)
         err = proc.communicate(timeout=600)[1]

@@ -64,7 +64,9 @@ def test_whole_folder_records_warning(fixtures, tmp_path, capfd):
 def _cli_process(argv: list[str]) -> subprocess.Popen:
     env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
     return subprocess.Popen([sys.executable, "-m", "torchcal.cli", *argv], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, env=env)
+                            stderr=subprocess.PIPE, text=True, env=env,
+                            # SIGINT as a terminal delivers it, even where the tests run with it ignored
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
 
 
 def test_ctrl_c_leaves_the_earlier_model(fixtures, tmp_path):
