@@ -29,7 +29,7 @@ HERE = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(HERE / "tests"))
 sys.path.insert(0, str(HERE))
 
-from fuzz_cases import CASES, make_fixtures, out_state_problem, snapshot  # noqa: E402
+from fuzz_cases import CASES, make_fixtures, out_state_problem, snapshot
 
 
 def main() -> int:

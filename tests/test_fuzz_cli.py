@@ -18,8 +18,8 @@ import warnings
 from pathlib import Path
 
 import pytest
-
 from fuzz_cases import CASES, Fixtures, make_fixtures, out_state_problem, snapshot
+
 from torchcal.cli import main
 
 pytestmark = pytest.mark.slow

@@ -196,9 +196,7 @@ def fit_committed(instrument: Instrument, request: FitRequest) -> FitOutcome:
     """
     from dataclasses import replace
 
-    from torchcal.core.folder import staged_folder
-
-    from torchcal.core.folder import FolderError
+    from torchcal.core.folder import FolderError, staged_folder
 
     out = Path(request.out)
     for what, path in (("--data", request.data), ("--robot", request.robot)):

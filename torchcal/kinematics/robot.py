@@ -148,7 +148,7 @@ def robot_from_yaml(path: str | Path) -> RobotModel:
     path = Path(path)
     text = read_robot_text(path)
     try:
-        doc = yaml.load(text, Loader=_LimitedLoader)  # noqa: S506 (a SafeLoader with an alias limit)
+        doc = yaml.load(text, Loader=_LimitedLoader)  # a SafeLoader with an alias limit
     except yaml.YAMLError as exc:
         detail = str(exc).splitlines()[0] if "aliases" in str(exc) else exc.__class__.__name__
         raise ModelError(f"{path}: not valid YAML ({detail})") from None
