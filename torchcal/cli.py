@@ -33,6 +33,20 @@ def _progress(status) -> Callable[[str], None]:
     return lambda text: status.update(text)
 
 
+def _check_output_file(path: str, what: str) -> None:
+    """Refuse, before any work, an output file path that names a folder or lies under a file."""
+    from torchcal.core.errors import TorchcalError
+
+    target = Path(path)
+    if target.is_dir():
+        raise TorchcalError(f"{target}: {what} names an existing folder; give a file name")
+    parent = target.parent
+    while not parent.exists():
+        parent = parent.parent
+    if not parent.is_dir():
+        raise TorchcalError(f"{parent}: a file stands where {what} needs a folder")
+
+
 def _cmd_simulate(args) -> int:
     from torchcal.core.overrides import apply_overrides
     from torchcal.instruments.registry import get
@@ -40,6 +54,10 @@ def _cmd_simulate(args) -> int:
     name, overrides = _split_instrument(args.overrides)
     twin = get(name).twin()
     config = apply_overrides(twin.config_factory(), overrides)
+    if Path(args.out).exists() and not Path(args.out).is_dir():
+        from torchcal.core.errors import TorchcalError
+
+        raise TorchcalError(f"{args.out}: --out names an existing file; give a folder")
     paths = twin.write(Path(args.out), config)
     for key, path in paths.items():
         print(f"{key}: {path}")
@@ -49,13 +67,15 @@ def _cmd_simulate(args) -> int:
 def _cmd_fit(args) -> int:
     from rich.console import Console
 
-    from torchcal.instruments.base import FitRequest
+    from torchcal.core.folder import check_output_folder
+    from torchcal.instruments.base import FitRequest, fit_committed
     from torchcal.instruments.registry import recognise
 
+    check_output_folder(args.out)
     instrument = recognise(args.data)
     console = Console(stderr=True)
     with console.status(f"fitting {instrument.name} data") as status:
-        outcome = instrument.fit(FitRequest(
+        outcome = fit_committed(instrument, FitRequest(
             robot=Path(args.robot), data=Path(args.data), out=Path(args.out), overrides=list(args.overrides),
             base_link=args.base_link, end_link=args.end_link, progress=_progress(status)))
     for line in outcome.lines:
@@ -69,6 +89,8 @@ def _cmd_evaluate(args) -> int:
     from torchcal.instruments.base import EvaluateRequest
     from torchcal.instruments.registry import recognise
 
+    if args.json:
+        _check_output_file(args.json, "--json")
     instrument = recognise(args.data)
     outcome = instrument.evaluate(EvaluateRequest(
         model=Path(args.model), data=Path(args.data), overrides=list(args.overrides), register=args.register))
@@ -248,6 +270,20 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     except FileNotFoundError as exc:
         print(f"torchcal: error: {exc.filename or exc}: file not found", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        # output folders are staged and files written atomically: an interrupted command leaves what was there
+        print(f"torchcal: interrupted; nothing written ({args.command} leaves earlier outputs as they were)",
+              file=sys.stderr)
+        return 130
+    except UnicodeDecodeError as exc:
+        print(f"torchcal: error: a file is not UTF-8 text (byte {exc.start}: {exc.reason})", file=sys.stderr)
+        return 2
+    except IsADirectoryError as exc:
+        print(f"torchcal: error: {exc.filename or exc}: is a folder, a file was expected", file=sys.stderr)
+        return 2
+    except PermissionError as exc:
+        print(f"torchcal: error: {exc.filename or exc}: permission denied", file=sys.stderr)
         return 2
     except BrokenPipeError:
         # the reader closed the pipe (`torchcal evaluate ... | head`): it has what it wanted; stdout

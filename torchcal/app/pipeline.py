@@ -11,6 +11,7 @@ from pathlib import Path
 import torch
 
 from torchcal.config.schema import RunConfig
+from torchcal.core.folder import write_member_json
 from torchcal.core.io import atomic_write_json
 from torchcal.core.metrics import position_metrics
 from torchcal.data.measurements import Measurements, load_measurements
@@ -116,7 +117,7 @@ def run(config: RunConfig, console=None) -> dict:
     # the model as chosen (structure and head), not the stage key: "geometric" also holds joint-space terms
     console.log(f"report: {report}; final held-out RMS {final['position_rms_mm']:.4f} mm "
                 f"({summary.get('model') or summary['final_stage']})")
-    atomic_write_json(model_dir / "metrics.json", {"held_out_data": test.source, "stages": metrics, "final_stage": summary["final_stage"]})
+    write_member_json(model_dir, "metrics.json", {"held_out_data": test.source, "stages": metrics, "final_stage": summary["final_stage"]})
     if config.export:
         from torchcal.compensate.export import export_and_check
 

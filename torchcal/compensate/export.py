@@ -12,7 +12,11 @@ Files written to ``out_dir`` (each atomically, single-file ONNX without external
   along the tool axes (``wrench_frame="base"``: along the robot base axes), the expected load
   of the command (:data:`WRENCH_INPUT`);
 * ``manifest.json``: what the files are, where they come from, their SHA-256 and their accuracy;
-* ``README.md``: for the controller integrator.
+* ``README.md``: for the controller integrator;
+* ``checksums.json``: SHA-256 of each of these files.
+
+The folder is built in a hidden sibling and swapped into place when complete
+(:func:`torchcal.core.folder.staged_folder`): an interrupted export leaves the earlier export, whole.
 """
 
 from __future__ import annotations
@@ -369,10 +373,22 @@ def export_model(
         raise TorchcalError(f"iterations must be >= 1, got {iterations}")
     if task not in TASKS:
         raise TorchcalError(f"task must be one of {list(TASKS)}, got {task!r}")
+    from torchcal.core.folder import check_output_folder, staged_folder
     from torchcal.stages.store import load_model
 
     model_dir, out_dir = Path(model_dir), Path(out_dir)
+    if out_dir.resolve() == model_dir.resolve():
+        raise TorchcalError(f"{out_dir}: the export folder must lie outside the model folder {model_dir}")
+    check_output_folder(out_dir)
     stored = load_model(model_dir)
+    with staged_folder(out_dir) as staging:
+        return _export_into(staging, model_dir, stored, wrench_frame=wrench_frame, iterations=iterations,
+                            portable=portable, task=task)
+
+
+def _export_into(out_dir: Path, model_dir: Path, stored, *, wrench_frame: str, iterations: int | None,
+                 portable: bool, task: str) -> dict:
+    """Write the export files of ``stored`` into ``out_dir`` (a staging folder); returns the manifest."""
     graphs = build_graphs(stored, wrench_frame=wrench_frame, iterations=iterations, portable=portable, task=task)
     loaded = has_wrench_input(graphs)
     robot = stored.robot

@@ -125,6 +125,7 @@ def save_resolved_config(path: str | Path, config: Any, **sections: Any) -> Path
     """Write the fully resolved configuration (dataclasses) as YAML, atomically."""
     from omegaconf import DictConfig, OmegaConf
 
+    from torchcal.core.folder import CHECKSUMS, write_member_text
     from torchcal.core.io import atomic_write_text
 
     tree = OmegaConf.structured(config)
@@ -133,7 +134,11 @@ def save_resolved_config(path: str | Path, config: Any, **sections: Any) -> Path
         OmegaConf.set_struct(tree, False)
         for key, value in sections.items():
             tree[key] = OmegaConf.structured(value) if not isinstance(value, dict) else OmegaConf.create(value)
-    atomic_write_text(Path(path), OmegaConf.to_yaml(tree, resolve=True))
+    path = Path(path)
+    if (path.parent / CHECKSUMS).is_file():  # a member of a model folder: recorded with the others
+        write_member_text(path.parent, path.name, OmegaConf.to_yaml(tree, resolve=True))
+    else:
+        atomic_write_text(path, OmegaConf.to_yaml(tree, resolve=True))
     return Path(path)
 
 

@@ -73,6 +73,28 @@ class FitConfig:
     gravity_compliance: str = "auto"
     joint_harmonics: str = "auto"
 
+    def __post_init__(self) -> None:
+        """Refuse out-of-range values where they are defined (before any file is read)."""
+        from torchcal.core.errors import TorchcalError
+        from torchcal.core.overrides import check_range
+
+        check_range(self, "parallel_threshold_deg", low=0.0, high=90.0, high_open=True)
+        check_range(self, "harmonic_min_range_deg", low=0.0)
+        check_range(self, "residual_margin", low=0.0, high=1.0, high_open=True)
+        for name in ("cv_folds",):
+            check_range(self, name, low=2)
+        for name in ("cv_groups", "residual_hidden", "mayfly_population", "mayfly_iterations"):
+            check_range(self, name, low=1)
+        if self.joint_unit not in ("deg", "rad"):
+            raise TorchcalError(f"joint_unit must be 'deg' or 'rad', got {self.joint_unit!r}")
+        if self.length_unit not in ("mm", "m"):
+            raise TorchcalError(f"length_unit must be 'mm' or 'm', got {self.length_unit!r}")
+        if self.tool_mm is not None:
+            import math
+
+            if len(self.tool_mm) != 3 or not all(math.isfinite(v) for v in self.tool_mm):
+                raise TorchcalError(f"tool_mm needs 3 finite values (x, y, z in mm), got {list(self.tool_mm)}")
+
 
 @dataclass
 class RunConfig:

@@ -63,3 +63,24 @@ def split_foreign_keys(overrides: list[str], own: Any, foreign: Any, *, what: st
     if ignored:
         warnings.warn(f"ignored for {what}: {', '.join(ignored)}", stacklevel=3)
     return kept
+
+
+def check_range(config: Any, name: str, *, low: float | None = None, high: float | None = None,
+                low_open: bool = False, high_open: bool = False) -> None:
+    """Refuse a numeric option of ``config`` that is not finite or lies outside ``[low, high]``.
+
+    ``low_open`` / ``high_open`` exclude the bound itself. The message names the option, its value
+    and the range, e.g. ``parallel_threshold_deg must be a finite number in [0, 90), got -5.0``.
+    """
+    import math
+
+    value = getattr(config, name)
+    left, right = "(" if low_open else "[", ")" if high_open else "]"
+    span = f"{left}{'-inf' if low is None else f'{low:g}'}, {'inf' if high is None else f'{high:g}'}{right}"
+    ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+    if ok and low is not None:
+        ok = value > low if low_open else value >= low
+    if ok and high is not None:
+        ok = value < high if high_open else value <= high
+    if not ok:
+        raise TorchcalError(f"{name} must be a finite number in {span}, got {value!r}")

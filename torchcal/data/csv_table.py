@@ -37,6 +37,8 @@ class CsvTable:
                     continue
                 raise DataError("empty cell", path=str(self.path), row=line, column=name)
             try:
+                if "_" in cell:  # Python reads '1_0' as 10; no spreadsheet writes it
+                    raise ValueError(cell)
                 value = float(cell)
             except ValueError:
                 raise DataError(f"'{cell}' is not a number", path=str(self.path), row=line, column=name) from None
@@ -55,11 +57,13 @@ def read_csv_table(path: str | Path) -> CsvTable:
         text = path.read_text(encoding="utf-8-sig")
     except UnicodeDecodeError:
         raise DataError("not a UTF-8 text file", path=str(path)) from None
+    if "\x00" in text:
+        raise DataError("not a text file (holds NUL bytes)", path=str(path))
     reader = csv.reader(text.splitlines())
     header: tuple[str, ...] | None = None
     rows: list[list[str]] = []
     lines: list[int] = []
-    for line_no, row in enumerate(reader, start=1):
+    for line_no, row in enumerate(_records(reader, path), start=1):
         if not row or all(not c.strip() for c in row):
             continue
         if header is None:
@@ -81,6 +85,17 @@ def read_csv_table(path: str | Path) -> CsvTable:
     if not rows:
         raise DataError("has a header but no data rows", path=str(path))
     return CsvTable(path=path, header=header, rows=rows, line_numbers=lines)
+
+
+def _records(reader, path: Path):
+    """The records of a ``csv.reader``; a malformed one (a field over the size limit...) is a DataError."""
+    while True:
+        try:
+            yield next(reader)
+        except StopIteration:
+            return
+        except csv.Error as exc:
+            raise DataError(f"unreadable CSV record ({exc})", path=str(path), row=reader.line_num) from None
 
 
 def check_units(joint_unit: str, length_unit: str, path: str | Path) -> None:
@@ -125,10 +140,16 @@ def read_header(path: str | Path) -> list[str]:
     path = Path(path)
     if not path.is_file():
         raise DataError("file not found", path=str(path))
-    with path.open(encoding="utf-8-sig", newline="") as handle:
-        for row in csv.reader(handle):
-            if any(cell.strip() for cell in row):
-                return [cell.strip().lower() for cell in row]
+    try:
+        with path.open(encoding="utf-8-sig", newline="") as handle:
+            reader = csv.reader(handle)
+            for row in _records(reader, path):
+                if any(cell.strip() for cell in row):
+                    if any("\x00" in cell for cell in row):
+                        raise DataError("not a text file (holds NUL bytes)", path=str(path), row=reader.line_num)
+                    return [cell.strip().lower() for cell in row]
+    except UnicodeDecodeError as exc:
+        raise DataError(f"not a UTF-8 text file (byte {exc.start})", path=str(path)) from None
     raise DataError("the file is empty (no header row)", path=str(path))
 
 

@@ -84,8 +84,12 @@ def load_measurements(
     length_unit: str = "mm",
     check_limits: bool = True,
     limit_tolerance_deg: float = 0.01,
+    check_plausible: bool = True,
 ) -> Measurements:
     """Read and validate a position-measurement CSV against ``robot``.
+
+    With ``check_plausible`` the file's size is compared with the nominal robot's first
+    (:mod:`torchcal.data.plausibility`: joints in radians, points in metres, wild points).
 
     Raises:
         DataError: naming file, row and column for missing, extra or misnamed columns, empty,
@@ -127,6 +131,12 @@ def load_measurements(
     if check_limits:
         check_joint_limits(q_deg, joint_unit, robot.joint_limits.numpy(), path=p, lines=table.line_numbers,
                            robot_name=robot.name, tolerance_deg=limit_tolerance_deg)
+    if check_plausible:
+        from torchcal.data.plausibility import check_joint_unit, check_point_spread
+
+        check_joint_unit(q_deg, joint_unit, robot.joint_limits.numpy(), path=p, lines=table.line_numbers)
+        check_point_spread(robot, torch.from_numpy(q), torch.from_numpy(pos), length_unit, path=p,
+                           lines=table.line_numbers)
 
     rotation = None
     if present_or:

@@ -40,6 +40,9 @@ class FitRequest:
         overrides: ``key=value`` options of the command line.
         base_link / end_link: URDF links of the robot base and the flange (``None``: root, last).
         progress: called with a one-line description of each long step (a spinner's text).
+        previous: the folder the result will replace when ``out`` is a staging folder
+            (:func:`fit_committed`); an instrument that adds a stage to an existing model reads it
+            from there. ``None``: nothing is replaced.
     """
 
     robot: Path
@@ -49,6 +52,7 @@ class FitRequest:
     base_link: str | None = None
     end_link: str | None = None
     progress: Callable[[str], None] = lambda _text: None
+    previous: Path | None = None
 
 
 @dataclass(frozen=True)
@@ -185,3 +189,26 @@ class Instrument(ABC):
     @abstractmethod
     def contract_case(self) -> ContractCase:
         """The small known-truth case of the shared contract suite."""
+
+
+def fit_committed(instrument: Instrument, request: FitRequest) -> FitOutcome:
+    """Run ``instrument.fit`` into a staging folder and swap it into ``request.out`` when it has finished.
+
+    The destination is checked before any work (an existing file, or a folder that is not
+    torchcal output, is refused). A crash, ``kill -9`` or Ctrl-C at any moment leaves the earlier
+    folder or the new one, whole (:func:`torchcal.core.folder.staged_folder`); the files of an
+    earlier result never mix with the new ones.
+    """
+    from dataclasses import replace
+
+    from torchcal.core.folder import FolderError, staged_folder
+
+    out = Path(request.out)
+    for what, path in (("--data", request.data), ("--robot", request.robot)):
+        if out.resolve() in Path(path).resolve().parents:
+            raise FolderError(f"{out}: --out holds the {what} file {path}; a fit replaces the whole folder, "
+                              "so give another --out")
+    previous = out if out.is_dir() else None
+    with staged_folder(out) as staging:
+        outcome = instrument.fit(replace(request, out=staging, previous=previous))
+    return FitOutcome(folder=out, lines=outcome.lines)

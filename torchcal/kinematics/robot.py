@@ -103,13 +103,55 @@ def _number(value, path: Path, where: str) -> float:
     return float(value)
 
 
+#: Largest robot file read (bytes): a robot description is a few kB; a URDF with meshes inline a few MB.
+MAX_ROBOT_FILE_BYTES = 16 * 1024 * 1024
+#: Most YAML aliases (``*name``) a robot file may use: each may stand for a whole tree (alias bombs).
+MAX_YAML_ALIASES = 32
+
+
+def read_robot_text(path: Path) -> str:
+    """The UTF-8 text of a robot file, refused when larger than :data:`MAX_ROBOT_FILE_BYTES` or not text."""
+    size = path.stat().st_size
+    if size > MAX_ROBOT_FILE_BYTES:
+        raise ModelError(f"{path}: {size} bytes; a robot file may have at most {MAX_ROBOT_FILE_BYTES}")
+    data = path.read_bytes()
+    try:
+        return data.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        line = data[: exc.start].count(b"\n") + 1
+        raise ModelError(f"{path}: line {line}: not UTF-8 text (byte 0x{data[exc.start]:02x})") from None
+
+
+class _LimitedLoader(yaml.SafeLoader):
+    """``yaml.SafeLoader`` that refuses more than :data:`MAX_YAML_ALIASES` aliases."""
+
+    aliases = 0
+
+    def compose_node(self, parent, index):
+        if self.check_event(yaml.AliasEvent):
+            self.aliases += 1
+            if self.aliases > MAX_YAML_ALIASES:
+                mark = self.peek_event().start_mark
+                raise yaml.YAMLError(f"more than {MAX_YAML_ALIASES} aliases (line {mark.line + 1})")
+        return super().compose_node(parent, index)
+
+
+def _robot_name(value: object, path: Path) -> str:
+    """The robot's ``name``: a scalar of at most 200 characters."""
+    if not isinstance(value, (str, int, float)) or isinstance(value, bool) or len(str(value)) > 200:
+        raise ModelError(f"{path}: name must be a short text (at most 200 characters)")
+    return str(value)
+
+
 def robot_from_yaml(path: str | Path) -> RobotModel:
     """Read a robot YAML of the data contract (``kinematics.convention: mdh``)."""
     path = Path(path)
+    text = read_robot_text(path)
     try:
-        doc = yaml.safe_load(path.read_text())
+        doc = yaml.load(text, Loader=_LimitedLoader)  # a SafeLoader with an alias limit
     except yaml.YAMLError as exc:
-        raise ModelError(f"{path}: not valid YAML ({exc.__class__.__name__})") from None
+        detail = str(exc).splitlines()[0] if "aliases" in str(exc) else exc.__class__.__name__
+        raise ModelError(f"{path}: not valid YAML ({detail})") from None
     if not isinstance(doc, dict) or not isinstance(doc.get("kinematics"), dict):
         raise ModelError(f"{path}: expected a mapping with a 'kinematics' section")
     kin = doc["kinematics"]
@@ -155,7 +197,7 @@ def robot_from_yaml(path: str | Path) -> RobotModel:
     tool_m = [_number(v, path, "kinematics.tool") * ls for v in tool]
     n = len(rows)
     return RobotModel(
-        name=str(doc.get("name", path.stem)),
+        name=_robot_name(doc.get("name", path.stem), path),
         joint_names=tuple(f"joint{i}" for i in range(1, n + 1)),
         table=torch.tensor(rows, dtype=torch.float64),
         joint_limits=torch.tensor(limits, dtype=torch.float64),
@@ -273,7 +315,7 @@ def robot_from_urdf(
     from torchcal.kinematics.axes import mdh_from_axes
 
     path = Path(path)
-    text = path.read_text()
+    text = read_robot_text(path)
     try:
         full = pk.build_chain_from_urdf(text.encode())
     except Exception as exc:  # noqa: BLE001 (the parser raises many types; the user needs the file name)
@@ -304,13 +346,23 @@ def robot_from_urdf(
     transform = torch.eye(4, dtype=torch.float64)
     points, directions = [], []
     for frame in chain._serial_frames[1:]:
-        transform = transform @ origins[frame.joint.name]
+        origin = origins[frame.joint.name]
+        if not bool(torch.isfinite(origin).all()):
+            raise ModelError(f"{path}: joint '{frame.joint.name}': origin xyz/rpy must be finite numbers")
+        transform = transform @ origin
         if frame.joint.joint_type == "fixed":
             continue
+        axis = frame.joint.axis.to(torch.float64)
+        if not bool(torch.isfinite(axis).all()) or float(axis.norm()) < 1e-9:
+            raise ModelError(f"{path}: joint '{frame.joint.name}': axis must be a finite, non-zero vector, "
+                             f"got {axis.tolist()}")
         points.append(transform[:3, 3])
-        directions.append(transform[:3, :3] @ frame.joint.axis.to(torch.float64))
+        directions.append(transform[:3, :3] @ axis)
     T_base_flange = transform
-    axes = mdh_from_axes(torch.stack(points), torch.stack(directions), T_base_flange)
+    try:
+        axes = mdh_from_axes(torch.stack(points), torch.stack(directions), T_base_flange)
+    except (RuntimeError, ValueError, ArithmeticError) as exc:  # LinAlgError is a RuntimeError
+        raise ModelError(f"{path}: the joint axes give no MDH table ({exc.__class__.__name__}: {exc})") from None
     limits = []
     for joint in frames:
         lim = joint.limits

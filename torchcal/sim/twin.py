@@ -65,6 +65,17 @@ class TwinConfig:
     link_masses_kg: list[float] = field(default_factory=lambda: [25.0, 15.0, 10.0])
     margin_deg: float = 5.0
 
+    def __post_init__(self) -> None:
+        """Refuse counts below one and non-finite or negative sizes before anything is written."""
+        from torchcal.core.overrides import check_range
+
+        for name in ("n_train", "n_test"):
+            check_range(self, name, low=1)
+        for name in ("length_error_mm", "angle_error_deg", "tool_error_mm", "tracker_sigma_mm", "repeatability_mm",
+                     "gear_amplitude_deg", "margin_deg"):
+            check_range(self, name, low=0.0)
+        check_range(self, "instrument_distance_mm", low=0.0, low_open=True)
+
     @property
     def noise_floor_rms_mm(self) -> float:
         return math.sqrt(3.0 * (self.tracker_sigma_mm**2 + self.repeatability_mm**2))

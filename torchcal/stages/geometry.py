@@ -8,6 +8,7 @@ instrument whose fit ends in a robot geometry writes its model folder through :f
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
@@ -112,6 +113,14 @@ def fit_with_selection(robot: RobotModel, data: Measurements, config: FitConfig,
 
         head_names(config.residual)  # an unknown head is refused before anything is fitted
     options = _structure_options(config)
+    from torchcal.kinematics.error_model import ErrorModel
+
+    few = pose_count_warning(len(data), int(ErrorModel(robot, parallel_threshold_deg=config.parallel_threshold_deg)
+                                             .default_active().sum()))
+    if few is not None:
+        import warnings
+
+        warnings.warn(few, stacklevel=2)
     geometry = geometry_fitter(robot, config)
     structure = None
     gravity, harmonics = options[0]
@@ -124,6 +133,8 @@ def fit_with_selection(robot: RobotModel, data: Measurements, config: FitConfig,
         progress("fitting the chosen structure on all poses")
     result = fit_joint_errors(robot, data, geometry(data), POINT_SETS[gravity], HARMONIC_SETS[harmonics],
                               config.harmonic_min_range_deg)
+    if few is not None:
+        result.notes.append(f"warning: {few}")
     if structure is not None and len(options) > 1:
         comparison = structure.comparison
         result.notes.append(f"structure chosen by {comparison.protocol}: "
@@ -151,7 +162,47 @@ def cross_validate_stored_structure(stored: StoredModel, data: Measurements, con
                                      folds, harmonic_min_range_deg=config.harmonic_min_range_deg)
 
 
+#: Corrections of the MDH table beyond these are far outside manufacturing tolerances (mm, deg).
+TOLERANCE_MM, TOLERANCE_DEG = 20.0, 2.0
+#: Fewer measured coordinates per identified parameter than this gives a warning.
+MIN_EQUATIONS_PER_PARAMETER = 3.0
+
+
+def pose_count_warning(n_poses: int, n_parameters: int, coordinates_per_pose: int = 3) -> str | None:
+    """A warning when ``n_poses`` give fewer than :data:`MIN_EQUATIONS_PER_PARAMETER` coordinates per parameter."""
+    ratio = n_poses * coordinates_per_pose / max(n_parameters, 1)
+    if ratio >= MIN_EQUATIONS_PER_PARAMETER:
+        return None
+    need = math.ceil(MIN_EQUATIONS_PER_PARAMETER * n_parameters / coordinates_per_pose)
+    return (f"{n_poses} poses give {n_poses * coordinates_per_pose} coordinates for {n_parameters} parameters "
+            f"({ratio:.2f} per parameter): the fit follows the noise; measure at least {need} poses")
+
+
+def implausible_corrections(result: CalibrationResult) -> str | None:
+    """A warning naming MDH corrections far beyond manufacturing tolerances (usually a wrong robot file)."""
+    model = result.model
+    layout = model.layout
+    delta = (result.x.detach().cpu() - model.nominal_vector().cpu()) * layout.unit_scale()
+    angle = layout.is_angle()
+    found = []
+    for i in range(layout.table_slice.start, layout.table_slice.stop):
+        limit, unit = (TOLERANCE_DEG, "deg") if bool(angle[i]) else (TOLERANCE_MM, "mm")
+        if abs(float(delta[i])) > limit:
+            found.append(f"{layout.names[i]} {float(delta[i]):+.4g} {unit}")
+    if not found:
+        return None
+    return (f"corrections far beyond manufacturing tolerances ({TOLERANCE_MM:g} mm, {TOLERANCE_DEG:g} deg): "
+            f"{', '.join(found)}; check the robot file ({model.robot.name}) against the robot")
+
+
 def save_fit(folder: Path, robot: RobotModel, data: Measurements, result: CalibrationResult, extra: dict) -> Path:
+    """Write the model folder of a geometry fit; implausible corrections are warned about and noted in it."""
+    import warnings
+
+    warning = implausible_corrections(result)
+    if warning is not None:
+        warnings.warn(warning, stacklevel=2)
+        result.notes.append(f"warning: {warning}")
     ident = result.identifiability
     meta = {
         "method": result.method,
@@ -165,8 +216,10 @@ def save_fit(folder: Path, robot: RobotModel, data: Measurements, result: Calibr
     meta.update(JointSpaceErrors.of(result).to_metadata())
     folder = Path(folder)
     # a new fit invalidates what an earlier fit into this folder learned on top of its geometry
+    from torchcal.core.folder import remove_member
+
     for stale in ("residual.safetensors", "residual.json", "model_selection.json"):
-        (folder / stale).unlink(missing_ok=True)
+        remove_member(folder, stale)
     return save_model(folder, robot, result.model, result.x, result.free, result.covariance, meta, training_q=data.q)
 
 

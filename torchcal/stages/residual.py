@@ -16,7 +16,6 @@ from collections.abc import Callable
 
 import torch
 
-from torchcal.core.io import atomic_write_json
 from torchcal.data.measurements import Measurements
 from torchcal.model_selection.compare import Comparison, compare_candidates
 from torchcal.model_selection.heads import cross_validate_heads, make_features
@@ -163,5 +162,7 @@ def write_selection(model_dir, comparison: Comparison, decision: str) -> None:
     """``model_selection.json``: the comparison table and the residual decision."""
     from pathlib import Path
 
-    atomic_write_json(Path(model_dir) / SELECTION_FILE, {**comparison.to_dict(), "residual_decision": decision,
-                                                         "table": comparison.format_table()})
+    from torchcal.core.folder import write_member_json
+
+    write_member_json(Path(model_dir), SELECTION_FILE, {**comparison.to_dict(), "residual_decision": decision,
+                                                        "table": comparison.format_table()})

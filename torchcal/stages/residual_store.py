@@ -2,12 +2,11 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import torch
 
-from torchcal.core.io import atomic_write_bytes, atomic_write_json
+from torchcal.core.folder import write_member, write_member_json
 from torchcal.residual import HEADS, ResidualHead
 from torchcal.residual.features import JointFeatures
 
@@ -46,8 +45,8 @@ def save_residual(folder: str | Path, residual: StoredResidual) -> None:
     folder = Path(folder)
     tensors = {f"head.{k}": v for k, v in residual.head.state().items()}
     tensors.update({f"features.{k}": v.detach().cpu().contiguous() for k, v in residual.features.state_dict().items()})
-    atomic_write_bytes(folder / "residual.safetensors", save(tensors))
-    atomic_write_json(folder / "residual.json", {
+    write_member(folder, "residual.safetensors", save(tensors))
+    write_member_json(folder, "residual.json", {
         "head": residual.head.name,
         "settings": residual.head.settings(),
         "uses_temperature": residual.features.uses_temperature,
@@ -57,11 +56,11 @@ def save_residual(folder: str | Path, residual: StoredResidual) -> None:
 
 
 def load_residual(folder: str | Path) -> StoredResidual:
-    from safetensors.torch import load_file
-
     folder = Path(folder)
-    info = json.loads((folder / "residual.json").read_text())
-    tensors = load_file(str(folder / "residual.safetensors"))
+    from torchcal.stages.files import read_json_member, read_tensors
+
+    info = read_json_member(folder / "residual.json")
+    tensors = read_tensors(folder / "residual.safetensors", {})
     head_state = {k.removeprefix("head."): v for k, v in tensors.items() if k.startswith("head.")}
     feat_state = {k.removeprefix("features."): v for k, v in tensors.items() if k.startswith("features.")}
     n = feat_state["mid"].shape[0]

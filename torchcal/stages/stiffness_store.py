@@ -13,7 +13,6 @@ of its MDH frame (see :mod:`torchcal.stiffness.vjm`).
 
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -21,7 +20,7 @@ from pathlib import Path
 import torch
 
 from torchcal.core.errors import ModelError
-from torchcal.core.io import atomic_write_bytes, atomic_write_json
+from torchcal.core.folder import write_member, write_member_json
 
 FORMAT = "torchcal-stiffness/1"
 TENSORS = "stiffness.safetensors"
@@ -73,7 +72,7 @@ def save_stiffness(folder: str | Path, estimate, metadata: dict) -> Path:
         "covariance_log": estimate.covariance_log.detach().cpu().contiguous(),
         "T_instrument_base": estimate.model.T_reference.detach().cpu().contiguous(),
     }
-    atomic_write_bytes(folder / TENSORS, save(tensors))
+    write_member(folder, TENSORS, save(tensors))
     ident = estimate.identifiability
     at_bound, poor = set(estimate.at_bound), set(estimate.poorly_determined)
     parameters = {}
@@ -104,23 +103,24 @@ def save_stiffness(folder: str | Path, estimate, metadata: dict) -> Path:
         "solver": {"iterations": estimate.iterations, "converged": estimate.converged},
         **metadata,
     }
-    atomic_write_json(folder / META, meta)
+    write_member_json(folder, META, meta)
     return folder
 
 
 def load_stiffness_stage(folder: str | Path, device: str | torch.device = "cpu") -> StoredStiffness | None:
     """The stiffness stage of a model folder, or ``None`` when it has none."""
-    from safetensors.torch import load_file
-
     folder = Path(folder)
     if not (folder / META).is_file():
         return None
-    meta = json.loads((folder / META).read_text())
+    from torchcal.stages.files import read_json_member, read_tensors
+
+    meta = read_json_member(folder / META)
     if meta.get("format") != FORMAT:
         raise ModelError(f"{folder / META}: format {meta.get('format')!r}, expected {FORMAT!r}")
     if not (folder / TENSORS).is_file():
         raise ModelError(f"{folder}: {META} without {TENSORS}")
-    t = load_file(str(folder / TENSORS))
+    t = read_tensors(folder / TENSORS, {"stiffness": 1, "covariance_log": 2, "compliance": 3, "T_instrument_base": 2},
+                     finite=("stiffness", "compliance", "T_instrument_base"))
     return StoredStiffness(
         names=tuple(meta["parameters"]),
         stiffness=t["stiffness"].to(device),

@@ -16,7 +16,6 @@ A model folder holds:
 
 from __future__ import annotations
 
-import json
 import math
 import shutil
 from dataclasses import dataclass, field
@@ -26,9 +25,10 @@ from typing import TYPE_CHECKING
 import torch
 
 from torchcal.core.errors import ModelError
-from torchcal.core.io import atomic_write_bytes, atomic_write_json, atomic_write_text
+from torchcal.core.folder import write_member, write_member_json, write_member_text
 from torchcal.kinematics.error_model import ErrorModel
 from torchcal.kinematics.robot import RobotModel, load_robot, robot_to_yaml
+from torchcal.stages.files import read_json_member, read_tensors
 
 if TYPE_CHECKING:  # loaded on demand: a geometry-only folder needs neither (nor their imports)
     from torchcal.stages.base import ModelStage
@@ -100,10 +100,10 @@ def save_model(
     folder.mkdir(parents=True, exist_ok=True)
     if robot.source and Path(robot.source).suffix.lower() in (".urdf", ".xml"):
         robot_file = folder / "robot.urdf"
-        atomic_write_text(robot_file, robot.urdf or Path(robot.source).read_text())
+        write_member_text(folder, robot_file.name, robot.urdf or Path(robot.source).read_text())
     else:
         robot_file = folder / "robot.yaml"
-        atomic_write_text(robot_file, robot_to_yaml(robot))
+        write_member_text(folder, robot_file.name, robot_to_yaml(robot))
     tensors = {
         "x": x.detach().cpu().contiguous(),
         "T_reference": model.T_reference.detach().cpu().contiguous(),
@@ -112,7 +112,7 @@ def save_model(
     }
     if training_q is not None:
         tensors["training_q"] = training_q.detach().to("cpu", torch.float64).contiguous()
-    atomic_write_bytes(folder / "calibration.safetensors", save(tensors))
+    write_member(folder, "calibration.safetensors", save(tensors))
     table = model.table(x.cpu())
     scale = model.layout.unit_scale()
     sigma = torch.zeros(model.layout.size, dtype=torch.float64)
@@ -133,43 +133,75 @@ def save_model(
         },
         **metadata,
     }
-    atomic_write_json(folder / "calibration.json", meta)
+    write_member_json(folder, "calibration.json", meta)
     tool = x[model.layout.tool_slice][:3].cpu()
     header = "# calibrated by torchcal; T_instrument_base and sigmas are in calibration.json\n"
-    atomic_write_text(folder / "calibrated_robot.yaml", header + robot_to_yaml(robot, table=table, tool=tool))
+    write_member_text(folder, "calibrated_robot.yaml", header + robot_to_yaml(robot, table=table, tool=tool))
     return folder
 
 
+def _member_path(folder: Path, name: object, key: str) -> Path:
+    """``folder/name`` for a file name stored in ``calibration.json``; a path leading outside is refused."""
+    if not isinstance(name, str) or not name or Path(name).name != name or name in (".", ".."):
+        raise ModelError(f"{folder / 'calibration.json'}: {key} must name a file inside the model folder, "
+                         f"got {name!r}")
+    return folder / name
+
+
 def load_model(folder: str | Path, device: str | torch.device = "cpu") -> StoredModel:
-    """Read a model folder written by :func:`save_model` (safetensors + JSON only)."""
-    from safetensors.torch import load_file
+    """Read a model folder written by :func:`save_model` (safetensors + JSON only).
+
+    The folder is verified first (:func:`torchcal.core.folder.verify_folder`: every file listed in
+    ``checksums.json`` with its SHA-256, no file of another result); malformed content is a
+    :class:`ModelError` naming the file.
+    """
+    from torchcal.core.folder import verify_folder
 
     folder = Path(folder)
     meta_path = folder / "calibration.json"
     if not meta_path.is_file():
         raise ModelError(f"{folder}: not a torchcal model folder (no calibration.json)")
-    meta = json.loads(meta_path.read_text())
-    robot_path = folder / meta["robot_file"]
+    verify_folder(folder)
+    meta = read_json_member(meta_path)
+    names = meta.get("parameter_names")
+    if not isinstance(names, list):
+        raise ModelError(f"{meta_path}: no parameter_names list")
+    robot_path = _member_path(folder, meta.get("robot_file"), "robot_file")
     robot = load_robot(robot_path, base_link=meta.get("base_link"), end_link=meta.get("end_link"))
-    tensors = load_file(str(folder / "calibration.safetensors"))
+    tensors = read_tensors(folder / "calibration.safetensors",
+                           {"x": 1, "T_reference": 2, "free": 1, "covariance": 2}, finite=("x", "T_reference", "training_q"))
+    if tuple(tensors["T_reference"].shape) != (4, 4):
+        raise ModelError(f"{folder / 'calibration.safetensors'}: T_reference is not 4x4")
+    threshold = meta.get("parallel_threshold_deg", 2.0)
+    if not isinstance(threshold, (int, float)) or not math.isfinite(threshold) or threshold < 0:
+        raise ModelError(f"{meta_path}: parallel_threshold_deg must be a finite number >= 0, got {threshold!r}")
     model = ErrorModel(
         robot,
-        with_orientation=meta.get("with_orientation", False),
-        parallel_threshold_deg=meta.get("parallel_threshold_deg", 2.0),
+        with_orientation=bool(meta.get("with_orientation", False)),
+        parallel_threshold_deg=threshold,
         T_instrument_base=tensors["T_reference"],
         device=device,
     )
-    if list(model.layout.names) != meta["parameter_names"]:
+    if list(model.layout.names) != names:
         raise ModelError(f"{folder}: parameter layout does not match robot {robot.name}")
+    if tensors["x"].shape[0] != model.layout.size:
+        raise ModelError(f"{folder / 'calibration.safetensors'}: x has {tensors['x'].shape[0]} values, "
+                         f"the layout {model.layout.size}")
+    free = tensors["free"]
+    if free.numel() and (free.is_floating_point() or int(free.min()) < 0 or int(free.max()) >= model.layout.size):
+        raise ModelError(f"{folder / 'calibration.safetensors'}: free holds indices outside the parameter layout")
     stored = StoredModel(
-        robot=robot, model=model, x=tensors["x"].to(device), free=tensors["free"],
+        robot=robot, model=model, x=tensors["x"].to(device), free=free,
         covariance=tensors["covariance"].to(device), metadata=meta, folder=folder,
         training_q=tensors.get("training_q"),
     )
     if (folder / "residual.json").is_file():
         from torchcal.stages.residual_store import load_residual
 
-        stored.residual = load_residual(folder)
+        try:
+            stored.residual = load_residual(folder)
+        except (KeyError, TypeError, ValueError, AssertionError) as exc:
+            raise ModelError(f"{folder / 'residual.json'}: the residual head cannot be read ({exc})") from None
     from torchcal.stages.stiffness_store import load_stiffness_stage
 
     stored.stiffness = load_stiffness_stage(folder, device=device)

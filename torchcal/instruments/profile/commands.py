@@ -16,7 +16,7 @@ from pathlib import Path
 import torch
 
 from torchcal.core.errors import ModelError, TorchcalError
-from torchcal.core.io import atomic_write_json, atomic_write_text
+from torchcal.core.folder import write_member_json, write_member_text
 from torchcal.core.metrics import distance_summary
 from torchcal.instruments.base import FitOutcome
 from torchcal.instruments.profile.closed_form import (
@@ -135,11 +135,9 @@ def _write_robot(folder: Path, robot: RobotModel) -> str | None:
     if (folder / "calibration.json").is_file():
         return None
     if robot.source and Path(robot.source).suffix.lower() in (".urdf", ".xml"):
-        path = folder / "robot.urdf"
-        atomic_write_text(path, robot.urdf or Path(robot.source).read_text())
+        path = write_member_text(folder, "robot.urdf", robot.urdf or Path(robot.source).read_text())
     else:
-        path = folder / "robot.yaml"
-        atomic_write_text(path, robot_to_yaml(robot))
+        path = write_member_text(folder, "robot.yaml", robot_to_yaml(robot))
     return path.name
 
 
@@ -220,8 +218,13 @@ def sensor_document(
     return doc
 
 
-def fit_profile(robot_path, data_path, out_dir, overrides: list[str], *, base_link=None, end_link=None, progress=None) -> FitOutcome:
-    """``torchcal fit`` on a profile file: writes ``out_dir/sensor.json`` and the robot file."""
+def fit_profile(robot_path, data_path, out_dir, overrides: list[str], *, base_link=None, end_link=None, progress=None,
+                previous: Path | None = None) -> FitOutcome:
+    """``torchcal fit`` on a profile file: writes ``out_dir/sensor.json`` and the robot file.
+
+    ``previous``: the folder this result replaces (``FitRequest.previous``); when it holds a
+    calibrated model, the model's files are carried into ``out_dir`` and the sensor added to them.
+    """
     config = profile_config(overrides)
     robot = load_robot(robot_path, base_link=base_link, end_link=end_link)
     data = load_profile_file(data_path, robot, config)
@@ -230,13 +233,19 @@ def fit_profile(robot_path, data_path, out_dir, overrides: list[str], *, base_li
     doc = sensor_document(data, seed, result, T, config)
     folder = Path(out_dir)
     folder.mkdir(parents=True, exist_ok=True)
+    if previous is not None and Path(previous).resolve() != folder.resolve() and (Path(previous) / "calibration.json").is_file():
+        from torchcal.core.folder import verify_folder
+        from torchcal.stages.store import copy_model
+
+        verify_folder(previous)
+        copy_model(previous, folder)
     robot_file = _write_robot(folder, robot)
     doc["flange_poses"] = {
         "source": source,
         "robot_file": robot_file,
         "model": str(Path(config.model).resolve()) if config.model else None,
     }
-    atomic_write_json(folder / SENSOR_FILE, doc)
+    write_member_json(folder, SENSOR_FILE, doc)
     return FitOutcome(folder)
 
 
@@ -247,7 +256,16 @@ def load_sensor(folder: str | Path) -> dict:
         raise ModelError(f"{folder}: no {SENSOR_FILE} (fit a profile file into this folder first)")
     import json
 
-    return json.loads(path.read_text())
+    from torchcal.core.folder import verify_folder
+
+    verify_folder(folder)
+    try:
+        doc = json.loads(path.read_bytes().decode("utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ModelError(f"{path}: not a JSON document ({exc})") from None
+    if not isinstance(doc, dict):
+        raise ModelError(f"{path}: not a JSON object")
+    return doc
 
 
 def evaluate_profile(model_dir, data_path, overrides: list[str], *, register: bool = False) -> dict:

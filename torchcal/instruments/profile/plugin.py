@@ -37,7 +37,8 @@ class ProfileInstrument(Instrument):
         from torchcal.instruments.profile.commands import fit_profile
 
         return fit_profile(request.robot, request.data, request.out, request.overrides,
-                           base_link=request.base_link, end_link=request.end_link, progress=request.progress)
+                           base_link=request.base_link, end_link=request.end_link, progress=request.progress,
+                           previous=request.previous)
 
     def evaluate(self, request: EvaluateRequest) -> EvaluateOutcome:
         from torchcal.instruments.profile.commands import evaluate_profile

@@ -36,8 +36,8 @@ import numpy as np
 import torch
 
 from torchcal.core.errors import DataError, IdentifiabilityWarning, TorchcalError
+from torchcal.core.folder import remove_member, write_member_json
 from torchcal.core.hashing import sha256_file
-from torchcal.core.io import atomic_write_json
 from torchcal.core.metrics import distance_summary
 from torchcal.data.folds import SPLITS, Folds, make_folds
 from torchcal.instruments.base import FitOutcome
@@ -208,9 +208,9 @@ def _write_selection(folder: Path, selection: dict | None) -> None:
     if selection is not None:
         content["stiffness"] = selection
     if content:
-        atomic_write_json(path, content)
+        write_member_json(folder, SELECTION_FILE, content)
     else:
-        path.unlink(missing_ok=True)
+        remove_member(folder, SELECTION_FILE)
 
 
 def fit_stiffness(

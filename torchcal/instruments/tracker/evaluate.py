@@ -2,16 +2,21 @@
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 from typing import Any
 
 import torch
 
 from torchcal.config.schema import FitConfig
+from torchcal.core.errors import DataError
 from torchcal.core.metrics import position_metrics
 from torchcal.data.measurements import load_measurements
 from torchcal.stages.geometry import held_out_errors
 from torchcal.stages.store import StoredModel, load_model
+
+#: ``evaluate --register``: fewer poses are refused; fewer than the advised give a warning.
+REGISTER_MIN_POSES, REGISTER_ADVISED_POSES = 4, 10
 
 
 def evaluate(model_dir: str | Path, data_path: str | Path, *, register: bool = False, config: FitConfig | None = None) -> dict:
@@ -19,8 +24,20 @@ def evaluate(model_dir: str | Path, data_path: str | Path, *, register: bool = F
     config = config or FitConfig()
     stored = load_model(model_dir)
     data = load_measurements(data_path, stored.robot, joint_unit=config.joint_unit, length_unit=config.length_unit)
+    warning = None
+    if register:
+        if len(data) < REGISTER_MIN_POSES:
+            raise DataError(f"--register fits the instrument frame (6 parameters) to the file's points; {len(data)} poses "
+                            f"cannot check it (at least {REGISTER_MIN_POSES}, better {REGISTER_ADVISED_POSES})",
+                            path=str(data_path))
+        if len(data) < REGISTER_ADVISED_POSES:
+            warning = (f"--register fitted 6 frame parameters to {len(data)} poses ({3 * len(data)} coordinates): "
+                       f"the RMS is optimistic; score on {REGISTER_ADVISED_POSES} or more poses")
+            warnings.warn(warning, stacklevel=2)
     metrics: dict[str, Any] = position_metrics(held_out_errors(stored, data, register=register))
     metrics.update({"model": str(model_dir), "data": str(data_path), "registered": register})
+    if warning is not None:
+        metrics["warnings"] = [warning]
     if stored.training_q is not None:
         from torchcal.model_selection.leakage import leakage_report
 

@@ -1,0 +1,116 @@
+"""Run the bad-input cases of ``tests/fuzz_cases.py`` as processes against a checkout and count outcomes.
+
+    python scripts/fuzz_count.py --checkout /path/to/torchcal --work /tmp/fuzz_count
+
+The inputs are built with this checkout; each command runs as ``python -m torchcal.cli`` with
+``PYTHONPATH=<checkout>``, so the same cases can be counted before and after a change. Each case
+is classed as
+
+* ``one line``: exit 2 (or 130) with exactly one ``torchcal: error:`` line and no traceback;
+* ``warned``: exit 0 with a ``torchcal: warning:`` line holding the case's expected text;
+* ``traceback``: a Python traceback on stderr;
+* ``silent``: exit 0 with no such warning (a result from bad data);
+* ``other``: anything else (another exit status, several error lines).
+
+``as expected`` additionally needs the case's own exit status, text and output-path state.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shutil
+import subprocess
+import sys
+from collections import Counter
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(HERE / "tests"))
+sys.path.insert(0, str(HERE))
+
+from fuzz_cases import CASES, make_fixtures, out_state_problem, snapshot
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--checkout", type=Path, required=True, help="repository root whose torchcal runs the commands")
+    parser.add_argument("--work", type=Path, required=True)
+    parser.add_argument("--only", nargs="*", default=None, help="case names, ctrl_c included (default: all)")
+    parser.add_argument("--timeout", type=float, default=120.0, help="seconds a case may run (then: timeout)")
+    args = parser.parse_args()
+    args.work = args.work.resolve()
+    env = {**os.environ, "PYTHONPATH": str(args.checkout.resolve())}
+
+    def run(argv: list[str]) -> subprocess.CompletedProcess:
+        return subprocess.run([sys.executable, "-m", "torchcal.cli", *argv], capture_output=True, text=True, env=env, cwd=args.work,
+                              timeout=args.timeout)
+
+    shutil.rmtree(args.work, ignore_errors=True)
+    args.work.mkdir(parents=True)
+    from torchcal.cli import main as here_main
+
+    fixtures = make_fixtures(args.work / "fixtures", lambda argv: here_main(argv))
+    classes: Counter[str] = Counter()
+    expected = 0
+    for name in [n for n in args.only or sorted(CASES) if n in CASES]:
+        work = args.work / name
+        work.mkdir()
+        case = CASES[name](fixtures, work)
+        before = snapshot(case.out)
+        try:
+            proc = run(case.argv)
+        except subprocess.TimeoutExpired:
+            classes["timeout"] += 1
+            print(f"{name:32s} rc=-   timeout   NOT as expected | still running after {args.timeout:g} s", flush=True)
+            continue
+        err = proc.stderr
+        errors = [line for line in err.splitlines() if line.startswith("torchcal: error:")]
+        warned = [line for line in err.splitlines() if line.startswith("torchcal: warning:") and case.message in line]
+        if "Traceback" in err:
+            kind = "traceback"
+        elif proc.returncode in (2, 130) and len(errors) == 1:
+            kind = "one line"
+        elif proc.returncode == 0 and warned:
+            kind = "warned"
+        elif proc.returncode == 0:
+            kind = "silent"
+        else:
+            kind = "other"
+        state = out_state_problem(case, before)
+        ok = (proc.returncode == case.rc and not state
+              and (any(case.message in e for e in errors) if case.rc else bool(warned)))
+        expected += ok
+        classes[kind] += 1
+        last = (errors or [ln for ln in err.splitlines() if ln.strip()] or [""])[-1]
+        print(f"{name:32s} rc={proc.returncode:<3d} {kind:9s} {'as expected' if ok else 'NOT as expected'}"
+              f"{'; ' + state if state else ''} | {last[:150]}", flush=True)
+    if args.only is None or "ctrl_c" in args.only:  # Ctrl-C 8 s into a refit over an earlier model folder
+        import signal
+        import time
+
+        out = args.work / "ctrl_c" / "model"
+        shutil.copytree(fixtures.model, out)
+        before = snapshot(out)
+        proc = subprocess.Popen([sys.executable, "-m", "torchcal.cli", "fit", "--robot", str(fixtures.robot), "--data",
+                                 str(fixtures.train), "--out", str(out)], stderr=subprocess.PIPE, stdout=subprocess.DEVNULL,
+                                text=True, env=env, cwd=args.work,
+                                # a shell without job control starts background commands with SIGINT ignored
+                                preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+        time.sleep(8)
+        proc.send_signal(signal.SIGINT)
+        err = proc.communicate(timeout=600)[1]
+        kind = "traceback" if "Traceback" in err else "one line" if proc.returncode == 130 else "other"
+        ok = proc.returncode == 130 and "interrupted" in err and snapshot(out) == before
+        expected += ok
+        classes[kind] += 1
+        print(f"{'ctrl_c':32s} rc={proc.returncode:<3d} {kind:9s} {'as expected' if ok else 'NOT as expected'} | "
+              f"{([ln for ln in err.splitlines() if ln.strip()] or [''])[-1][:150]}")
+    total = sum(classes.values())
+    print(f"{total} cases: " + ", ".join(f"{k} {v}" for k, v in sorted(classes.items()))
+          + f"; as expected (status, text, output state) {expected} of {total}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,127 @@
+"""Bad inputs through the command line: one line and exit status 2 (or a warning), never a traceback.
+
+Each case of :mod:`fuzz_cases` runs through ``torchcal.cli.main`` in this process, so an
+exception that escapes ``main`` (a traceback for a user) fails the test. Checked: the exit
+status, that stderr holds exactly one ``torchcal: error:`` line with the expected text (or the
+expected warning), and the state of the output path (absent, unchanged or a whole model folder).
+Ctrl-C runs as a process: exit 130 and the earlier model folder left as it was.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+import warnings
+from pathlib import Path
+
+import pytest
+from fuzz_cases import CASES, Fixtures, make_fixtures, out_state_problem, snapshot
+
+from torchcal.cli import main
+
+pytestmark = pytest.mark.slow
+
+
+@pytest.fixture(scope="module")
+def fixtures(tmp_path_factory) -> Fixtures:
+    return make_fixtures(tmp_path_factory.mktemp("fuzz"), main)
+
+
+@pytest.mark.parametrize("name", sorted(CASES))
+def test_bad_input_gets_one_line(name, fixtures, tmp_path, capfd):
+    case = CASES[name](fixtures, tmp_path)
+    before = snapshot(case.out)
+    capfd.readouterr()
+    with warnings.catch_warnings(record=True) as caught:  # pytest takes warnings before the CLI prints them
+        warnings.simplefilter("always")
+        rc = main(case.argv)
+    err = capfd.readouterr().err + "".join(f"torchcal: warning: {w.message}\n" for w in caught)
+    assert "Traceback" not in err
+    assert rc == case.rc, err
+    if case.rc == 2:
+        errors = [line for line in err.splitlines() if line.startswith("torchcal: error:")]
+        assert len(errors) == 1, err
+        assert case.message in errors[0], errors[0]
+    else:
+        warned = [line for line in err.splitlines() if line.startswith("torchcal: warning:")]
+        assert any(case.message in line for line in warned), err
+    assert out_state_problem(case, before) == ""
+
+
+def test_whole_folder_records_warning(fixtures, tmp_path, capfd):
+    """A fit accepted with a warning says so in the model folder too (calibration.json notes)."""
+    import json
+
+    case = CASES["yaml_wrong_sign"](fixtures, tmp_path)
+    assert main(case.argv) == 0
+    notes = json.loads((case.out / "calibration.json").read_text())["notes"]
+    assert any("manufacturing tolerances" in n for n in notes)
+
+
+def _cli_process(argv: list[str]) -> subprocess.Popen:
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+    return subprocess.Popen([sys.executable, "-m", "torchcal.cli", *argv], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, env=env,
+                            # SIGINT as a terminal delivers it, even where the tests run with it ignored
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+
+
+def test_ctrl_c_leaves_the_earlier_model(fixtures, tmp_path):
+    import shutil
+
+    out = tmp_path / "model"
+    shutil.copytree(fixtures.model, out)
+    before = snapshot(out)
+    proc = _cli_process(["fit", "--robot", str(fixtures.robot), "--data", str(fixtures.train), "--out", str(out)])
+    deadline = time.monotonic() + 120
+    while not any(p.name.startswith(".model.staging-") for p in tmp_path.iterdir()):  # the fit has begun writing
+        assert proc.poll() is None and time.monotonic() < deadline
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130, err
+    assert "Traceback" not in err and "interrupted" in err
+    assert snapshot(out) == before
+    assert not any(p.name.startswith(".model.staging-") for p in tmp_path.iterdir())
+
+
+def test_kill_9_leaves_a_whole_folder(fixtures, tmp_path):
+    """kill -9 while a refit is writing: the earlier folder or the new one, whole (scripts/kill_sweep.py sweeps)."""
+    import shutil
+
+    from torchcal.core.folder import verify_folder
+    from torchcal.stages.store import load_model
+
+    out = tmp_path / "model"
+    shutil.copytree(fixtures.model, out)
+    before = snapshot(out)
+    proc = _cli_process(["fit", "--robot", str(fixtures.robot), "--data", str(fixtures.test), "--out", str(out),
+                         "residual=none", "gravity_compliance=none", "joint_harmonics=none"])
+    deadline = time.monotonic() + 120
+    while not any(p.name.startswith(".model.staging-") for p in tmp_path.iterdir()):
+        assert proc.poll() is None and time.monotonic() < deadline
+        time.sleep(0.01)
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.communicate()
+    verify_folder(out)
+    load_model(out)
+    assert snapshot(out) == before or (out / "checksums.json").read_bytes() != before["checksums.json"]
+
+
+def test_profile_fit_into_a_model_folder_keeps_the_model(fixtures, tmp_path):
+    """A sensor fitted into a calibrated model folder is added to the model, which stays whole."""
+    import shutil
+
+    from torchcal.core.folder import verify_folder
+    from torchcal.stages.store import load_model
+
+    case, out = tmp_path / "profile", tmp_path / "model"
+    shutil.copytree(fixtures.model, out)
+    assert main(["simulate", "instrument=profile", "--out", str(case), "seed=7"]) == 0
+    assert main(["fit", "--robot", str(case / "robot.yaml"), "--data", str(case / "profile.csv"), "--out", str(out)]) == 0
+    assert (out / "sensor.json").is_file()
+    verify_folder(out)
+    assert load_model(out).x.equal(load_model(fixtures.model).x)

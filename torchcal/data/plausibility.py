@@ -1,0 +1,99 @@
+"""Plausibility of a measurement file against the nominal robot, before any fit or evaluation.
+
+A file in the wrong unit parses cleanly and fits to a meaningless robot, so the size of what was
+measured is compared with what the nominal robot does at the file's joints:
+
+* joints written in radians but read as degrees (every value within +-2 pi while the robot's
+  limits span far more);
+* TCP points whose spread (median distance from their median point) is not the spread of the
+  nominal TCP at the same joints: a factor near 1/1000 or 1000 names the likely unit and the
+  option that sets it (``length_unit``);
+* single points far outside anything the robot reaches (a typo such as ``1e300``).
+
+Every finding is a :class:`~torchcal.core.errors.DataError` naming file, row and column.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+from torchcal.core.errors import DataError
+from torchcal.kinematics.robot import RobotModel
+
+#: Measured / nominal spread outside this range is refused (a unit or robot-file mistake).
+SPREAD_RATIO_RANGE = (0.2, 5.0)
+#: A point farther from the others than this multiple of the robot's reach (+ 0.2 m) is refused.
+OUTLIER_REACH_FACTOR = 2.0
+
+
+def _mm(distance_m: float) -> str:
+    return f"{distance_m * 1e3:.4g} mm" if math.isfinite(distance_m * 1e3) else "beyond any finite distance"
+
+
+def check_joint_unit(q_file: np.ndarray, joint_unit: str, limits_rad: np.ndarray, *, path: str,
+                     lines: tuple[int, ...] | list[int]) -> None:
+    """Refuse joints that look like radians read as degrees.
+
+    Args:
+        q_file: ``(B, N)`` joints as written in the file, in ``joint_unit``.
+        limits_rad: ``(N, 2)`` joint limits, rad.
+    """
+    if joint_unit != "deg" or len(q_file) < 5:
+        return
+    largest = float(np.abs(q_file).max())
+    widest_limit_deg = math.degrees(float((limits_rad[:, 1] - limits_rad[:, 0]).max()))
+    if largest <= 2 * math.pi + 1e-6 and widest_limit_deg > 30.0:
+        col = int(np.abs(q_file).max(0).argmax())
+        row = int(np.abs(q_file[:, col]).argmax())
+        raise DataError(
+            f"every joint value lies within +-6.2832 (largest {largest:.4g}) although the robot's joints span up to "
+            f"{widest_limit_deg:.0f} deg: the joints look like radians; set joint_unit=rad",
+            path=path, row=lines[row], column=f"q{col + 1}")
+
+
+def check_point_spread(robot: RobotModel, q: torch.Tensor, position: torch.Tensor, length_unit: str, *, path: str,
+                       lines: tuple[int, ...] | list[int]) -> None:
+    """Refuse TCP points whose size does not match the nominal robot at the same joints.
+
+    Args:
+        q: ``(B, N)`` joints, rad.
+        position: ``(B, 3)`` measured TCP points, m (any rigid frame).
+        length_unit: the unit the file was read in (``mm`` or ``m``), for the message.
+    """
+    if len(q) < 5:
+        return
+    with torch.no_grad():
+        nominal = robot.tcp_position(q.to(torch.float64)).cpu().numpy()
+    measured = position.cpu().numpy()
+    dist_nominal = np.linalg.norm(nominal - np.median(nominal, 0), axis=1)
+    with np.errstate(over="ignore", invalid="ignore"):
+        dist_measured = np.linalg.norm(measured - np.median(measured, 0), axis=1)
+    reach = float(dist_nominal.max())
+    far = dist_measured > OUTLIER_REACH_FACTOR * reach + 0.2
+    if far.any() and far.mean() < 0.5:
+        k = int(np.argmax(dist_measured))
+        axis = int(np.abs(measured[k] - np.median(measured, 0)).argmax())
+        value = measured[k, axis] * (1e3 if length_unit == "mm" else 1.0)
+        raise DataError(
+            f"{value:.6g} {length_unit} puts this point {_mm(dist_measured[k])} from the others' median, while "
+            f"the nominal robot's TCP stays within {reach * 1e3:.0f} mm of it at the file's joints: a typo or a wrong value",
+            path=path, row=lines[k], column="xyz"[axis])
+    ref, got = float(np.median(dist_nominal)), float(np.median(dist_measured))
+    if ref <= 1e-6:
+        return
+    ratio = got / ref
+    low, high = SPREAD_RATIO_RANGE
+    if low <= ratio <= high:
+        return
+    if ratio < 0.01 and length_unit == "mm":
+        hint = "the points look like metres; set length_unit=m"
+    elif ratio > 100 and length_unit == "m":
+        hint = "the points look like millimetres; set length_unit=mm"
+    else:
+        hint = f"check the robot file ({robot.name}) and the units of the file (length_unit={length_unit})"
+    raise DataError(
+        f"the measured points spread {got * 1e3:.4g} mm around their median, the nominal robot's TCP at the same "
+        f"joints {ref * 1e3:.4g} mm (ratio {ratio:.3g}): {hint}", path=path, column="x")
