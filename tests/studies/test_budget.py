@@ -131,3 +131,33 @@ def test_a_trial_killed_before_its_first_heartbeat_is_retried(tmp_path):
     trials = study.get_trials()
     assert [t.state for t in trials] == [TrialState.FAIL, TrialState.WAITING]
     assert trials[1].params == trials[0].params
+
+
+def test_a_trial_failed_by_another_worker_is_left_to_its_retry(tmp_path):
+    """A worker whose heartbeat was lost (a database outage) finds its trial failed and queued again
+    by another worker: it goes on, the queued copy is run, and the budget is met."""
+    from optuna.storages import RetryHeartbeatStaleTrialCallback
+
+    from torchcal.studies.worker import Worker
+
+    config = _study("taken", 2)
+    worker = Worker(_base(tmp_path), config, tmp_path)
+    real, taken = worker.objective, []
+
+    def objective(trial):
+        value = real(trial)
+        if not taken:  # what the other worker's fail_stale_trials does to this trial
+            taken.append(trial.number)
+            other = open_study(config, tmp_path)
+            other._storage.set_trial_state_values(trial._trial_id, TrialState.FAIL)
+            RetryHeartbeatStaleTrialCallback(max_retry=1)(other, other._storage.get_trial(trial._trial_id))
+        return value
+
+    worker.objective = objective
+    worker.run()
+    trials = open_study(config, tmp_path).get_trials()
+    assert trials[taken[0]].state == TrialState.FAIL
+    retries = [t for t in trials if RetryHeartbeatStaleTrialCallback.retried_trial_number(t) == taken[0]]
+    assert len(retries) == 1 and retries[0].state == TrialState.COMPLETE
+    assert retries[0].params == trials[taken[0]].params
+    assert sum(t.state == TrialState.COMPLETE for t in trials) == 2

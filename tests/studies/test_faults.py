@@ -1,5 +1,8 @@
 """Faults on a shared PostgreSQL study: a worker killed mid-trial while another runs, the server restarted.
 
+The outage tests stop a server of their own (``private_postgres``): the shared one serves tests
+running beside them on the other pytest worker.
+
 Each test ends by reading the database: exactly the budget of finished trials, none WAITING or
 RUNNING, and no configuration evaluated twice (trials sample a float, so only a repeated sampler
 stream or a re-run trial could give two equal configurations).
@@ -7,11 +10,8 @@ stream or a re-run trial could give two equal configurations).
 
 from __future__ import annotations
 
-import os
-import subprocess
 import time
 import uuid
-from pathlib import Path
 
 import pytest
 from optuna.storages import RetryHeartbeatStaleTrialCallback
@@ -56,24 +56,6 @@ def test_worker_killed_mid_trial_while_another_runs(tmp_path, postgres_url, rest
         assert "WARNING" not in last and "Traceback" not in out
 
 
-def _pg(action: str) -> None:
-    """``restart``, ``stop`` or ``start`` the test server (started again with the options it had)."""
-    import glob
-    import shlex
-
-    data = os.environ.get("TORCHCAL_TEST_PG_DATA")
-    if not data or os.geteuid() != 0:
-        pytest.skip("restarting the server needs TORCHCAL_TEST_PG_DATA (.ci/postgres.sh's data folder) and root")
-    pg_ctl = sorted(glob.glob("/usr/lib/postgresql/*/bin/pg_ctl"))[-1]
-    options = ""
-    if action == "start":
-        argv = shlex.split(Path(data, "postmaster.opts").read_text())[1:]
-        keep = [a for k, a in enumerate(argv) if a != "-D" and (k == 0 or argv[k - 1] != "-D")]
-        options = f"-l {data}/server.log -o {shlex.quote(shlex.join(keep))}"
-    subprocess.run(["su", "postgres", "-s", "/bin/sh", "-c", f"{pg_ctl} -D {data} -m fast -w {options} {action}"],
-                   check=True, stdout=subprocess.DEVNULL)
-
-
 def _wait_finished(name: str, url: str, n: int, timeout: float = 300) -> None:
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
@@ -86,32 +68,32 @@ def _wait_finished(name: str, url: str, n: int, timeout: float = 300) -> None:
     pytest.fail("no trial finished")
 
 
-def test_server_restarted_mid_study(tmp_path, postgres_url):
+def test_server_restarted_mid_study(tmp_path, private_postgres):
     """Workers ride out a short outage: they reconnect and the study ends complete."""
-    name = f"restart-{uuid.uuid4().hex[:8]}"
-    a, b = _two_workers(tmp_path, name, postgres_url)
-    _wait_finished(name, postgres_url, 1)
-    _pg("restart")
+    name, url = f"restart-{uuid.uuid4().hex[:8]}", private_postgres.url
+    a, b = _two_workers(tmp_path, name, url)
+    _wait_finished(name, url, 1)
+    private_postgres.control("restart")
     out = [finish(a), finish(b)]
-    assert_budget_kept(load(name, postgres_url).trials, N_TRIALS)
+    assert_budget_kept(load(name, url).trials, N_TRIALS)
     assert all("Traceback" not in o for o in out), out
 
 
-def test_server_gone_longer_than_reconnect(tmp_path, postgres_url):
+def test_server_gone_longer_than_reconnect(tmp_path, private_postgres):
     """A server that stays away: each worker stops with one line; the next run finishes the study."""
-    name = f"gone-{uuid.uuid4().hex[:8]}"
-    a, b = _two_workers(tmp_path, name, postgres_url, "study.reconnect_s=3")
-    _wait_finished(name, postgres_url, 1)
-    _pg("stop")
+    name, url = f"gone-{uuid.uuid4().hex[:8]}", private_postgres.url
+    a, b = _two_workers(tmp_path, name, url, "study.reconnect_s=3")
+    _wait_finished(name, url, 1)
+    private_postgres.control("stop")
     try:
         outs = [p.communicate(timeout=120)[0] for p in (a, b)]
     finally:
-        _pg("start")
+        private_postgres.control("start")
     for p, out in zip((a, b), outs):
         if p.returncode == 0:  # it had finished its part before the server went
             continue
         assert p.returncode == 2, out
         assert "Traceback" not in out, out
         assert out.strip().splitlines()[-1].startswith("torchcal: error: study") and "lost the database" in out
-    finish(start(study_command(name, N_TRIALS, postgres_url), tmp_path / "a"))
-    assert_budget_kept(load(name, postgres_url).trials, N_TRIALS)
+    finish(start(study_command(name, N_TRIALS, url), tmp_path / "a"))
+    assert_budget_kept(load(name, url).trials, N_TRIALS)

@@ -15,6 +15,10 @@ N_TRIALS = 5
 pytestmark = pytest.mark.filterwarnings("ignore::optuna.exceptions.ExperimentalWarning")
 
 
+def _states(trials) -> str:
+    return "\n".join(f"{t.number} {t.state.name} {t.system_attrs} {t.user_attrs}" for t in trials)
+
+
 def _kill_and_resume(tmp_path, name: str, storage: str, restart_after_s: float = 7) -> None:
     first = start(study_command(name, N_TRIALS, storage), tmp_path)
     killed = kill_during_second_trial(first, name, storage)
@@ -34,7 +38,7 @@ def _kill_and_resume(tmp_path, name: str, storage: str, restart_after_s: float =
     # the killed trial is failed, and retried once with the same parameters
     assert by_number[killed].state == TrialState.FAIL
     retries = [t for t in trials if RetryHeartbeatStaleTrialCallback.retried_trial_number(t) == killed]
-    assert len(retries) == 1
+    assert len(retries) == 1, _states(trials)
     # the retry starts from what the killed trial had suggested when it died (a kill between two
     # suggest calls leaves only the first; the retry suggests the rest itself)
     known = by_number[killed].params

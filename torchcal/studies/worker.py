@@ -74,6 +74,21 @@ def _database_cause(exc: BaseException) -> BaseException | None:
     return None
 
 
+def _taken_over(exc: BaseException) -> bool:
+    """Whether ``exc`` is Optuna refusing to record a trial another worker failed (its heartbeat went stale).
+
+    Optuna raises ``UpdateFinishedTrialError`` when the objective writes to such a trial; recording
+    its outcome, ``ValueError("Cannot tell a FAIL trial.")`` when the objective raised and
+    ``AssertionError("Should not reach.")`` when it returned a value. ``Worker.run`` also checks
+    that the trial is failed in the database before it goes on.
+    """
+    from optuna.exceptions import UpdateFinishedTrialError
+
+    return (isinstance(exc, UpdateFinishedTrialError)
+            or (isinstance(exc, ValueError) and str(exc).startswith("Cannot tell a "))
+            or (isinstance(exc, AssertionError) and str(exc) == "Should not reach."))
+
+
 def _first_line(exc: BaseException) -> str:
     cause = exc.__cause__ or exc
     text = str(cause).strip().splitlines()
@@ -159,10 +174,18 @@ class Worker:
         trial = next((t for t in self.study.get_trials(deepcopy=False) if t.number == self.current), None)
         return trial is not None and trial.state == TrialState.FAIL
 
+    def _failed_in_database(self) -> bool:
+        """``_last_failed``, read after an error: a database still away counts as yes (the next
+        step meets it again and waits for it)."""
+        try:
+            return self._last_failed()
+        except Exception as exc:
+            if _database_cause(exc) is None:
+                raise
+            return True
+
     def run(self) -> int:
         """Trials this worker ran before the budget was met."""
-        from optuna.exceptions import UpdateFinishedTrialError
-
         from torchcal.studies.storage import shown_url
 
         _quiet_heartbeat_errors()
@@ -173,13 +196,13 @@ class Worker:
                 step = self._step()
                 failed = step == "run" and self._last_failed()
                 lost_since = None
-            except UpdateFinishedTrialError:
-                # this worker's trial lost its heartbeat (a database outage) and another worker failed
-                # and queued it again; the queued copy runs like any retry
-                print(f"study '{self.config.name}': trial {self.current} was taken over after its heartbeat was lost",
-                      file=sys.stderr)
-                continue
             except Exception as exc:
+                if _taken_over(exc) and self._failed_in_database():
+                    # this worker's trial lost its heartbeat (a database outage) and another worker
+                    # failed and queued it again; the queued copy runs like any retry
+                    print(f"study '{self.config.name}': trial {self.current} was taken over after its heartbeat was "
+                          "lost", file=sys.stderr)
+                    continue
                 lost = _database_cause(exc)
                 if lost is None:
                     raise
