@@ -19,6 +19,9 @@ from torchcal.app.validation import PROTOCOLS, STAGES, run_protocol
 from torchcal.core.io import atomic_write_bytes, atomic_write_json, atomic_write_text
 
 START, END = "<!-- validation-table:start -->", "<!-- validation-table:end -->"
+COVERAGE_START, COVERAGE_END = "<!-- coverage-table:start -->", "<!-- coverage-table:end -->"
+#: the method ``torchcal fit`` reports by default (FitConfig.uncertainty)
+DEFAULT_METHOD = "conformal"
 
 
 def _cell(v: float) -> str:
@@ -28,7 +31,7 @@ def _cell(v: float) -> str:
 def table(results: list[dict]) -> str:
     """The Markdown table: one block of rows per protocol, one row per stage."""
     lines = [
-        "| set | protocol | stage | poses | mean [mm] | RMS [mm] | p95 [mm] | max [mm] | in predicted 2-sigma | published | note |",
+        "| set | protocol | stage | poses | mean [mm] | RMS [mm] | p95 [mm] | max [mm] | in predicted 95 % | published | note |",
         "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in results:
@@ -40,7 +43,8 @@ def table(results: list[dict]) -> str:
                 lines.append(f"| {head[0]} | {head[1]} | {stage} | | | | | | | {published} | {m['status']} |")
                 first = False
                 continue
-            inside = f"{m['inside_95_fraction'] * 100:.0f} %" if "inside_95_fraction" in m else "n/a"
+            u = m.get("uncertainty", {}).get(DEFAULT_METHOD)
+            inside = f"{u['coverage_95'] * 100:.0f} %" if u else "n/a"
             note = m.get("status", "")
             lines.append(
                 f"| {head[0]} | {head[1]} | {stage} | {m['n_poses']} | {_cell(m['position_mean_mm'])} | "
@@ -49,6 +53,42 @@ def table(results: list[dict]) -> str:
             )
             first = False
     return "\n".join(lines)
+
+
+def coverage_table(results: list[dict]) -> str:
+    """Per row and method: share of scored points inside their predicted 95 % region, predicted and
+    observed 95th percentile of the 3-D error."""
+    lines = ["| set | protocol | stage | poses | conformal: inside 95 % | gaussian: inside 95 % | observed p95 [mm] | "
+             "conformal: predicted p95 [mm] | gaussian: predicted p95 [mm] |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    for r in results:
+        for stage, m in r["stages"].items():
+            u = m.get("uncertainty")
+            if not u:
+                continue
+
+            def cell(method: str, key: str, u=u) -> str:
+                if method not in u:
+                    return "n/a"
+                v = u[method][key]
+                if key == "coverage_95":
+                    return f"{100 * v:.1f} %"
+                ratio = v / u[method]["observed_p95_mm"] - 1
+                return f"{_cell(v)} ({100 * ratio:+.0f} %)"
+
+            lines.append(f"| {r['dataset']} | {r['protocol']} | {stage} | {m['n_poses']} | "
+                         f"{cell('conformal', 'coverage_95')} | {cell('gaussian', 'coverage_95')} | "
+                         f"{_cell(m['position_p95_mm'])} | {cell('conformal', 'predicted_p95_mm')} | "
+                         f"{cell('gaussian', 'predicted_p95_mm')} |")
+    return "\n".join(lines)
+
+
+def _between(body: str, start: str, end: str, text: str) -> str:
+    if start not in body or end not in body:
+        return body
+    head, rest = body.split(start, 1)
+    _, tail = rest.split(end, 1)
+    return f"{head}{start}\n{text}\n{end}{tail}"
 
 
 def histogram(result: dict, path: Path) -> None:
@@ -114,15 +154,14 @@ def main() -> None:
     text = table(results)
     footer = f"\n\nRegenerated in {total:.0f} s on {os.cpu_count()} CPU core(s) by `scripts/validate_real.py`.\n"
     atomic_write_json(out / "validation.json", {"results": results, "elapsed_s": total})
-    atomic_write_text(out / "validation_table.md", text + footer)
+    coverage = coverage_table(results)
+    atomic_write_text(out / "validation_table.md", text + footer + "\n" + coverage + "\n")
     page = out / "validation.md"
     if page.is_file() and not args.only:
-        body = page.read_text()
-        if START in body and END in body:
-            head, rest = body.split(START, 1)
-            _, tail = rest.split(END, 1)
-            atomic_write_text(page, f"{head}{START}\n{text}{footer}{END}{tail}")
+        body = _between(page.read_text(), START, END, text + footer.rstrip("\n"))
+        atomic_write_text(page, _between(body, COVERAGE_START, COVERAGE_END, coverage))
     console.print(text)
+    console.print(coverage)
     console.print(footer)
 
 

@@ -75,7 +75,8 @@ def run(config: RunConfig, console=None) -> dict:
         twin = Twin.create(config.twin)
         truth_x, truth_residual = projected_truth(twin, result)
         model_dir = folder / "model"
-        save_fit(model_dir, robot, train, result, {"twin_truth_projection_rms_mm": truth_residual * 1e3})
+        save_fit(model_dir, robot, train, result, {"twin_truth_projection_rms_mm": truth_residual * 1e3},
+                 structure=structure, uncertainty=config.fit.uncertainty)
         residual_summary = None
         if config.fit.residual != "none":
             status.update("[bold]learning the residual")

@@ -15,9 +15,10 @@ a model folder in a temporary directory. Stages, each scored on poses the fit di
 * ``default fit``: what ``torchcal fit`` does with no options: the structure (joint-space terms)
   and residual head chosen by the fit's own grouped cross-validation on its training poses.
 
-Uncertainty check: the fraction of scored points inside their predicted 95 % ellipsoid (model
-covariance propagated to the point plus the fit's residual variance, or the kept head's CV
-variance; the 3-D "2-sigma" region: Mahalanobis distance^2 <= 7.81).
+Uncertainty check (:mod:`torchcal.stages.prediction_uncertainty`): for each method the share of
+scored points inside their predicted 95 % region (the ball whose radius is the pose's predicted
+95th percentile of the 3-D error) and the predicted against the observed 95th percentile of the
+scored set.
 """
 
 from __future__ import annotations
@@ -39,7 +40,6 @@ from torchcal.identify.joint_fit import option_label
 from torchcal.kinematics.robot import load_robot
 from torchcal.kinematics.transforms import rigid_registration
 
-CHI2_3_95 = 7.814727903251178
 STAGES = ("nominal (registered)", "geometry only", "default fit")
 
 
@@ -105,20 +105,9 @@ PROTOCOLS: tuple[Protocol, ...] = (
 @dataclass
 class StageErrors:
     errors: list[torch.Tensor] = field(default_factory=list)
-    inside: list[torch.Tensor] = field(default_factory=list)
+    inside: dict[str, list[torch.Tensor]] = field(default_factory=dict)
+    pooled: dict[str, list[torch.Tensor]] = field(default_factory=dict)
     notes: list[str] = field(default_factory=list)
-
-
-def inside_95(point_jacobian: torch.Tensor, cov: torch.Tensor, sigma_m: float, errors: torch.Tensor) -> torch.Tensor:
-    """Whether each error ``(B, 3)`` lies in its predicted 95 % ellipsoid.
-
-    ``point_jacobian (B, 3, K)`` and ``cov (K, K)`` give the model's prediction covariance;
-    ``sigma_m`` is the per-coordinate scatter a single measurement adds around the model.
-    """
-    pred_cov = torch.einsum("bip,pq,bjq->bij", point_jacobian, cov, point_jacobian)
-    pred_cov = pred_cov + (sigma_m**2) * torch.eye(3, dtype=pred_cov.dtype)
-    d2 = torch.einsum("bi,bij,bj->b", errors, torch.linalg.inv(pred_cov), errors)
-    return d2 <= CHI2_3_95
 
 
 def _pairs(data: Measurements, protocol: Protocol, robot, folder: Path, seed: int) -> list[tuple[Measurements, list]]:
@@ -152,11 +141,17 @@ def _nominal_errors(robot, train: Measurements, test: Measurements, register_tes
     return test.position - aligned
 
 
-def _coverage(stored, test: Measurements, errors: torch.Tensor, sigma_m: float) -> torch.Tensor:
-    from torchcal.stages.geometry import model_joints
+def _predictions(stored, test: Measurements, errors: torch.Tensor) -> dict[str, tuple[torch.Tensor, torch.Tensor]]:
+    """Per method: whether each scored point is inside its predicted 95 % region, and the set's draws."""
+    from torchcal.stages.prediction_uncertainty import METHODS, stored_prediction
 
-    _, jac = stored.model.position_jacobian(model_joints(stored, test.q), stored.x, stored.free, method="analytic")
-    return inside_95(jac, stored.covariance, sigma_m, errors)
+    out = {}
+    observed = errors.norm(dim=-1) * 1e3
+    for method in METHODS:
+        prediction = stored_prediction(stored, test.q, method)
+        if prediction is not None:
+            out[method] = (observed <= prediction.p95_mm, prediction.pooled_mm)
+    return out
 
 
 def _fit_and_score(robot, train: Measurements, tests: list[Measurements], protocol: Protocol, config,
@@ -167,15 +162,11 @@ def _fit_and_score(robot, train: Measurements, tests: list[Measurements], protoc
     from torchcal.stages.store import load_model
 
     result, structure = fit_with_selection(robot, train, config)
-    save_fit(folder, robot, train, result, {})
+    save_fit(folder, robot, train, result, {}, structure=structure, uncertainty=config.uncertainty)
     summary = fit_residual_stage(folder, train, config, structure=structure) if config.residual != "none" else None
     stored = load_model(folder)
-    sigma = result.sigma_residual_m
-    if stored.residual is not None and summary is not None:  # a head is stored only by the residual stage
-        chosen = next(r for r in summary["comparison"]["candidates"] if r["name"] == summary["comparison"]["chosen"])
-        sigma = chosen["cv_rms_mm"] * 1e-3 / 3**0.5
     errors = [held_out_errors(stored, test, register=protocol.register_test) for test in tests]
-    inside = [_coverage(stored, test, e, sigma) for test, e in zip(tests, errors)]
+    inside = [_predictions(stored, test, e) for test, e in zip(tests, errors)]
     structure_note = next((n for n in result.notes if n.startswith("structure chosen")), "")
     return {"result": result, "errors": errors, "inside": inside, "summary": summary, "structure_note": structure_note}
 
@@ -211,7 +202,9 @@ def run_protocol(root: Path, protocol: Protocol, *, residual: bool = True, seed:
                 out = _fit_and_score(robot, train, tests, protocol, config, Path(tmp) / f"{name[0]}{i}")
                 for k in range(n_sets):
                     stages[(name, k)].errors.append(out["errors"][k])
-                    stages[(name, k)].inside.append(out["inside"][k])
+                    for method, (inside, pooled) in out["inside"][k].items():
+                        stages[(name, k)].inside.setdefault(method, []).append(inside)
+                        stages[(name, k)].pooled.setdefault(method, []).append(pooled)
                 if name == "default fit":
                     head = out["summary"]["kept"] if out["summary"] else None
                     choices.append(_structure_name(out["result"]) + (f" + {head}" if head else ""))
@@ -227,7 +220,13 @@ def run_protocol(root: Path, protocol: Protocol, *, residual: bool = True, seed:
         errors = torch.cat(stage.errors)
         metrics: dict[str, Any] = position_metrics(errors)
         if stage.inside:
-            metrics["inside_95_fraction"] = float(torch.cat(stage.inside).double().mean())
+            from torchcal.stages.prediction_uncertainty import LEVEL, subsample
+
+            metrics["uncertainty"] = {
+                method: {"coverage_95": float(torch.cat(stage.inside[method]).double().mean()),
+                         "predicted_p95_mm": float(torch.quantile(subsample(torch.cat(stage.pooled[method])), LEVEL)),
+                         "observed_p95_mm": metrics["position_p95_mm"]}
+                for method in stage.inside}
         if name == "default fit":
             metrics["status"] = "chosen per split: " + ", ".join(choices) + (" (in-sample: no head)" if in_sample else "")
             metrics["selection_notes"] = stages[(name, 0)].notes

@@ -349,6 +349,21 @@ def _held_out_metrics(model_dir: Path, meta: dict) -> dict | None:
     return None
 
 
+def _expected_accuracy(stored) -> dict | None:
+    """The model's predicted 95th percentile of the 3-D error over its training poses' workspace."""
+    from torchcal.stages.prediction_uncertainty import load_uncertainty, stored_prediction
+
+    calibration = load_uncertainty(stored.folder)
+    if calibration is None or stored.training_q is None:
+        return None
+    prediction = stored_prediction(stored, stored.training_q)
+    assert prediction is not None  # a calibration was found above
+    return {"p95_mm": prediction.set_p95_mm, "level": 0.95, "method": calibration.method,
+            "protocol": f"calibrated on the out-of-fold errors of {calibration.protocol}",
+            "where": "poses like the training poses (the same workspace and configurations); the accuracy the "
+                     "compensated robot reaches adds the compensator's own error (float32_error_budget)"}
+
+
 def export_model(
     model_dir: str | Path,
     out_dir: str | Path,
@@ -430,6 +445,7 @@ def _export_into(out_dir: Path, model_dir: Path, stored, *, wrench_frame: str, i
         "training_data": {"sha256": meta.get("data", {}).get("sha256"), "n_poses": meta.get("data", {}).get("n_poses")},
         "calibration": {"method": meta.get("method"), "residual_sigma_mm": meta.get("residual_sigma_mm")},
         "held_out_metrics": _held_out_metrics(model_dir, meta),
+        "expected_accuracy_95": _expected_accuracy(stored),
         "versions": _versions(),
         "files": files,
         "sha256": digests,
@@ -555,6 +571,14 @@ def _convergence_text(manifest: dict) -> str:
     return "\n".join(lines)
 
 
+def _expected_line(manifest: dict) -> str:
+    expected = manifest.get("expected_accuracy_95")
+    if not expected:
+        return "Expected accuracy: not calibrated (the model was fitted with `uncertainty=none`)."
+    return (f"Expected accuracy: 95 % of TCP position errors below {expected['p95_mm']:.3f} mm at "
+            f"{expected['where'].split(';')[0]} ({expected['method']}, {expected['protocol']}).")
+
+
 def readme_text(manifest: dict) -> str:
     """The integrator's README of an exported folder."""
     budget = manifest["float32_error_budget"]
@@ -584,6 +608,7 @@ Stiffness entries treated as rigid (not observable from the stiffness data):
 
 Exported by torchcal {manifest['versions']['torchcal']} (ONNX opset {manifest['opset']}).
 Stages: geometry yes, learned residual {residual}, stiffness {stiffness}, joint-space errors {joint}.
+{_expected_line(manifest)}
 
 ## Files
 

@@ -50,6 +50,10 @@ class FitConfig:
             ``gravity_compliance``) the cross-validation compares the options and keeps the
             simplest within noise of the best (:mod:`torchcal.model_selection.compare`). The
             exported compensator carries both terms (:mod:`torchcal.compensate.joint_error_graph`).
+        uncertainty: the per-pose 95 % region reported for new poses
+            (:mod:`torchcal.stages.prediction_uncertainty`): ``conformal`` (default), ``gaussian``
+            (both calibrated on the out-of-fold errors of the fit's grouped cross-validation, which
+            then runs even when nothing else is chosen) or ``none`` (no calibration, no extra fits).
     """
 
     method: str = "lm"
@@ -72,6 +76,7 @@ class FitConfig:
     progress: bool = True
     gravity_compliance: str = "auto"
     joint_harmonics: str = "auto"
+    uncertainty: str = "conformal"
 
     def __post_init__(self) -> None:
         """Refuse out-of-range values where they are defined (before any file is read)."""
@@ -89,6 +94,8 @@ class FitConfig:
             raise TorchcalError(f"joint_unit must be 'deg' or 'rad', got {self.joint_unit!r}")
         if self.length_unit not in ("mm", "m"):
             raise TorchcalError(f"length_unit must be 'mm' or 'm', got {self.length_unit!r}")
+        if self.uncertainty not in ("conformal", "gaussian", "none"):
+            raise TorchcalError(f"uncertainty must be 'conformal', 'gaussian' or 'none', got {self.uncertainty!r}")
         if self.tool_mm is not None:
             import math
 

@@ -27,3 +27,44 @@ def prediction_sigma(point_jacobian: torch.Tensor, cov: torch.Tensor) -> torch.T
     """Predicted 1-sigma of each TCP coordinate ``(B, 3)`` from ``d p / d x`` ``(B, 3, p)``."""
     var = torch.einsum("bip,pq,biq->bi", point_jacobian, cov, point_jacobian)
     return var.clamp_min(0.0).sqrt()
+
+
+def point_covariance(point_jacobian: torch.Tensor, cov: torch.Tensor, discrepancy_var: float) -> torch.Tensor:
+    """Covariance ``(B, 3, 3)`` of each predicted TCP error.
+
+    ``point_jacobian (B, 3, K)`` and ``cov (K, K)`` propagate the parameter uncertainty;
+    ``discrepancy_var`` (same units squared, per coordinate) adds what the model cannot explain
+    and the measurement noise, both isotropic.
+    """
+    pred = torch.einsum("bip,pq,bjq->bij", point_jacobian, cov, point_jacobian)
+    return pred + discrepancy_var * torch.eye(3, dtype=pred.dtype, device=pred.device)
+
+
+def gaussian_radius_samples(point_cov: torch.Tensor, draws: int = 256, seed: int = 0) -> torch.Tensor:
+    """``(B, draws)`` lengths of zero-mean Gaussian errors with covariances ``point_cov (B, 3, 3)``.
+
+    The draws are the same standard normal vectors for every pose (seeded): quantiles taken from
+    them are repeatable and smooth across poses.
+    """
+    gen = torch.Generator().manual_seed(seed)
+    z = torch.randn(draws, 3, generator=gen, dtype=torch.float64).to(point_cov)
+    eye = 1e-30 * torch.eye(3, dtype=point_cov.dtype, device=point_cov.device)
+    chol = torch.linalg.cholesky(point_cov + eye)
+    return torch.einsum("bij,mj->bmi", chol, z).norm(dim=-1)
+
+
+def conformal_factor(scores: torch.Tensor, level: float = 0.95) -> float:
+    """The split-conformal quantile of non-conformity ``scores``: the ``ceil((n + 1) level)``-th smallest.
+
+    With exchangeable calibration and test scores, a new score falls at or below it with
+    probability at least ``level`` (finite-sample guarantee); with fewer than ``1 / (1 - level) - 1``
+    scores the largest is returned and the guarantee does not hold.
+    """
+    import math
+
+    ordered = torch.sort(scores.flatten()).values
+    n = len(ordered)
+    if n == 0:
+        raise ValueError("no scores to calibrate on")
+    k = min(n, math.ceil((n + 1) * level))
+    return float(ordered[k - 1])

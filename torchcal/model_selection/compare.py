@@ -71,6 +71,8 @@ class Comparison:
     rows: list[dict] = field(default_factory=list)
     chosen: str = ""
     reason: str = ""
+    #: out-of-fold 3-D errors (mm) of every candidate, by name (not serialised)
+    errors_mm: dict[str, np.ndarray] = field(default_factory=dict, repr=False, compare=False)
 
     def to_dict(self) -> dict:
         return {"protocol": self.protocol, "chosen": self.chosen, "reason": self.reason, "candidates": self.rows}
@@ -114,7 +116,7 @@ def compare_candidates(candidates: list[Candidate], units: np.ndarray, protocol:
     pool = [c for c in candidates if eligible[c.name] == "eligible"]
     best = min(pool, key=lambda c: c.rms)
     floor = ((1.0 + tolerance) ** 2 - 1.0) * best.rms**2
-    comparison = Comparison(protocol)
+    comparison = Comparison(protocol, errors_mm={c.name: c.errors_mm for c in candidates})
     chosen = None
     for cand in candidates:
         mean, se = paired_difference(cand.errors_mm, best.errors_mm, units)

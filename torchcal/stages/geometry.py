@@ -124,7 +124,8 @@ def fit_with_selection(robot: RobotModel, data: Measurements, config: FitConfig,
     geometry = geometry_fitter(robot, config)
     structure = None
     gravity, harmonics = options[0]
-    if len(options) > 1 or config.residual != "none":
+    # the CV also calibrates the prediction uncertainty (stages.prediction_uncertainty)
+    if len(options) > 1 or config.residual != "none" or config.uncertainty != "none":
         folds = make_config_folds(robot, data, config)
         structure = cross_validate_structures(robot, data, geometry, options, folds, progress=progress,
                                               harmonic_min_range_deg=config.harmonic_min_range_deg)
@@ -195,8 +196,14 @@ def implausible_corrections(result: CalibrationResult) -> str | None:
             f"{', '.join(found)}; check the robot file ({model.robot.name}) against the robot")
 
 
-def save_fit(folder: Path, robot: RobotModel, data: Measurements, result: CalibrationResult, extra: dict) -> Path:
-    """Write the model folder of a geometry fit; implausible corrections are warned about and noted in it."""
+def save_fit(folder: Path, robot: RobotModel, data: Measurements, result: CalibrationResult, extra: dict,
+             structure=None, uncertainty: str = "conformal") -> Path:
+    """Write the model folder of a geometry fit; implausible corrections are warned about and noted in it.
+
+    ``structure``: the fit's cross-validation (:func:`fit_with_selection`); with it and
+    ``uncertainty`` other than ``none``, the per-pose prediction uncertainty is calibrated on the
+    chosen structure's out-of-fold errors and written too (``uncertainty.json``).
+    """
     import warnings
 
     warning = implausible_corrections(result)
@@ -218,9 +225,22 @@ def save_fit(folder: Path, robot: RobotModel, data: Measurements, result: Calibr
     # a new fit invalidates what an earlier fit into this folder learned on top of its geometry
     from torchcal.core.folder import remove_member
 
-    for stale in ("residual.safetensors", "residual.json", "model_selection.json"):
+    for stale in ("residual.safetensors", "residual.json", "model_selection.json", "uncertainty.json"):
         remove_member(folder, stale)
-    return save_model(folder, robot, result.model, result.x, result.free, result.covariance, meta, training_q=data.q)
+    folder = save_model(folder, robot, result.model, result.x, result.free, result.covariance, meta, training_q=data.q)
+    if structure is not None and uncertainty != "none":
+        from torchcal.stages.prediction_uncertainty import (
+            calibrate_errors,
+            point_jacobian,
+            write_uncertainty,
+        )
+
+        label = structure.comparison.chosen
+        joints = JointSpaceErrors.of(result).effective_joints(robot, data.q)
+        jac = point_jacobian(result.model, result.x, result.free, joints)
+        write_uncertainty(folder, calibrate_errors(jac, result.covariance, structure.comparison.errors_mm[label],
+                                                   structure.comparison.protocol, uncertainty))
+    return folder
 
 
 def model_joints(stored: StoredModel, q: torch.Tensor) -> torch.Tensor:

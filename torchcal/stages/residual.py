@@ -150,6 +150,16 @@ def fit_residual_stage(
                     "fitted on all training poses")
         save_residual(model_dir, StoredResidual(head, features, {"decision": decision, "cv_rms_mm": row["cv_rms_mm"],
                                                                  "protocol": comparison.protocol}))
+        if config.uncertainty != "none":  # the head's out-of-fold errors replace the structure's
+            from torchcal.stages.prediction_uncertainty import (
+                calibrate_errors,
+                point_jacobian,
+                write_uncertainty,
+            )
+
+            jac = point_jacobian(stored.model, stored.x, stored.free, model_joints(stored, data.q))
+            write_uncertainty(model_dir, calibrate_errors(jac, stored.covariance, comparison.errors_mm[comparison.chosen],
+                                                          comparison.protocol, config.uncertainty))
     else:
         rejected = [r for r in comparison.rows if r["name"].startswith(parent + "+")]
         why = "; ".join(f"{r['name']}: {r['verdict']}" for r in rejected) or "no head candidates"

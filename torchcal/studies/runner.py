@@ -170,7 +170,8 @@ def _refit_best_on_files(run_config, config: StudyConfig, best, study_dir: Path,
     robot = with_tool(load_robot(robot_file), fit_config)
     train = load_measurements(train_file, robot, **units)
     result, structure = fit_with_selection(robot, train, fit_config)
-    folder = save_fit(study_dir / "best" / "model", robot, train, result, {})
+    folder = save_fit(study_dir / "best" / "model", robot, train, result, {}, structure=structure,
+                      uncertainty=fit_config.uncertainty)
     save_resolved_config(folder / "config.yaml", fit_config)
     residual = fit_residual_stage(folder, train, fit_config, progress=console.log if console is not None else None, structure=structure) if fit_config.residual != "none" else None
     out = {"trial": best.number, "params": dict(best.params), "run_folder": str(folder), "residual": residual}

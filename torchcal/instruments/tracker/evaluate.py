@@ -13,6 +13,7 @@ from torchcal.core.errors import DataError
 from torchcal.core.metrics import position_metrics
 from torchcal.data.measurements import load_measurements
 from torchcal.stages.geometry import held_out_errors
+from torchcal.stages.prediction_uncertainty import score, stored_prediction
 from torchcal.stages.store import StoredModel, load_model
 
 #: ``evaluate --register``: fewer poses are refused; fewer than the advised give a warning.
@@ -34,8 +35,14 @@ def evaluate(model_dir: str | Path, data_path: str | Path, *, register: bool = F
             warning = (f"--register fitted 6 frame parameters to {len(data)} poses ({3 * len(data)} coordinates): "
                        f"the RMS is optimistic; score on {REGISTER_ADVISED_POSES} or more poses")
             warnings.warn(warning, stacklevel=2)
-    metrics: dict[str, Any] = position_metrics(held_out_errors(stored, data, register=register))
+    errors = held_out_errors(stored, data, register=register)
+    metrics: dict[str, Any] = position_metrics(errors)
     metrics.update({"model": str(model_dir), "data": str(data_path), "registered": register})
+    prediction = stored_prediction(stored, data.q)
+    if prediction is not None:
+        uncertainty = score(prediction, errors, f"{prediction.method}, calibrated on the fit's out-of-fold errors")
+        metrics.update({"coverage_95": uncertainty["coverage_95"], "predicted_p95_mm": uncertainty["predicted_p95_mm"],
+                        "uncertainty": uncertainty})
     if warning is not None:
         metrics["warnings"] = [warning]
     if stored.training_q is not None:

@@ -59,7 +59,8 @@ class TrackerInstrument(Instrument):
         before = position_metrics(nominal_errors(robot, data))
         after = position_metrics(data.position - predicted_positions(result, data.q))
         folder = save_fit(request.out, robot, data, result,
-                          {"fit_metrics": {"nominal_registered": before, "geometric": after}})
+                          {"fit_metrics": {"nominal_registered": before, "geometric": after}},
+                          structure=structure, uncertainty=config.uncertainty)
         save_resolved_config(folder / "config.yaml", config)
         lines = [result.identifiability.summary(),
                  (f"training RMS {before['position_rms_mm']:.4f} mm (nominal, registered) -> "
@@ -85,6 +86,11 @@ class TrackerInstrument(Instrument):
         if "leakage" in metrics:
             report = LeakageReport(**metrics["leakage"])
             lines.append(f"{'warning: ' if report.warning else ''}{report.summary()}")
+        if "uncertainty" in metrics:
+            u = metrics["uncertainty"]
+            lines.append(f"predicted 95 % error radius ({u['method']}, from the fit's grouped cross-validation) covers "
+                         f"{100 * u['coverage_95']:.1f} % of these poses; predicted p95 {u['predicted_p95_mm']:.4f} mm, "
+                         f"observed {u['observed_p95_mm']:.4f} mm")
         comp = metrics["compensator"]
         lines.append(
             f"the exported compensator ({comp['task']} first, {comp['iterations']} steps) solves "
