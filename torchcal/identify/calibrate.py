@@ -13,6 +13,7 @@ from __future__ import annotations
 import warnings
 from dataclasses import dataclass, field
 
+import numpy as np
 import torch
 
 from torchcal.core.errors import DataError, IdentifiabilityWarning
@@ -88,6 +89,7 @@ def calibrate(
     register: bool = True,
     device: str | torch.device = "cpu",
     whitening: torch.Tensor | None = None,
+    units: np.ndarray | None = None,
 ) -> CalibrationResult:
     """Identify the geometric parameters of ``robot`` from position (and orientation) data.
 
@@ -100,6 +102,8 @@ def calibrate(
         whitening: optional ``(n, 3, 3)`` per-pose whitening of the position residuals (see
             :class:`CalibrationProblem`); ``sigma_residual_m`` is then the unitless a-posteriori
             sigma of unit weight.
+        units: ``(n,)`` configuration region of each pose: the covariance then also allows
+            residuals correlated within a region (:func:`~torchcal.identify.uncertainty.covariance`).
     """
     from torchcal.identify.lm import LevenbergMarquardt
 
@@ -154,7 +158,7 @@ def calibrate(
     final_free = torch.tensor(sorted(names.index(n) for n in result.selected), dtype=torch.long)
     final_problem = problem.with_free(final_free)
     r, jac = final_problem.jacobian(result.x)
-    cov, sigma = covariance(jac, r)
+    cov, sigma = covariance(jac, r, units)
     reference, x = model.recentered(result.x)
     model.T_reference = reference
     return CalibrationResult(

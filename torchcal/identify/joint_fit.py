@@ -17,6 +17,7 @@ from __future__ import annotations
 import warnings
 from dataclasses import replace
 
+import numpy as np
 import torch
 
 from torchcal.core.errors import IdentifiabilityWarning
@@ -111,7 +112,8 @@ def narrow_joints(q: torch.Tensor, min_range_deg: float) -> list[int]:
 
 
 def fit_joint_errors(robot: RobotModel, data: Measurements, geometric, points: tuple[str, ...] = (),
-                     harmonics: tuple[str, ...] = (), harmonic_min_range_deg: float = 0.0):
+                     harmonics: tuple[str, ...] = (), harmonic_min_range_deg: float = 0.0,
+                     units: np.ndarray | None = None):
     """Refine a geometric :class:`~torchcal.identify.calibrate.CalibrationResult` jointly with joint-space errors.
 
     ``points``: gravity points (``tcp``, ``elbow``); ``harmonics``: harmonic terms (``sin``,
@@ -119,7 +121,9 @@ def fit_joint_errors(robot: RobotModel, data: Measurements, geometric, points: t
     over a short arc ``a sin q + b cos q`` is an offset plus a slope, fitted as such and wild
     outside the arc (fitted on UR10 series C, where joint 2 spans 96 deg, first harmonics score
     1.40 mm on series B against 0.90 for geometry alone). Returns a result of the same type with ``compliance`` / ``harmonics`` set;
-    ``covariance`` is the geometric block of the joint covariance (the marginal of the geometry).
+    ``covariance`` is the geometric block of the joint covariance (the marginal of the geometry);
+    ``units`` (configuration region of each pose) widens it as in
+    :func:`~torchcal.identify.uncertainty.covariance`.
     """
     from torchcal.identify.lm import LevenbergMarquardt
 
@@ -155,7 +159,7 @@ def fit_joint_errors(robot: RobotModel, data: Measurements, geometric, points: t
     free = torch.cat([geometric.free, size + torch.tensor(kept, dtype=torch.long)])
     sol = LevenbergMarquardt().solve(problem.with_free(free), x0)
     r, jac = problem.with_free(free).jacobian(sol.x)
-    cov, sigma = covariance(jac, r)
+    cov, sigma = covariance(jac, r, units)
     rows = basis.shape[1]
     values = torch.zeros(rows, robot.dof, dtype=torch.float64)
     sigmas = torch.zeros(rows, robot.dof, dtype=torch.float64)

@@ -1,17 +1,31 @@
-"""Parameter covariance of a least-squares fit.
+"""Parameter covariance of a least-squares fit, and the pieces of a point's prediction uncertainty.
 
 ``Cov = s^2 (J^T J)^-1`` with ``s^2 = |r|^2 / (m - p)`` the residual variance (the data's own
 noise estimate), ``J`` the residual Jacobian of the ``p`` estimated parameters at the solution.
 The linearization is exact to first order; it assumes independent, equal-variance residuals.
+
+A real robot's residual is not independent: what the model cannot express (gravity it does not
+model, gear errors) is a smooth function of the configuration, so neighbouring poses share it.
+Given each pose's configuration region (the groups the grouped cross-validation holds out), the
+cluster-robust ("sandwich") estimate ``(J^T J)^-1 (sum_g J_g^T r_g r_g^T J_g) (J^T J)^-1`` lets
+residuals within a region be correlated; each parameter's sigma is then the larger of the two
+estimates, with the cluster-robust correlations.
 """
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 
 
-def covariance(jacobian: torch.Tensor, residuals: torch.Tensor) -> tuple[torch.Tensor, float]:
-    """Covariance ``(p, p)`` (parameter units squared) and residual sigma (m)."""
+def covariance(jacobian: torch.Tensor, residuals: torch.Tensor,
+               units: np.ndarray | None = None) -> tuple[torch.Tensor, float]:
+    """Covariance ``(p, p)`` (parameter units squared) and residual sigma (m).
+
+    ``units``: ``(n,)`` configuration region of each of the ``n`` poses whose residual rows
+    (``m / n`` each, in pose order) make up ``residuals``; with at least 2 regions the sigmas are
+    widened to the cluster-robust estimate where it is larger (see the module docstring).
+    """
     m, p = jacobian.shape
     if m <= p:
         raise ValueError(f"{m} residuals cannot give a covariance for {p} parameters")
@@ -19,8 +33,32 @@ def covariance(jacobian: torch.Tensor, residuals: torch.Tensor) -> tuple[torch.T
     scale = jacobian.norm(dim=0).clamp_min(1e-300)
     js = jacobian / scale
     inv = torch.linalg.pinv(js.T @ js, hermitian=True)
-    cov = s2 * inv / torch.outer(scale, scale)
-    return cov, s2**0.5
+    cov = s2 * inv
+    if units is not None and len(units) and m % len(units) == 0 and len(np.unique(units)) >= 2:
+        cov = _widened(cov, _cluster_robust(js, residuals, inv, np.asarray(units), m // len(units)))
+    return cov / torch.outer(scale, scale), s2**0.5
+
+
+def _cluster_robust(js: torch.Tensor, residuals: torch.Tensor, inv: torch.Tensor, units: np.ndarray,
+                    rows: int) -> torch.Tensor:
+    """CR1 sandwich covariance of the column-scaled problem (small-sample factor included)."""
+    m, p = js.shape
+    _, index = np.unique(np.repeat(units, rows), return_inverse=True)
+    groups = int(index.max()) + 1
+    sums = torch.zeros(groups, p, dtype=js.dtype, device=js.device)
+    sums.index_add_(0, torch.as_tensor(index, device=js.device), js * residuals[:, None])
+    factor = groups / (groups - 1) * (m - 1) / (m - p)
+    return factor * inv @ (sums.T @ sums) @ inv
+
+
+def _widened(classical: torch.Tensor, robust: torch.Tensor) -> torch.Tensor:
+    """Sigmas ``max(classical, robust)`` per parameter, correlations of ``robust``."""
+    sd_c = classical.diagonal().clamp_min(0).sqrt()
+    sd_r = robust.diagonal().clamp_min(0).sqrt()
+    corr = robust / torch.outer(sd_r, sd_r).clamp_min(1e-300)
+    corr.diagonal().fill_(1.0)
+    sd = torch.maximum(sd_c, sd_r)
+    return corr * torch.outer(sd, sd)
 
 
 def prediction_sigma(point_jacobian: torch.Tensor, cov: torch.Tensor) -> torch.Tensor:

@@ -65,9 +65,10 @@ def make_config_folds(robot: RobotModel, data: Measurements, config: FitConfig):
 
 
 def geometry_fitter(robot: RobotModel, config: FitConfig):
-    def geometry(train: Measurements) -> CalibrationResult:
+    """``geometry(train, units=None)``: the geometric fit of ``config`` (``units``: see :func:`calibrate`)."""
+    def geometry(train: Measurements, units: np.ndarray | None = None) -> CalibrationResult:
         return calibrate(robot, train, identifier=IDENTIFIERS[config.method](**_identifier_options(robot, config)),
-                         parallel_threshold_deg=config.parallel_threshold_deg, device=config.device)
+                         parallel_threshold_deg=config.parallel_threshold_deg, device=config.device, units=units)
 
     return geometry
 
@@ -132,8 +133,10 @@ def fit_with_selection(robot: RobotModel, data: Measurements, config: FitConfig,
         gravity, harmonics = structure.chosen
     if progress is not None:
         progress("fitting the chosen structure on all poses")
-    result = fit_joint_errors(robot, data, geometry(data), POINT_SETS[gravity], HARMONIC_SETS[harmonics],
-                              config.harmonic_min_range_deg)
+    # the regions the CV holds out also say which residuals may be correlated (identify.uncertainty)
+    units = structure.folds.groups if structure is not None else None
+    result = fit_joint_errors(robot, data, geometry(data, units), POINT_SETS[gravity], HARMONIC_SETS[harmonics],
+                              config.harmonic_min_range_deg, units=units)
     if few is not None:
         result.notes.append(f"warning: {few}")
     if structure is not None and len(options) > 1:
