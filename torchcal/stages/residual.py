@@ -151,7 +151,9 @@ def fit_residual_stage(
         save_residual(model_dir, StoredResidual(head, features, {"decision": decision, "cv_rms_mm": row["cv_rms_mm"],
                                                                  "protocol": comparison.protocol}))
     else:
-        rejected = [r for r in comparison.rows if r["name"].startswith(parent + "+")]
+        heads = set(head_names(config.residual))
+        rejected = [r for r in comparison.rows
+                    if r["name"].startswith(parent + "+") and r["name"][len(parent) + 1:].split(" [")[0] in heads]
         why = "; ".join(f"{r['name']}: {r['verdict']}" for r in rejected) or "no head candidates"
         decision = f"no residual head kept ({why})"
     write_selection(model_dir, comparison, decision)
