@@ -116,7 +116,11 @@ def model_name(stored: StoredModel) -> str:
     terms = JointSpaceErrors.from_metadata(stored.metadata)
     parts = ["geometry"]
     if terms.compliance is not None:
-        parts.append(f"gravity compliance ({', '.join(terms.compliance.points)})")
+        from torchcal.identify.compliance import POINT_SETS
+
+        points = tuple(terms.compliance.points)
+        label = next((name for name, members in POINT_SETS.items() if members == points), "+".join(points))
+        parts.append(f"gravity compliance ({label})")
     if terms.harmonics is not None:
         parts.append("first joint harmonics")
     if stored.residual is not None:
@@ -218,8 +222,9 @@ def _summary(stored: StoredModel, pose_sets: list[PoseSet], inputs: ReportInputs
     if comparison.get("chosen"):
         row = next((r for r in comparison.get("candidates", []) if r.get("name") == comparison["chosen"]), None)
         if row is not None and math.isfinite(row.get("cv_rms_mm", math.nan)):
-            blocks.append(Paragraph(f"Cross-validated (held out, never fitted by the fit that predicts it): "
-                                    f"{row['cv_rms_mm']:.4f} mm RMS for {comparison['chosen']}, {comparison.get('protocol', '')}."))
+            blocks.append(Paragraph(f"At fit time, cross-validated on the fitted file (each pose held out, predicted by a "
+                                    f"fit that never saw it): {row['cv_rms_mm']:.4f} mm RMS for {comparison['chosen']}, "
+                                    f"{comparison.get('protocol', '')}."))
     blocks += [Paragraph(text) for text in inputs.context]
     return Section("Summary", blocks)
 
