@@ -38,7 +38,7 @@ def summary_report(title: str, lines: list[str], *, metrics: dict | None = None,
     from torchcal.core.errors import TorchcalError
 
     sections = [Section("Results", [
-        Paragraph(f"The report of {kind or 'this instrument'}'s files holds what its command prints, its metrics and the "
+        Paragraph(f"This report of a {kind or 'measurement'} file holds what the command printed, its metrics and the "
                   "parameters of the model folder; the per-pose, per-axis, per-joint and workspace analyses are made "
                   "for tracker files (x, y, z points)."),
         Preformatted("\n".join(lines) or "(no lines)")])]
@@ -56,6 +56,13 @@ def summary_report(title: str, lines: list[str], *, metrics: dict | None = None,
             fit_metrics = stored.metadata.get("fit_metrics")
             if fit_metrics and not metrics:
                 sections.append(Section("Metrics of the fit", [Table("fit_metrics", ["metric", "value"], _flatten(fit_metrics))]))
+            stiffness = Path(folder) / "stiffness.json"
+            if stiffness.is_file():
+                doc = json.loads(stiffness.read_text(encoding="utf-8"))
+                rows = [[name, f"{p.get('value', math.nan):.6g}", str(p.get("unit", "")), f"{p.get('sigma', math.nan):.3g}",
+                         str(p.get("status", ""))] for name, p in (doc.get("parameters") or {}).items()]
+                sections.append(Section("Joint stiffness", [Table("stiffness", ["parameter", "value", "unit", "1-sigma",
+                                                                                "status"], rows)]))
             sections += parameter_sections(stored)
             notes = stored.metadata.get("notes")
             if notes:
