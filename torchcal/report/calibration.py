@@ -29,6 +29,8 @@ from torchcal.stages.store import StoredModel
 
 #: Poses listed in the worst-poses table of each file.
 WORST = 10
+#: Repeated poses listed in the ISO 9283 table of each file (largest RP first).
+ISO_ROWS = 20
 #: Parameter pairs whose correlation exceeds this are listed under the heatmap.
 STRONG_CORRELATION = 0.9
 
@@ -277,8 +279,8 @@ def _per_axis(pose_sets: list[PoseSet]) -> Section:
         Table("per_axis", ["file", "model stage", "protocol", "x mean", "x RMS", "y mean", "y RMS", "z mean", "z RMS"], rows),
     ]
     for k, p in enumerate(pose_sets):
-        shown = {p.focused.name: p.focused.mm}
-        blocks.append(Figure(f"axis_errors_{k + 1}", plots.axis_errors(p.rows, shown, f"per-axis error, {p.label}"),
+        blocks.append(Figure(f"axis_errors_{k + 1}", plots.axis_errors(p.rows, p.focused.mm, p.focused.name,
+                                                                       f"per-axis error, {p.label}"),
                              f"x, y, z error of every pose of {p.label} (instrument frame) under {p.focused.name} "
                              f"({p.focused.protocol}); the nominal's are in the table."))
     return Section("Errors per axis", blocks)
@@ -309,8 +311,9 @@ def _joints_and_workspace(pose_sets: list[PoseSet]) -> list[Section]:
     space_blocks: list = []
     for k, p in enumerate(pose_sets):
         q_deg = np.degrees(p.data.q.detach().cpu().numpy())
-        shown = {p.focused.name: np.linalg.norm(p.focused.mm, axis=1)}
-        joint_blocks.append(Figure(f"error_vs_joints_{k + 1}", plots.error_vs_joints(q_deg, shown, f"3-D error against each joint, {p.label}"),
+        shown = np.linalg.norm(p.focused.mm, axis=1)
+        joint_blocks.append(Figure(f"error_vs_joints_{k + 1}", plots.error_vs_joints(q_deg, shown, p.focused.name,
+                                                                                     f"3-D error against each joint, {p.label}"),
                                    f"3-D error against each commanded joint angle, {p.label}, under {p.focused.name} "
                                    f"({p.focused.protocol}); line: median per tenth of the joint's range. A trend "
                                    "along one joint is an error of that joint the model does not carry."))
@@ -329,15 +332,18 @@ def _iso9283(pose_sets: list[PoseSet]) -> Section:
         if not iso["repeated_poses"]:
             blocks.append(Paragraph(f"{p.label}: {iso['instead']}."))
             continue
+        shown = sorted(iso["poses"], key=lambda pose: -pose["RP_mm"])[:ISO_ROWS]
         rows = [[", ".join(str(int(p.rows[i])) for i in pose["index"]), str(pose["visits"]), _f(pose["AP_mm"]), _f(pose["RP_mm"])]
-                for pose in sorted(iso["poses"], key=lambda pose: -pose["RP_mm"])]
+                for pose in shown]
         blocks += [
             Paragraph(f"{p.label}: {iso['repeated_poses']} commanded poses were visited more than once (joints equal within "
                       f"{iso['tolerance_deg']:g} deg), {iso['visits']} visits in all. AP: distance of the visits' barycentre "
                       f"from the {p.delivered.name} prediction; RP: mean distance of the visits from their barycentre + 3 "
                       f"standard deviations ({p.delivered.protocol}). Largest AP {iso['AP_max_mm']:.4f} mm, largest RP "
                       f"{iso['RP_max_mm']:.4f} mm. ISO 9283 asks for 30 visits per pose; fewer visits make RP uncertain."),
-            Table(f"iso9283_{pose_sets.index(p) + 1}", ["rows", "visits", "AP [mm]", "RP [mm]"], rows),
+            Table(f"iso9283_{pose_sets.index(p) + 1}", ["rows", "visits", "AP [mm]", "RP [mm]"], rows,
+                  caption=f"The {len(shown)} repeated poses with the largest RP (of {iso['repeated_poses']}); rows of the "
+                          "file, header = row 1."),
         ]
     return Section("ISO 9283 pose accuracy and repeatability", blocks)
 

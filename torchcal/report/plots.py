@@ -27,7 +27,7 @@ def _figure(width: float, height: float, nrows: int = 1, ncols: int = 1, **kwarg
 
 def _png(fig) -> bytes:
     buffer = io.BytesIO()
-    fig.savefig(buffer, format="png", dpi=DPI)
+    fig.savefig(buffer, format="png", dpi=DPI, pil_kwargs={"optimize": True})
     return buffer.getvalue()
 
 
@@ -37,8 +37,19 @@ def _integer_axis(axis) -> None:
     axis.set_major_locator(MaxNLocator(integer=True))
 
 
-def _legend_outside(ax) -> None:
-    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0, fontsize=8, frameon=False)
+def _legend_below(fig, ax) -> None:
+    """The legend of ``ax`` under the axes, outside the data, long labels wrapped."""
+    import textwrap
+
+    handles, labels = ax.get_legend_handles_labels()
+    fig.legend(handles, ["\n".join(textwrap.wrap(label, 60)) for label in labels], loc="outside lower center",
+               ncols=min(2, len(labels)), fontsize=8, frameon=False)
+
+
+def _wrap(text: str, width: int = 90) -> str:
+    import textwrap
+
+    return "\n".join(textwrap.wrap(text, width))
 
 
 def _rms(values: np.ndarray) -> float:
@@ -57,7 +68,7 @@ def error_histogram(errors_mm: dict[str, np.ndarray], title: str) -> bytes:
     ax.set_ylabel("poses")
     _integer_axis(ax.yaxis)
     ax.set_title(title, fontsize=10)
-    _legend_outside(ax)
+    _legend_below(fig, ax)
     return _png(fig)
 
 
@@ -73,55 +84,56 @@ def per_pose_errors(rows: Sequence[int] | np.ndarray, errors_mm: dict[str, np.nd
     ax.set_ylabel("3-D position error [mm]")
     _integer_axis(ax.xaxis)
     ax.set_title(title, fontsize=10)
-    _legend_outside(ax)
+    _legend_below(fig, ax)
     return _png(fig)
 
 
-def axis_errors(rows: Sequence[int] | np.ndarray, vectors_mm: dict[str, np.ndarray], title: str) -> bytes:
-    """Signed error along x, y and z (mm, instrument frame) of every pose, per stage."""
+def axis_errors(rows: Sequence[int] | np.ndarray, vectors_mm: np.ndarray, stage: str, title: str) -> bytes:
+    """Signed error along x, y and z (mm, instrument frame) of every pose under one model stage."""
     fig, axes = _figure(8.5, 6.0, nrows=3, sharex=True)
     x = np.asarray(rows)
     for k, name in enumerate("xyz"):
         ax = axes[k, 0]
-        for colour, (label, v) in zip(COLOURS, vectors_mm.items()):
-            ax.plot(x, v[:, k], ".", ms=3, color=colour, label=f"{label} ({name} RMS {_rms(v[:, k]):.3f} mm)")
+        ax.plot(x, vectors_mm[:, k], ".", ms=3, color=COLOURS[1])
         ax.axhline(0.0, color="k", lw=0.6)
         ax.set_ylabel(f"{name} error [mm]")
-        _legend_outside(ax)
+        ax.set_title(f"{name}: mean {vectors_mm[:, k].mean():+.4f} mm, RMS {_rms(vectors_mm[:, k]):.4f} mm", fontsize=8,
+                     loc="right")
     axes[2, 0].set_xlabel("row in the file (header = row 1)")
     _integer_axis(axes[2, 0].xaxis)
-    axes[0, 0].set_title(title, fontsize=10)
+    fig.suptitle(_wrap(f"{title}: {stage}"), fontsize=10)
     return _png(fig)
 
 
-def error_vs_joints(q_deg: np.ndarray, errors_mm: dict[str, np.ndarray], title: str) -> bytes:
-    """3-D error against each joint angle (deg), one panel per joint, with the median per bin."""
+def error_vs_joints(q_deg: np.ndarray, errors_mm: np.ndarray, stage: str, title: str) -> bytes:
+    """3-D error of one model stage against each joint angle (deg), one panel per joint, with the median per bin."""
+    from matplotlib.ticker import MaxNLocator
+
     n = q_deg.shape[1]
     cols = 3 if n <= 6 else 4
     nrows = math.ceil(n / cols)
-    fig, axes = _figure(9.5, 2.6 * nrows + 0.4, nrows=nrows, ncols=cols, sharey=True)
+    fig, axes = _figure(9.5, 2.7 * nrows + 0.8, nrows=nrows, ncols=cols, sharey=True)
     for j in range(nrows * cols):
         ax = axes[j // cols, j % cols]
         if j >= n:
             ax.set_visible(False)
             continue
-        for colour, (label, values) in zip(COLOURS, errors_mm.items()):
-            ax.plot(q_deg[:, j], values, ".", ms=2.5, alpha=0.5, color=colour, label=label)
-            edges = np.linspace(q_deg[:, j].min(), q_deg[:, j].max(), 11)
-            which = np.clip(np.digitize(q_deg[:, j], edges[1:-1]), 0, len(edges) - 2)
-            centres, medians = [], []
-            for b in range(len(edges) - 1):
-                inside = values[which == b]
-                if len(inside) >= 3:
-                    centres.append(0.5 * (edges[b] + edges[b + 1]))
-                    medians.append(float(np.median(inside)))
-            ax.plot(centres, medians, "-", color=colour, lw=1.5, label=f"{label}, median per bin")
+        ax.plot(q_deg[:, j], errors_mm, ".", ms=2, color=COLOURS[1], label="pose")
+        edges = np.linspace(q_deg[:, j].min(), q_deg[:, j].max(), 11)
+        which = np.clip(np.digitize(q_deg[:, j], edges[1:-1]), 0, len(edges) - 2)
+        centres, medians = [], []
+        for b in range(len(edges) - 1):
+            inside = errors_mm[which == b]
+            if len(inside) >= 3:
+                centres.append(0.5 * (edges[b] + edges[b + 1]))
+                medians.append(float(np.median(inside)))
+        ax.plot(centres, medians, "-", color=COLOURS[3], lw=1.5, label="median per tenth of the joint's range")
+        ax.xaxis.set_major_locator(MaxNLocator(nbins=4))
         ax.set_xlabel(f"q{j + 1} [deg]")
         if j % cols == 0:
             ax.set_ylabel("3-D error [mm]")
-    visible = axes[0, min(cols, n) - 1]
-    _legend_outside(visible)
-    fig.suptitle(title, fontsize=10)
+    _legend_below(fig, axes[0, 0])
+    fig.suptitle(_wrap(f"{title}: {stage}"), fontsize=10)
     return _png(fig)
 
 
@@ -139,7 +151,7 @@ def workspace(points_mm: np.ndarray, errors_mm: np.ndarray, title: str, frame: s
         ax.set_title(f"{'xyz'[a]}-{'xyz'[b]} plane, {frame} frame", fontsize=9)
     assert scatter is not None
     fig.colorbar(scatter, ax=axes[0].tolist(), label="3-D error [mm]", shrink=0.9)
-    fig.suptitle(title, fontsize=10)
+    fig.suptitle(_wrap(title), fontsize=10)
     return _png(fig)
 
 
@@ -173,7 +185,7 @@ def predicted_vs_observed(predicted_p95_mm: np.ndarray, observed_mm: np.ndarray,
     ax.set_xlabel("predicted 95 % radius of the 3-D error [mm]")
     ax.set_ylabel("observed 3-D error [mm]")
     ax.set_title(f"prediction uncertainty: {100 * coverage:.1f} % of the poses inside (95 % expected)", fontsize=10)
-    _legend_outside(ax)
+    _legend_below(fig, ax)
     return _png(fig)
 
 

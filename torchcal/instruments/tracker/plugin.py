@@ -178,11 +178,11 @@ def _write_evaluate_report(target: Path, scored: Any, register: bool, lines: lis
 
     stored, data = scored.stored, scored.data
     fitted = (stored.metadata.get("data") or {}).get("sha256") == data.sha256
-    twins = (scored.metrics.get("leakage") or {}).get("twin_share", 0.0)
+    leakage = scored.metrics.get("leakage") or {}
     protocol = None
-    if not fitted and twins > 0:
-        protocol = (f"file {Path(data.source).name}, not the fitted file, but {100 * twins:.0f} % of its poses have a "
-                    "training twin (see the leakage note)")
+    if not fitted and leakage.get("warning"):
+        protocol = (f"file {Path(data.source).name}, not the fitted file, but its poses sit among the training poses "
+                    f"({100 * leakage['twin_share']:.0f} % training twins; see the leakage note): optimistic")
     pose_set = score_pose_set(stored, data, held_out=not fitted, register=register, protocol=protocol)
     report = calibration_report(
         f"Evaluation report: {stored.robot.name}, model {stored.folder.name} on {Path(data.source).name}", stored,
