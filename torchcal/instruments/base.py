@@ -63,7 +63,8 @@ class FitOutcome:
         folder: the model folder written.
         lines: result lines for the user, in order (the CLI prints them; the last one names the
             chosen model and its figures).
-        report: the report written into the folder (``report.md``, next to ``report.html``).
+        report: the report the instrument wrote into the folder (``report.md``, next to
+            ``report.html``); ``None``: :func:`fit_committed` writes the shared summary report.
     """
 
     folder: Path
@@ -216,7 +217,12 @@ def fit_committed(instrument: Instrument, request: FitRequest) -> FitOutcome:
     previous = out if out.is_dir() else None
     with staged_folder(out) as staging:
         outcome = instrument.fit(replace(request, out=staging, previous=previous))
-        if not (staging / REPORT).is_file():
+        if outcome.report is None:  # none of its own: the shared one, replacing any copied from an earlier model
+            import shutil
+
+            from torchcal.report.document import FIGURES
+
+            shutil.rmtree(staging / FIGURES, ignore_errors=True)
             write_summary_report(staging, f"torchcal fit: {instrument.name} file {Path(request.data).name}", outcome.lines,
                                  folder=staging, kind=instrument.name, member=True)
     return FitOutcome(folder=out, lines=outcome.lines, report=out / REPORT)

@@ -72,7 +72,7 @@ class TrackerInstrument(Instrument):
             lines.append(structure.comparison.format_table())
         request.progress("writing the report")
         lines.append(_write_fit_report(folder, data, structure, lines, config))
-        return FitOutcome(folder=folder, lines=lines)
+        return FitOutcome(folder=folder, lines=lines, report=folder / "report.md")
 
     def evaluate(self, request: EvaluateRequest) -> EvaluateOutcome:
         from torchcal.config.schema import FitConfig
