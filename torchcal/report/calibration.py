@@ -194,7 +194,7 @@ def cross_validated_stage(stored: StoredModel, structure) -> StageErrors | None:
 def _f(value: float, digits: int = 4) -> str:
     if value is None or (isinstance(value, float) and not math.isfinite(value)):
         return "-"
-    return f"{value:.{digits}f}"
+    return f"{round(value, digits) + 0.0:.{digits}f}"  # + 0.0: no "-0.0000" for a rounded zero
 
 
 def _g(value: float) -> str:
