@@ -51,7 +51,12 @@ def _tracker_sets(real: Path) -> dict[str, str]:
 
 def main() -> None:
     from torchcal.core.metrics import position_metrics
-    from torchcal.instruments.base import EvaluateRequest, FitRequest, evaluate_reported, fit_committed
+    from torchcal.instruments.base import (
+        EvaluateRequest,
+        FitRequest,
+        evaluate_reported,
+        fit_committed,
+    )
     from torchcal.instruments.registry import recognise
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])

@@ -7,7 +7,17 @@ import json
 import re
 
 from torchcal.report import plots
-from torchcal.report.document import Figure, Paragraph, Preformatted, Report, Section, Table, to_html, to_markdown, write_report
+from torchcal.report.document import (
+    Figure,
+    Paragraph,
+    Preformatted,
+    Report,
+    Section,
+    Table,
+    to_html,
+    to_markdown,
+    write_report,
+)
 
 
 def _report() -> Report:

@@ -14,8 +14,8 @@ from torchcal.identify.calibrate import calibrate
 from torchcal.kinematics import transforms as tf
 from torchcal.kinematics.robot import load_robot
 from torchcal.sim.twin import Twin, TwinConfig
-from torchcal.stages.geometry import fit, save_fit
 from torchcal.stages.files import read_tensors
+from torchcal.stages.geometry import fit, save_fit
 from torchcal.stages.store import load_model
 
 
