@@ -1,7 +1,7 @@
 """Comparison table of the learned-residual stages on the twin with gravity and gear errors.
 
 For each seed: 1500 training poses, 600 test poses; each head is fitted as ``fit`` leaves it when it
-keeps the head (tuned on a slice of the training poses, then fitted on all of them). Stages: nominal (registered), geometric, geometric + random-init ELM, + MMA-ELM, + MLP.
+keeps the head (tuned on a slice of the training poses, then fitted on all of them). Stages: nominal (instrument frame and tool fitted), geometric, geometric + random-init ELM, + MMA-ELM, + MLP.
 Test RMS/mean/max and fit time, median over seeds. Writes docs/residual_comparison.json/.md.
 
     python scripts/compare_residuals.py [--seeds 3]
@@ -33,7 +33,7 @@ def one_seed(seed: int, with_mlp: bool = True) -> dict[str, dict]:
     twin = Twin.create(TwinConfig(seed=seed, gravity=True, gear=True))
     gen = torch.Generator().manual_seed(seed + 100)
     train, test = twin.sample(1500, gen), twin.sample(600, gen)
-    rows = {"nominal (registered)": {**position_metrics(nominal_errors(twin.robot, test)), "fit_s": 0.0}}
+    rows = {"nominal (frame and tool fitted)": {**position_metrics(nominal_errors(twin.robot, test)), "fit_s": 0.0}}
     start = time.perf_counter()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")

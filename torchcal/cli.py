@@ -81,23 +81,28 @@ def _cmd_fit(args) -> int:
     for line in outcome.lines:
         console.print(line, markup=False, highlight=False)
     print(f"model: {outcome.folder}")
+    if outcome.report is not None:
+        print(f"report: {outcome.report} (and {outcome.report.with_suffix('.html').name})")
     return 0
 
 
 def _cmd_evaluate(args) -> int:
     from torchcal.core.io import atomic_write_json
-    from torchcal.instruments.base import EvaluateRequest
+    from torchcal.instruments.base import EvaluateRequest, evaluate_reported
     from torchcal.instruments.registry import recognise
 
     if args.json:
         _check_output_file(args.json, "--json")
     instrument = recognise(args.data)
-    outcome = instrument.evaluate(EvaluateRequest(
-        model=Path(args.model), data=Path(args.data), overrides=list(args.overrides), register=args.register))
+    outcome = evaluate_reported(instrument, EvaluateRequest(
+        model=Path(args.model), data=Path(args.data), overrides=list(args.overrides), register=args.register,
+        report=Path(args.report) if args.report else None))
     if args.json:
         atomic_write_json(args.json, outcome.metrics)
     for line in outcome.lines:
         print(f"torchcal: {line}", file=sys.stderr)
+    if outcome.report is not None:
+        print(f"torchcal: report: {outcome.report} (and {outcome.report.with_suffix('.html').name})", file=sys.stderr)
     shown = outcome.metrics
     if instrument.name == "tracker":  # the point figures; leakage and compensator are in the lines above
         shown = {k: v for k, v in shown.items() if k.startswith(("n_", "position_"))}
@@ -226,6 +231,8 @@ def build_parser(with_options: bool = False) -> argparse.ArgumentParser:
     p.add_argument("--data", required=True)
     p.add_argument("--json", default=None, help="write the metrics to this JSON file")
     p.add_argument("--register", action="store_true", help="re-fit only the rigid instrument frame to the file first")
+    p.add_argument("--report", default=None, metavar="DIR",
+                   help="write report.md and report.html (figures inline) of this evaluation into DIR")
     p.add_argument("overrides", nargs="*")
     p.set_defaults(func=_cmd_evaluate)
 

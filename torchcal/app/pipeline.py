@@ -5,6 +5,7 @@ Kept apart from :mod:`torchcal.cli` so that the same steps are callable from Pyt
 
 from __future__ import annotations
 
+import json
 import time
 from pathlib import Path
 
@@ -19,13 +20,13 @@ from torchcal.identify.calibrate import CalibrationResult
 from torchcal.identify.lm import LevenbergMarquardt
 from torchcal.identify.problem import CalibrationProblem
 from torchcal.kinematics.robot import load_robot
+from torchcal.report.calibration import model_name
 from torchcal.sim.twin import Twin, TwinConfig, write_twin_case
 from torchcal.stages.geometry import (
-    describe_structure,
+    NOMINAL_PROTOCOL,
     fit_with_selection,
-    model_joints,
+    held_out_errors,
     nominal_errors,
-    predict_positions,
     save_fit,
 )
 from torchcal.stages.store import load_model
@@ -51,8 +52,6 @@ def projected_truth(twin: Twin, result: CalibrationResult, n: int = 2000) -> tup
 def run(config: RunConfig, console=None) -> dict:
     """End to end on the twin; returns the summary also written to ``metrics.json``."""
     from rich.console import Console
-
-    from torchcal.report.runreport import write_run_report
 
     console = console or Console()
     from torchcal.config import save_resolved_config
@@ -87,11 +86,9 @@ def run(config: RunConfig, console=None) -> dict:
             console.log(residual_summary["decision"])
         status.update("[bold]evaluating on held-out poses")
         stored = load_model(model_dir)
-        err_nominal = nominal_errors(robot, test)
-        err_geometric = test.position - stored.model.tcp_position(model_joints(stored, test.q), stored.x)
-        stages = {"nominal (registered)": err_nominal, "geometric": err_geometric}
+        stages = {"nominal": nominal_errors(robot, test), "geometric": held_out_errors(stored, test, residual=False)}
         if stored.residual is not None:
-            stages["geometric + residual"] = test.position - predict_positions(stored, test.q, test.temperature)
+            stages["geometric + residual"] = held_out_errors(stored, test)
         metrics = {stage: position_metrics(e) for stage, e in stages.items()}
     sigma = result.parameter_sigma()
     z = ((result.x - truth_x)[result.free] / sigma).abs()
@@ -101,6 +98,7 @@ def run(config: RunConfig, console=None) -> dict:
         "noise_floor_rms_mm": config.twin.noise_floor_rms_mm,
         "test": metrics,
         "final_stage": list(metrics)[-1],
+        "nominal_protocol": NOMINAL_PROTOCOL,
         "truth_check": {
             "identifiable_parameters": len(result.free),
             "fraction_within_3_sigma": within,
@@ -109,15 +107,9 @@ def run(config: RunConfig, console=None) -> dict:
         },
         "identifiability": result.identifiability.summary(),
         "residual": residual_summary,
-        "model": describe_structure(result) + (f" + {residual_summary['kept']} head"
-                                               if residual_summary and residual_summary["kept"] else ""),
+        "model": model_name(stored),
         "elapsed_s": None,
     }
-    report = write_run_report(folder, robot, result, stages, summary, truth_x)
-    final = summary["test"][summary["final_stage"]]
-    # the model as chosen (structure and head), not the stage key: "geometric" also holds joint-space terms
-    console.log(f"report: {report}; final held-out RMS {final['position_rms_mm']:.4f} mm "
-                f"({summary.get('model') or summary['final_stage']})")
     write_member_json(model_dir, "metrics.json", {"held_out_data": test.source, "stages": metrics, "final_stage": summary["final_stage"]})
     if config.export:
         from torchcal.compensate.export import export_and_check
@@ -126,9 +118,53 @@ def run(config: RunConfig, console=None) -> dict:
         summary["export"] = export_and_check(model_dir, export_dir, test, true_positions=twin.true_positions)
         console.log(summary["export"]["summary"])
         _log_compensation_on_twin(summary["export"]["compensation_on_true_robot"], console)
+    report = _write_report(folder, stored, train, test, structure, summary, truth_x)
+    final = summary["test"][summary["final_stage"]]
+    # the model as chosen (structure and head), not the stage key: "geometric" also holds joint-space terms
+    console.log(f"report: {report}; final held-out RMS {final['position_rms_mm']:.4f} mm ({summary['model']})")
     summary["elapsed_s"] = time.perf_counter() - started
     atomic_write_json(folder / "metrics.json", summary)
     return summary
+
+
+def _write_report(folder: Path, stored, train: Measurements, test: Measurements, structure, summary: dict,
+                  truth_x: torch.Tensor) -> Path:
+    """The run's report (the one report builder of ``fit`` and ``evaluate``): training and held-out file, truth."""
+    from torchcal.instruments.tracker.evaluate import score
+    from torchcal.report.calibration import (
+        ReportInputs,
+        calibration_report,
+        cross_validated_stage,
+        score_pose_set,
+    )
+    from torchcal.report.document import write_report
+
+    cv = cross_validated_stage(stored, structure)
+    extra = [cv] if cv is not None else []
+    pose_sets = [score_pose_set(stored, train, held_out=False, extra=extra, focus_extra=bool(extra)),
+                 score_pose_set(stored, test, held_out=True)]
+    scored = score(stored, test)
+    floor = summary["noise_floor_rms_mm"]
+    final = summary["test"][summary["final_stage"]]["position_rms_mm"]
+    ratio = final / floor
+    context = [f"The twin's measurement noise floor is {floor:.4f} mm RMS: the model leaves {final:.4f} mm on the "
+               f"held-out poses, {ratio:.2f}x the floor"
+               + (": what is above it is what the model cannot express." if ratio > 1.2 else ": nothing systematic is left.")]
+    tc = summary["truth_check"]
+    truth_note = (f"{tc['fraction_within_3_sigma'] * 100:.1f} % of the {tc['identifiable_parameters']} identified parameters "
+                  f"lie within 3 sigma of the twin's truth (projected onto the identified set; projection residual "
+                  f"{tc['projection_residual_rms_mm']:.2e} mm).")
+    inputs = ReportInputs(selection=_selection(stored.folder), compensator=scored.metrics["compensator"],
+                          uncertainty=scored.metrics.get("uncertainty"), leakage=scored.metrics.get("leakage"),
+                          compensation_on_truth=(summary.get("export") or {}).get("compensation_on_true_robot"),
+                          truth_x=truth_x, truth_note=truth_note, context=context)
+    report = calibration_report(f"torchcal report: {stored.robot.name} ({summary['name']})", stored, pose_sets, inputs)
+    return write_report(folder, report)["report.md"]
+
+
+def _selection(model_dir: Path) -> dict | None:
+    path = Path(model_dir) / "model_selection.json"
+    return json.loads(path.read_text(encoding="utf-8")) if path.is_file() else None
 
 
 def _log_compensation_on_twin(result: dict, console) -> None:

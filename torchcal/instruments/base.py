@@ -21,7 +21,7 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, ClassVar
 
@@ -62,11 +62,14 @@ class FitOutcome:
     Attributes:
         folder: the model folder written.
         lines: result lines for the user, in order (the CLI prints them; the last one names the
-            chosen model and its training figure).
+            chosen model and its figures).
+        report: the report the instrument wrote into the folder (``report.md``, next to
+            ``report.html``); ``None``: :func:`fit_committed` writes the shared summary report.
     """
 
     folder: Path
     lines: list[str] = field(default_factory=list)
+    report: Path | None = None
 
 
 @dataclass(frozen=True)
@@ -79,20 +82,25 @@ class EvaluateRequest:
         overrides: ``key=value`` options (units of the file and the like).
         register: re-fit only what a new set-up of the instrument changes (its frame, stations...)
             before scoring.
+        report: folder to write ``report.md`` + ``report.html`` into (``evaluate --report``), or
+            ``None``. An instrument that writes its own says so in :attr:`EvaluateOutcome.report`;
+            otherwise :func:`evaluate_reported` writes the shared summary report.
     """
 
     model: Path
     data: Path
     overrides: list[str] = field(default_factory=list)
     register: bool = False
+    report: Path | None = None
 
 
 @dataclass(frozen=True)
 class EvaluateOutcome:
-    """Metrics of a model on a file (JSON-ready, lengths in mm) and lines for the user."""
+    """Metrics of a model on a file (JSON-ready, lengths in mm), lines for the user, the report written (if any)."""
 
     metrics: dict[str, Any]
     lines: list[str] = field(default_factory=list)
+    report: Path | None = None
 
 
 @dataclass(frozen=True)
@@ -199,8 +207,6 @@ def fit_committed(instrument: Instrument, request: FitRequest) -> FitOutcome:
     folder or the new one, whole (:func:`torchcal.core.folder.staged_folder`); the files of an
     earlier result never mix with the new ones.
     """
-    from dataclasses import replace
-
     from torchcal.core.folder import FolderError, staged_folder
 
     out = Path(request.out)
@@ -211,4 +217,57 @@ def fit_committed(instrument: Instrument, request: FitRequest) -> FitOutcome:
     previous = out if out.is_dir() else None
     with staged_folder(out) as staging:
         outcome = instrument.fit(replace(request, out=staging, previous=previous))
-    return FitOutcome(folder=out, lines=outcome.lines)
+        if outcome.report is None:  # none of its own: the shared one, replacing any copied from an earlier model
+            import shutil
+
+            from torchcal.report.document import FIGURES
+
+            shutil.rmtree(staging / FIGURES, ignore_errors=True)
+            write_summary_report(staging, f"torchcal fit: {instrument.name} file {Path(request.data).name}", outcome.lines,
+                                 folder=staging, kind=instrument.name, member=True)
+    return FitOutcome(folder=out, lines=outcome.lines, report=out / REPORT)
+
+
+#: The report a fit writes into its model folder (next to ``report.html``).
+REPORT = "report.md"
+
+
+def write_summary_report(target: Path, title: str, lines: list[str], *, metrics: dict | None = None,
+                         folder: Path | None = None, kind: str = "", member: bool = False) -> Path:
+    """The shared report (:mod:`torchcal.report.generic`) of an instrument that writes none of its own."""
+    from torchcal.report.document import write_report
+    from torchcal.report.generic import summary_report
+
+    write_report(target, summary_report(title, lines, metrics=metrics, folder=folder, kind=kind), member=member)
+    return Path(target) / REPORT
+
+
+def check_report_folder(report: Path, model: Path) -> None:
+    """Refuse, before any work, an ``evaluate --report`` folder that is a file or the model folder itself."""
+    from torchcal.core.folder import FolderError
+
+    report = Path(report)
+    if report.exists() and not report.is_dir():
+        raise FolderError(f"{report}: --report names an existing file; give a folder")
+    if report.resolve() == Path(model).resolve():
+        raise FolderError(f"{report}: --report names the model folder, whose report.md is the fit's; give another folder")
+    parent = report
+    while not parent.exists():
+        parent = parent.parent
+    if not parent.is_dir():
+        raise FolderError(f"{parent}: a file stands where --report needs a folder")
+
+
+def evaluate_reported(instrument: Instrument, request: EvaluateRequest) -> EvaluateOutcome:
+    """``instrument.evaluate``, then, with ``request.report``, the shared summary report where it wrote none."""
+    if request.report is not None:
+        check_report_folder(request.report, request.model)
+    outcome = instrument.evaluate(request)
+    if request.report is None:
+        return outcome
+    report = outcome.report
+    if report is None:
+        report = write_summary_report(Path(request.report), f"torchcal evaluate: {instrument.name} file "
+                                      f"{Path(request.data).name} on {Path(request.model).name}", outcome.lines,
+                                      metrics=outcome.metrics, folder=Path(request.model), kind=instrument.name)
+    return replace(outcome, report=report)

@@ -224,12 +224,15 @@ def robot_to_yaml(robot: RobotModel, table: torch.Tensor | None = None, tool: to
         "  angle_unit: deg",
         "  joints:",
     ]
-    for row, lim in zip(table.tolist(), robot.joint_limits.tolist()):
+    velocities = robot.velocity_limits.tolist() if robot.velocity_limits is not None else [None] * robot.dof
+    for row, lim, velocity in zip(table.tolist(), robot.joint_limits.tolist(), velocities):
         alpha, a, beta, theta, d = row
         entries = [f"alpha: {alpha * deg:.9g}", f"a: {a * 1e3:.9g}", f"d: {d * 1e3:.9g}", f"theta: {theta * deg:.9g}"]
         if abs(beta) > 0:
             entries.append(f"beta: {beta * deg:.9g}")
         entries += [f"min: {lim[0] * deg:.9g}", f"max: {lim[1] * deg:.9g}"]
+        if velocity is not None:
+            entries.append(f"velocity: {velocity * deg:.9g}")
         lines.append("    - {" + ", ".join(entries) + "}")
     lines.append("  tool: [" + ", ".join(f"{v * 1e3:.9g}" for v in tool.tolist()) + "]")
     return "\n".join(lines) + "\n"

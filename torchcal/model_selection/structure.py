@@ -10,7 +10,7 @@ of exactly the structure that will carry it, with the same folds.
 from __future__ import annotations
 
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -34,6 +34,8 @@ class StructureCV:
         candidates: one :class:`~torchcal.model_selection.compare.Candidate` per option.
         fold_results: ``label -> [result of fold 0, 1, ...]`` (fits on each training part).
         comparison: the decision among options.
+        error_vectors_mm: ``label -> (n, 3)`` out-of-fold error vectors (instrument frame, mm),
+            whose norms are the candidates' ``errors_mm``.
     """
 
     folds: Folds
@@ -41,6 +43,7 @@ class StructureCV:
     candidates: list[Candidate]
     fold_results: dict[str, list]
     comparison: Comparison
+    error_vectors_mm: dict[str, np.ndarray] = field(default_factory=dict)
 
     @property
     def chosen(self) -> tuple[str, str]:
@@ -61,7 +64,7 @@ def cross_validate_structures(robot, data: Measurements, fit_geometry, options: 
     ``progress(step: str)``, if given, is called before each fold.
     """
     n = len(data)
-    errors = {structure_label(*o): np.zeros(n) for o in options}
+    vectors = {structure_label(*o): np.zeros((n, 3)) for o in options}
     fold_results: dict[str, list] = {structure_label(*o): [] for o in options}
     with warnings.catch_warnings():
         # a fold's fit repeats the identifiability warnings of the full fit, which is reported once
@@ -76,11 +79,11 @@ def cross_validate_structures(robot, data: Measurements, fit_geometry, options: 
                 result = fit_joint_errors(robot, train, geometry, POINT_SETS[gravity], HARMONIC_SETS[harmonics],
                                           harmonic_min_range_deg)
                 held_out = test.position - predicted_positions(result, test.q)
-                errors[label][test_idx] = held_out.norm(dim=-1).detach().cpu().numpy() * 1e3
+                vectors[label][test_idx] = held_out.detach().cpu().numpy() * 1e3
                 fold_results[label].append(result)
-    candidates = [Candidate(label, err) for label, err in errors.items()]
+    candidates = [Candidate(label, np.linalg.norm(v, axis=1)) for label, v in vectors.items()]
     comparison = compare_candidates(candidates, folds.units(), folds.description, tolerance=tolerance)
-    return StructureCV(folds, options, candidates, fold_results, comparison)
+    return StructureCV(folds, options, candidates, fold_results, comparison, vectors)
 
 
 def fold_targets(result, data: Measurements, index: np.ndarray) -> torch.Tensor:

@@ -212,10 +212,11 @@ def load_uncertainty(folder: Path) -> ErrorCalibration | None:
 
 def stored_prediction(stored, q: torch.Tensor, method: str | None = None) -> PosePrediction | None:
     """The prediction of a loaded model folder at joints ``q`` (rad), or ``None`` without a calibration."""
-    from torchcal.stages.geometry import model_joints
+    from torchcal.identify.joint_errors import JointSpaceErrors
 
     calibration = load_uncertainty(stored.folder)
     if calibration is None:
         return None
-    jac = point_jacobian(stored.model, stored.x, stored.free, model_joints(stored, q))
+    joints = JointSpaceErrors.from_metadata(stored.metadata).effective_joints(stored.robot, q)
+    jac = point_jacobian(stored.model, stored.x, stored.free, joints)
     return predict(calibration, jac, stored.covariance, method)

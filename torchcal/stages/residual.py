@@ -161,7 +161,9 @@ def fit_residual_stage(
             write_uncertainty(model_dir, calibrate_errors(jac, stored.covariance, comparison.errors_mm[comparison.chosen],
                                                           comparison.protocol, config.uncertainty))
     else:
-        rejected = [r for r in comparison.rows if r["name"].startswith(parent + "+")]
+        heads = set(head_names(config.residual))
+        rejected = [r for r in comparison.rows
+                    if r["name"].startswith(parent + "+") and r["name"][len(parent) + 1:].split(" [")[0] in heads]
         why = "; ".join(f"{r['name']}: {r['verdict']}" for r in rejected) or "no head candidates"
         decision = f"no residual head kept ({why})"
     write_selection(model_dir, comparison, decision)

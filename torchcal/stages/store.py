@@ -6,8 +6,12 @@ A model folder holds:
 * ``calibration.safetensors``: tensors ``x`` (full parameter vector, SI), ``T_reference``
   (instrument-from-base, 4x4), ``free`` (estimated parameter indices), ``covariance`` and,
   for fits from measured poses, ``training_q`` (their commanded joints, rad);
-* ``calibration.json``: metadata (parameter names, units, identifiability, data hash, metrics);
-* ``calibrated_robot.yaml``: the calibrated MDH table in the contract's units, for people;
+* ``calibration.json``: metadata (parameter names, units, identifiability, data hash, metrics)
+  and ``frames``: the instrument-to-base transform and the tool, mm and deg with 1-sigma (the
+  ``base_*`` and ``tool_*`` parameters hold the same values; see :data:`FRAME_CONVENTION`);
+* ``calibrated_robot.yaml``: the calibrated MDH table in the contract's units, for people, with a
+  header saying what of the model it leaves out;
+* optionally ``report.md`` + ``report.html`` (figures in ``figures/``): the calibration report;
 * optionally ``residual.safetensors`` + ``residual.json``: a learned residual head;
 * optionally ``model_selection.json``: the cross-validated comparison the fit chose by;
 * optionally ``stiffness.safetensors`` + ``stiffness.json``: joint stiffness
@@ -113,10 +117,18 @@ def save_model(
     if training_q is not None:
         tensors["training_q"] = training_q.detach().to("cpu", torch.float64).contiguous()
     write_member(folder, "calibration.safetensors", save(tensors))
-    table = model.table(x.cpu())
     scale = model.layout.unit_scale()
     sigma = torch.zeros(model.layout.size, dtype=torch.float64)
     sigma[free] = cov.diagonal().clamp_min(0).sqrt().cpu()
+    estimated = set(free.tolist())
+    parameters = {
+        n: {"value": float(v * s), "sigma": float(sg * s), "estimated": i in estimated}
+        for i, (n, v, s, sg) in enumerate(zip(model.layout.names, x.cpu().tolist(), scale.tolist(), sigma.tolist()))
+    }
+    frames = frame_entries(model, x, free, cov)
+    for key, transform in (("base", "T_instrument_base"), ("tool", "T_flange_tool")):
+        for axis in ("x", "y", "z", "rx", "ry", "rz"):
+            parameters[f"{key}_{axis}"].update(value=frames[transform][axis], sigma=frames[transform]["sigma"][axis])
     meta = {
         "format": "torchcal-model/1",
         "robot_file": robot_file.name,
@@ -127,17 +139,97 @@ def save_model(
         "with_orientation": model.with_orientation,
         "parameter_names": list(model.layout.names),
         "units": {"lengths": "mm", "angles": "deg"},
-        "parameters": {
-            n: {"value": float(v * s), "sigma": float(sg * s), "estimated": bool(i in set(free.tolist()))}
-            for i, (n, v, s, sg) in enumerate(zip(model.layout.names, x.cpu().tolist(), scale.tolist(), sigma.tolist()))
-        },
+        "parameters": parameters,
+        "frames": frames,
         **metadata,
     }
     write_member_json(folder, "calibration.json", meta)
     tool = x[model.layout.tool_slice][:3].cpu()
-    header = "# calibrated by torchcal; T_instrument_base and sigmas are in calibration.json\n"
-    write_member_text(folder, "calibrated_robot.yaml", header + robot_to_yaml(robot, table=table, tool=tool))
+    write_member_text(folder, "calibrated_robot.yaml",
+                      calibrated_yaml_header(robot, meta) + robot_to_yaml(robot, table=model.table(x.cpu()), tool=tool))
     return folder
+
+
+#: How ``calibration.json`` ``frames`` (and the ``base_*`` / ``tool_*`` parameters) write a transform.
+FRAME_CONVENTION = ("T_a_b is the pose of frame b in frame a: x, y, z its translation (mm), rx, ry, rz its rotation as "
+                    "fixed-axis XYZ angles (deg, R = Rz(rz) Ry(ry) Rx(rx), the convention of the measurement files' "
+                    "rx, ry, rz); sigma: 1-sigma from the fit's covariance (0 where not estimated)")
+
+
+def _transform_readout(transform_of, b: torch.Tensor, cov: torch.Tensor) -> dict:
+    """``x..rz`` (mm, deg) of ``transform_of(b)`` and their 1-sigma, ``cov`` the covariance of ``b`` (SI)."""
+    from torchcal.kinematics.transforms import matrix_to_euler_xyz
+
+    def readout(v: torch.Tensor) -> torch.Tensor:
+        t = transform_of(v)
+        return torch.cat([t[:3, 3] * 1e3, torch.rad2deg(matrix_to_euler_xyz(t[:3, :3]))])
+
+    b = b.detach().cpu().to(torch.float64)
+    values = readout(b)
+    jac = torch.autograd.functional.jacobian(readout, b)
+    sigma = (jac @ cov @ jac.T).diagonal().clamp_min(0).sqrt()
+    transform = transform_of(b)
+    matrix = torch.cat([torch.cat([transform[:3, :3], transform[:3, 3:] * 1e3], 1), transform[3:]], 0)
+    axes = ("x", "y", "z", "rx", "ry", "rz")
+    return {**{a: float(v) + 0.0 for a, v in zip(axes, values.tolist())},  # + 0.0: no -0.0 in the file
+            "sigma": {a: float(v) for a, v in zip(axes, sigma.tolist())},
+            "matrix_mm": [[float(v) for v in row] for row in matrix.tolist()]}
+
+
+def frame_entries(model: ErrorModel, x: torch.Tensor, free: torch.Tensor, cov: torch.Tensor) -> dict:
+    """``T_instrument_base`` and ``T_flange_tool`` of a fit, in mm and deg with 1-sigma (``calibration.json`` ``frames``).
+
+    ``x`` holds the base *correction* on the right of ``model.T_reference`` (so its ``base_*``
+    entries are near zero); the transform written here is the whole one, the sigmas propagated
+    from the covariance ``cov`` ``(K, K)`` of the parameters ``free`` ``(K,)``.
+    """
+    from torchcal.kinematics import transforms as tf
+
+    layout = model.layout
+    full = torch.zeros(layout.size, layout.size, dtype=torch.float64)
+    index = free.detach().cpu().long()
+    full[index.unsqueeze(1), index.unsqueeze(0)] = cov.detach().cpu().to(torch.float64)
+    reference = model.T_reference.detach().cpu().to(torch.float64)
+    base, tool = layout.base_slice, layout.tool_slice
+
+    def instrument_from_base(b: torch.Tensor) -> torch.Tensor:
+        return reference @ tf.homogeneous(tf.so3_exp(b[3:]), b[:3])
+
+    def flange_from_tool(b: torch.Tensor) -> torch.Tensor:
+        return tf.homogeneous(tf.so3_exp(b[3:]), b[:3])
+
+    x = x.detach().cpu().to(torch.float64)
+    return {
+        "convention": FRAME_CONVENTION,
+        "T_instrument_base": _transform_readout(instrument_from_base, x[base], full[base, base]),
+        "T_flange_tool": _transform_readout(flange_from_tool, x[tool], full[tool, tool]),
+    }
+
+
+def calibrated_yaml_header(robot: RobotModel, meta: dict) -> str:
+    """The comment block of ``calibrated_robot.yaml``: what the table is, and what of the model it leaves out."""
+    data = meta.get("data") or {}
+    source = f" from {Path(str(data['file'])).name} ({data.get('n_poses')} poses)" if data.get("file") else ""
+    lines = [(f"calibrated by torchcal{source}: the geometric stage only, the identified MDH table and tool point "
+             "(mm, deg). The instrument-to-base transform and every parameter's 1-sigma are in calibration.json "
+             "(frames, parameters).")]
+    terms = [name for key, name in (("gravity_compliance", "gravity compliance"), ("joint_harmonics", "first joint harmonics"))
+             if meta.get(key)]
+    if terms:
+        lines.append(f"Not in this file: {' and '.join(terms)} (calibration.json), joint-space errors added to the commanded "
+                     "joints before this table; without them this table is not the model that was fitted.")
+    lines.append("Not in this file either: a learned residual head, where the folder has residual.safetensors.")
+    dropped = list((meta.get("identifiability") or {}).get("not_identifiable") or {})
+    if dropped:
+        lines.append(f"Not identified from the data, so at their nominal values: {', '.join(dropped)}.")
+    eye = torch.eye(4, dtype=torch.float64)
+    if not (torch.allclose(robot.T_base_0, eye) and torch.allclose(robot.T_n_flange, eye)):
+        lines.append(f"The table runs from MDH frame 0 to frame N; the fixed transforms base -> frame 0 and frame N -> "
+                     f"flange of {meta.get('robot_file', 'the robot file')} have no field in this format and are not in it.")
+    import textwrap
+
+    wrapped = [w for line in lines for w in textwrap.wrap(line, 100)]
+    return "".join(f"# {w}\n" for w in wrapped)
 
 
 def _member_path(folder: Path, name: object, key: str) -> Path:

@@ -28,6 +28,8 @@ from torchcal.instruments.base import (
     FitOutcome,
     FitRequest,
     Instrument,
+    evaluate_reported,
+    fit_committed,
 )
 from torchcal.instruments.registry import get, recognise
 
@@ -73,16 +75,21 @@ class InstrumentContract:
     ) -> None:
         case = instrument.contract_case()
         steps: list[str] = []
-        outcome = instrument.fit(FitRequest(
+        outcome = fit_committed(instrument, FitRequest(
             robot=twin_files["robot.yaml"], data=twin_files[case.fit_file], out=tmp_path / "model",
             overrides=list(case.fit_overrides), end_link=case.end_link, progress=steps.append))
         assert isinstance(outcome, FitOutcome) and outcome.folder.is_dir()
         assert all(isinstance(line, str) for line in outcome.lines)
         scorer = recognise(twin_files[case.test_file])
-        result = scorer.evaluate(EvaluateRequest(
+        result = evaluate_reported(scorer, EvaluateRequest(
             model=outcome.folder, data=twin_files[case.test_file], overrides=list(case.evaluate_overrides),
-            register=case.register))
+            register=case.register, report=tmp_path / "evaluation"))
         assert isinstance(result, EvaluateOutcome)
+        # every instrument's fit and evaluation leave a report (its own, or the shared summary)
+        for folder in (outcome.folder, tmp_path / "evaluation"):
+            for name in ("report.md", "report.html"):
+                assert (folder / name).is_file() and (folder / name).stat().st_size > 200, folder / name
+        assert result.report == tmp_path / "evaluation" / "report.md"
         value = float(result.metrics[case.metric])
         assert math.isfinite(value) and value <= case.bound, (
             f"{instrument.name}: {case.metric} = {value:.4f} mm on the held-out twin file, bound {case.bound} mm")

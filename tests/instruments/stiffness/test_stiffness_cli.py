@@ -176,6 +176,10 @@ def test_geometry_and_stiffness_in_one_model_folder(tmp_path):
     assert torch.equal(stored.x, load_model(geo).x)  # the geometry is the tracker fit's
     meta = json.loads((combined / "stiffness.json").read_text())
     assert meta["geometry"]["source"] == "calibrated model"
+    # the folder's report is this fit's (the stiffness), not the copied geometry report
+    report = (combined / "report.md").read_text()
+    assert "torchcal fit: stiffness file load.csv" in report and "Joint stiffness" in report
+    assert not (combined / "figures" / "workspace_1.png").exists()
     for name, p in meta["parameters"].items():
         if p["status"] == "identified":
             j = int(name[3]) - 1

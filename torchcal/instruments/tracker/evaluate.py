@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import warnings
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -10,14 +11,28 @@ import torch
 
 from torchcal.config.schema import FitConfig
 from torchcal.core.errors import DataError
-from torchcal.core.metrics import position_metrics
-from torchcal.data.measurements import load_measurements
+from torchcal.core.metrics import iso9283_repeated, position_metrics
+from torchcal.data.measurements import Measurements, load_measurements
 from torchcal.stages.geometry import held_out_errors
-from torchcal.stages.prediction_uncertainty import score, stored_prediction
+from torchcal.stages.prediction_uncertainty import score as score_uncertainty
+from torchcal.stages.prediction_uncertainty import stored_prediction
 from torchcal.stages.store import StoredModel, load_model
 
 #: ``evaluate --register``: fewer poses are refused; fewer than the advised give a warning.
 REGISTER_MIN_POSES, REGISTER_ADVISED_POSES = 4, 10
+
+
+@dataclass
+class Scored:
+    """A model folder scored on a file: the metrics of ``evaluate`` and what a report needs besides.
+
+    ``errors``: ``measured - predicted`` ``(n, 3)`` of the model as delivered, instrument frame, m.
+    """
+
+    stored: StoredModel
+    data: Measurements
+    errors: torch.Tensor
+    metrics: dict[str, Any]
 
 
 def evaluate(model_dir: str | Path, data_path: str | Path, *, register: bool = False, config: FitConfig | None = None) -> dict:
@@ -25,41 +40,52 @@ def evaluate(model_dir: str | Path, data_path: str | Path, *, register: bool = F
     config = config or FitConfig()
     stored = load_model(model_dir)
     data = load_measurements(data_path, stored.robot, joint_unit=config.joint_unit, length_unit=config.length_unit)
+    return score(stored, data, register=register).metrics
+
+
+def score(stored: StoredModel, data: Measurements, *, register: bool = False, leakage: bool = True) -> Scored:
+    """The metrics of ``stored`` on ``data`` (mm): errors, ISO 9283 where poses repeat, leakage, the compensator.
+
+    ``leakage``: compare the poses with the training poses (off for the training file itself).
+    """
     warning = None
     if register:
         if len(data) < REGISTER_MIN_POSES:
             raise DataError(f"--register fits the instrument frame (6 parameters) to the file's points; {len(data)} poses "
                             f"cannot check it (at least {REGISTER_MIN_POSES}, better {REGISTER_ADVISED_POSES})",
-                            path=str(data_path))
+                            path=data.source)
         if len(data) < REGISTER_ADVISED_POSES:
             warning = (f"--register fitted 6 frame parameters to {len(data)} poses ({3 * len(data)} coordinates): "
                        f"the RMS is optimistic; score on {REGISTER_ADVISED_POSES} or more poses")
             warnings.warn(warning, stacklevel=2)
     errors = held_out_errors(stored, data, register=register)
     metrics: dict[str, Any] = position_metrics(errors)
-    metrics.update({"model": str(model_dir), "data": str(data_path), "registered": register})
+    metrics.update({"model": str(stored.folder), "data": str(data.source), "registered": register})
     prediction = stored_prediction(stored, data.q)
     if prediction is not None:
-        uncertainty = score(prediction, errors, f"{prediction.method}, calibrated on the fit's out-of-fold errors")
+        uncertainty = score_uncertainty(prediction, errors,
+                                        f"{prediction.method}, calibrated on the fit's out-of-fold errors")
         metrics.update({"coverage_95": uncertainty["coverage_95"], "predicted_p95_mm": uncertainty["predicted_p95_mm"],
                         "uncertainty": uncertainty})
     if warning is not None:
         metrics["warnings"] = [warning]
-    if stored.training_q is not None:
+    metrics["iso9283"] = iso9283_repeated(errors, data.q, rows=data.line_numbers)
+    if leakage and stored.training_q is not None:
         from torchcal.model_selection.leakage import leakage_report
 
         metrics["leakage"] = leakage_report(stored.robot, stored.training_q, data.q).to_dict()
-    metrics["compensator"] = compensator_summary(stored, data.q)
-    return metrics
+    metrics["compensator"] = compensator_summary(stored, data.q, errors)
+    return Scored(stored, data, errors, metrics)
 
 
-def compensator_summary(stored: StoredModel, q: torch.Tensor) -> dict:
+def compensator_summary(stored: StoredModel, q: torch.Tensor, model_errors: torch.Tensor | None = None) -> dict:
     """What the default exported compensator (position first) leaves at the joints ``q``, by the model's own account.
 
     For each pose its command is solved as the exported graph does (no load), and the graph's
     ``residual`` output gives the remaining TCP position error and the tool's orientation
     deviation from the nominal target. Returns the share of poses solved to 1 um (mm and rad
-    values below).
+    values below). With the model's errors ``(n, 3)`` (m) on these poses, ``delivered_*_mm`` bound
+    what a compensated command leaves: per pose the model's error plus the unsolved part.
     """
     from torchcal.compensate.compensator import CompensatorGraph
 
@@ -67,6 +93,11 @@ def compensator_summary(stored: StoredModel, q: torch.Tensor) -> dict:
     with torch.no_grad():
         _, residual = graph.solve(q.to(torch.float64))
     position_mm, turn = residual[:, 0] * 1e3, residual[:, 1]
+    delivered = {}
+    if model_errors is not None:
+        bound = model_errors.detach().to(position_mm).norm(dim=-1) * 1e3 + position_mm
+        delivered = {"delivered_rms_mm": float(bound.pow(2).mean().sqrt()), "delivered_p95_mm": float(bound.quantile(0.95)),
+                     "delivered_max_mm": float(bound.max())}
     return {
         "task": graph.task,
         "iterations": graph.iterations,
@@ -75,6 +106,7 @@ def compensator_summary(stored: StoredModel, q: torch.Tensor) -> dict:
         "orientation_deviation_median_rad": float(turn.median()),
         "orientation_deviation_p99_rad": float(turn.quantile(0.99)),
         "orientation_deviation_max_rad": float(turn.max()),
+        **delivered,
     }
 
 

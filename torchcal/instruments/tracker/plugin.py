@@ -43,7 +43,7 @@ class TrackerInstrument(Instrument):
         from torchcal.identify.joint_fit import predicted_positions
         from torchcal.kinematics.robot import load_robot
         from torchcal.stages.geometry import (
-            describe_structure,
+            NOMINAL_PROTOCOL,
             fit_with_selection,
             nominal_errors,
             save_fit,
@@ -58,34 +58,40 @@ class TrackerInstrument(Instrument):
         result, structure = fit_with_selection(robot, data, config, progress=request.progress)
         before = position_metrics(nominal_errors(robot, data))
         after = position_metrics(data.position - predicted_positions(result, data.q))
-        folder = save_fit(request.out, robot, data, result,
-                          {"fit_metrics": {"nominal_registered": before, "geometric": after}},
-                          structure=structure, uncertainty=config.uncertainty)
+        folder = save_fit(request.out, robot, data, result, {"fit_metrics": {
+            "protocol": f"training poses, optimistic; nominal: {NOMINAL_PROTOCOL}", "nominal": before, "geometry_stage": after}},
+            structure=structure, uncertainty=config.uncertainty)
         save_resolved_config(folder / "config.yaml", config)
-        lines = [result.identifiability.summary(),
-                 (f"training RMS {before['position_rms_mm']:.4f} mm (nominal, registered) -> "
-                  f"{after['position_rms_mm']:.4f} mm ({describe_structure(result)}, on the poses it was fitted to)")]
+        lines = [result.identifiability.summary()]
+        residual = None
         if config.residual != "none":
             request.progress("cross-validating residual heads")
-            summary = fit_residual_stage(folder, data, config, progress=request.progress, structure=structure)
-            lines += [summary["table"], summary["decision"]]
+            residual = fit_residual_stage(folder, data, config, progress=request.progress, structure=structure)
+            lines += [residual["table"], residual["decision"]]
         elif structure is not None:
             write_selection(folder, structure.comparison, "residual=none: no head considered")
             lines.append(structure.comparison.format_table())
-        return FitOutcome(folder=folder, lines=lines)
+        request.progress("writing the report")
+        lines.append(_write_fit_report(folder, data, structure, lines, config))
+        return FitOutcome(folder=folder, lines=lines, report=folder / "report.md")
 
     def evaluate(self, request: EvaluateRequest) -> EvaluateOutcome:
         from torchcal.config.schema import FitConfig
         from torchcal.core.overrides import apply_overrides
-        from torchcal.instruments.tracker.evaluate import evaluate
+        from torchcal.data.measurements import load_measurements
+        from torchcal.instruments.tracker.evaluate import score
         from torchcal.model_selection.leakage import LeakageReport
+        from torchcal.stages.store import load_model
 
         config = apply_overrides(FitConfig(), request.overrides)
-        metrics = evaluate(request.model, request.data, register=request.register, config=config)
+        stored = load_model(request.model)
+        data = load_measurements(request.data, stored.robot, joint_unit=config.joint_unit, length_unit=config.length_unit)
+        scored = score(stored, data, register=request.register)
+        metrics = scored.metrics
         lines = []
         if "leakage" in metrics:
-            report = LeakageReport(**metrics["leakage"])
-            lines.append(f"{'warning: ' if report.warning else ''}{report.summary()}")
+            leakage = LeakageReport(**metrics["leakage"])
+            lines.append(f"{'warning: ' if leakage.warning else ''}{leakage.summary()}")
         if "uncertainty" in metrics:
             u = metrics["uncertainty"]
             lines.append(f"predicted 95 % error radius ({u['method']}, from the fit's grouped cross-validation) covers "
@@ -97,7 +103,10 @@ class TrackerInstrument(Instrument):
             f"{100 * comp['solved_share']:.1f} % of these poses to 1 um (worst {comp['unsolved_max_mm']:.2e} mm); "
             f"tool orientation deviation median {comp['orientation_deviation_median_rad']:.1e} rad, "
             f"max {comp['orientation_deviation_max_rad']:.1e} rad")
-        return EvaluateOutcome(metrics=metrics, lines=lines)
+        report = None
+        if request.report is not None:
+            report = _write_evaluate_report(Path(request.report), scored, request.register, lines)
+        return EvaluateOutcome(metrics=metrics, lines=lines, report=report)
 
     def options(self) -> type:
         from torchcal.config.schema import FitConfig
@@ -120,3 +129,71 @@ class TrackerInstrument(Instrument):
             metric="position_rms_mm",
             bound=0.05,
         )
+
+
+def _selection(folder: Path) -> dict | None:
+    """The folder's ``model_selection.json``, if the fit made choices."""
+    import json
+
+    path = Path(folder) / "model_selection.json"
+    return json.loads(path.read_text(encoding="utf-8")) if path.is_file() else None
+
+
+def _write_fit_report(folder: Path, data: Any, structure: Any, lines: list[str], config: Any) -> str:
+    """Write the fit's report into its folder; returns the console line that sums the model up."""
+    from torchcal.core.metrics import position_metrics
+    from torchcal.instruments.tracker.evaluate import score
+    from torchcal.report.calibration import (
+        ReportInputs,
+        calibration_report,
+        cross_validated_stage,
+        model_name,
+        score_pose_set,
+    )
+    from torchcal.report.document import write_report
+    from torchcal.stages.store import load_model
+
+    stored = load_model(folder)
+    scored = score(stored, data, leakage=False)
+    cv = cross_validated_stage(stored, structure)
+    extra = [cv] if cv is not None else []
+    cv_text = "" if cv is None else (f"; cross-validated {position_metrics(cv.errors_m)['position_rms_mm']:.4f} mm "
+                                     f"({structure.folds.k}-fold, held out)")
+    chosen_by = "set by the options (nothing to choose)"
+    if structure is not None and len(structure.options) > 1:
+        chosen_by = f"chosen by {structure.folds.k}-fold grouped cross-validation"
+    pose_set = score_pose_set(stored, data, held_out=False, extra=extra, focus_extra=bool(extra))
+    figures = [f"{position_metrics(s.errors_m)['position_rms_mm']:.4f} mm ({s.name})" for s in pose_set.stages
+               if not s.name.endswith("cross-validated")]
+    head = f"; residual head: {stored.residual.head.name}" if stored.residual is not None else ""
+    summary = (f"calibrated model: {model_name(stored)}, structure {chosen_by}{head}. Training RMS "
+               + " -> ".join(figures) + f" on the {len(data)} poses it was fitted to (optimistic; nominal: instrument "
+               f"frame and tool fitted){cv_text}")
+    report = calibration_report(
+        f"Calibration report: {stored.robot.name}, fit on {Path(data.source).name}", stored, [pose_set],
+        ReportInputs(selection=_selection(folder), compensator=scored.metrics["compensator"],
+                     uncertainty=scored.metrics.get("uncertainty"), lines=[*lines, summary]))
+    write_report(folder, report, member=True)
+    return summary
+
+
+def _write_evaluate_report(target: Path, scored: Any, register: bool, lines: list[str]) -> Path:
+    """Write the report of an evaluation into ``target``; returns the path of its ``report.md``."""
+    from torchcal.report.calibration import ReportInputs, calibration_report, score_pose_set
+    from torchcal.report.document import write_report
+
+    stored, data = scored.stored, scored.data
+    fitted = (stored.metadata.get("data") or {}).get("sha256") == data.sha256
+    leakage = scored.metrics.get("leakage") or {}
+    protocol = None
+    if not fitted and leakage.get("warning"):
+        protocol = (f"file {Path(data.source).name}, not the fitted file, but its poses sit among the training poses "
+                    f"({100 * leakage['twin_share']:.0f} % training twins; see the leakage note): optimistic")
+    pose_set = score_pose_set(stored, data, held_out=not fitted, register=register, protocol=protocol)
+    report = calibration_report(
+        f"Evaluation report: {stored.robot.name}, model {stored.folder.name} on {Path(data.source).name}", stored,
+        [pose_set], ReportInputs(selection=_selection(stored.folder), compensator=scored.metrics["compensator"],
+                                 uncertainty=scored.metrics.get("uncertainty"), leakage=scored.metrics.get("leakage"),
+                                 lines=lines))
+    paths = write_report(target, report)
+    return paths["report.md"]
