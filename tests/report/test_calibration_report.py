@@ -65,7 +65,8 @@ def test_evaluate_report_names_the_worst_poses_by_their_file_rows(reported):
     assert [int(r[0]) for r in worst[:3]] == [data.line_numbers[i] for i in order[:3].tolist()]
     assert float(worst[0][1]) == pytest.approx(float(error[order[0]]), abs=1e-4)
     assert "held-out file test.csv, never fitted" in md
-    assert "carries no prediction uncertainty" in md
+    # the fit calibrated its prediction uncertainty: the evaluation shows it against what was measured
+    assert "## Predicted and observed uncertainty" in md and "carries no prediction uncertainty" not in md
 
 
 def test_evaluate_report_refuses_the_model_folder_and_a_file(reported, tmp_path, capsys):
@@ -92,8 +93,11 @@ def test_uncertainty_section_shows_predicted_against_observed(reported):
     table = next(b for b in section.blocks if isinstance(b, Table))
     assert table.rows[0][2] == "95.0 %"
     assert not any(isinstance(b, Paragraph) and "carries no prediction" in b.text for b in section.blocks)
-    # without the metric (the evaluation above) the section says the model has none
-    assert "This model carries no prediction uncertainty" in (reported["evaluation"] / "report.md").read_text()
+    # without the metric the section says the model has none
+    without = calibration_report("t", stored, [pose_set], ReportInputs())
+    section = next(s for s in without.sections if s.heading == "Predicted and observed uncertainty")
+    assert any(isinstance(b, Paragraph) and "This model carries no prediction uncertainty" in b.text
+               for b in section.blocks)
 
 
 def test_report_and_json_frames_are_the_whole_transform(reported):

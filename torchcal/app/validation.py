@@ -9,8 +9,8 @@ goes through the same steps as ``torchcal fit`` / ``torchcal evaluate``
 stage, :func:`~torchcal.stages.store.load_model`, :func:`~torchcal.app.pipeline.held_out_errors`), with
 a model folder in a temporary directory. Stages, each scored on poses the fit did not see:
 
-* ``nominal (registered)``: the nominal model, instrument frame registered on the training poses
-  (on the scored poses where the protocol re-registers);
+* ``nominal (registered)``: the nominal model, instrument frame and tool fitted on the training
+  poses (the frame re-registered on the scored poses where the protocol re-registers);
 * ``geometry only``: geometric calibration (no joint-space terms, no head);
 * ``default fit``: what ``torchcal fit`` does with no options: the structure (joint-space terms)
   and residual head chosen by the fit's own grouped cross-validation on its training poses.
@@ -135,9 +135,18 @@ def _pairs(data: Measurements, protocol: Protocol, robot, folder: Path, seed: in
 
 
 def _nominal_errors(robot, train: Measurements, test: Measurements, register_test: bool) -> torch.Tensor:
-    source = test if register_test else train
-    t = rigid_registration(robot.tcp_position(source.q), source.position)
-    aligned = robot.tcp_position(test.q) @ t[:3, :3].T + t[:3, 3]
+    """The nominal robot with the instrument frame and the tool fitted on the training poses (what a
+    user would call "nominal"); the frame alone re-registered on the scored poses where the protocol
+    re-registers, as for the calibrated stages."""
+    from dataclasses import replace
+
+    from torchcal.stages.geometry import nominal_fit
+
+    _, t, tool = nominal_fit(robot, train)
+    fitted = replace(robot, tool=tool)
+    if register_test:
+        t = rigid_registration(fitted.tcp_position(test.q), test.position)
+    aligned = fitted.tcp_position(test.q) @ t[:3, :3].T + t[:3, 3]
     return test.position - aligned
 
 
