@@ -20,9 +20,9 @@ SMALL = [
     "study=elm_mayfly",
     "measurement=twin_small",
     "experiment=quick",
-    "twin.n_train=300",
+    "twin.n_train=200",
     "twin.n_test=100",
-    "fit.mayfly_iterations=30",
+    "fit.mayfly_iterations=10",
     "study.search_space={fit.residual_hidden: {type: int, low: 20, high: 60, step: 10}, "
     "fit.mayfly_population: {type: int, low: 6, high: 12, step: 2}, fit.residual_margin: {type: float, low: 0.03, high: 0.08}}",
     "fit.residual_hidden=40",

@@ -472,8 +472,10 @@ def parameter_sections(stored: StoredModel, truth_x: torch.Tensor | None = None,
     blocks: list = [
         Paragraph("MDH parameters (alpha = alpha_(i-1), a = a_(i-1), beta = Hayati tilt of nearly parallel axes, theta = "
                   "joint zero offset, d = d_i) and the tool point, against the nominal robot file. 1-sigma from the "
-                  "covariance of the fit (residual variance times (J^T J)^-1): it assumes the model is right and the "
-                  "errors independent, so it is a lower bound where the model leaves systematic error. "
+                  "covariance of the fit (residual variance times (J^T J)^-1), widened to the cluster-robust estimate "
+                  "over the cross-validation's configuration regions where that is larger (residuals correlated "
+                  "within a region). It describes the scatter of the estimate, not a bias from physics the model "
+                  "lacks: a parameter that absorbs such an error can sit several sigma from the physical value. "
                   "|change|/sigma below about 3 is a change the data cannot distinguish from none." + (
                       f" Not listed: {', '.join(unused)}, fixed at nominal by the model structure (beta only on "
                       "nearly parallel axes, where d is fixed instead)." if unused else "") + (

@@ -27,7 +27,7 @@ def _figure(width: float, height: float, nrows: int = 1, ncols: int = 1, **kwarg
 
 def _png(fig) -> bytes:
     buffer = io.BytesIO()
-    fig.savefig(buffer, format="png", dpi=DPI, pil_kwargs={"optimize": True})
+    fig.savefig(buffer, format="png", dpi=DPI)
     return buffer.getvalue()
 
 
