@@ -99,3 +99,11 @@ def test_evaluate_reports_coverage_on_the_twin(tmp_path):
     path.write_text(json.dumps(text))
     with pytest.raises(ModelError, match="uncertainty.json: conformal_q"):
         load_uncertainty(folder)
+
+
+def test_gaussian_radius_of_a_singular_covariance():
+    """No discrepancy and one direction only: the radius is that direction's chi(1) quantile."""
+    cov = torch.zeros(1, 3, 3, dtype=torch.float64)
+    cov[0, 2, 2] = 0.01**2
+    p95 = float(torch.quantile(gaussian_radius_samples(cov, draws=256), 0.95))
+    assert p95 == pytest.approx(1.96 * 0.01, rel=0.15)  # 256 draws: about 6 % standard error here

@@ -86,9 +86,11 @@ def gaussian_radius_samples(point_cov: torch.Tensor, draws: int = 256, seed: int
     """
     gen = torch.Generator().manual_seed(seed)
     z = torch.randn(draws, 3, generator=gen, dtype=torch.float64).to(point_cov)
-    eye = 1e-30 * torch.eye(3, dtype=point_cov.dtype, device=point_cov.device)
-    chol = torch.linalg.cholesky(point_cov + eye)
-    return torch.einsum("bij,mj->bmi", chol, z).norm(dim=-1)
+    # a symmetric square root (eigen-decomposition) also serves a singular covariance (no discrepancy,
+    # parameters that do not move the point in some direction), where a Cholesky factor fails
+    values, vectors = torch.linalg.eigh(0.5 * (point_cov + point_cov.transpose(-1, -2)))
+    root = vectors * values.clamp_min(0).sqrt()[..., None, :]
+    return torch.einsum("bij,mj->bmi", root, z).norm(dim=-1)
 
 
 def conformal_factor(scores: torch.Tensor, level: float = 0.95) -> float:
