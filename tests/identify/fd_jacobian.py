@@ -17,3 +17,14 @@ def central_difference_jacobian(residuals: Callable[[torch.Tensor], torch.Tensor
         minus[i] -= step
         out.append((residuals(plus) - residuals(minus)) / (2 * step))
     return torch.stack(out, -1)
+
+
+def roundoff_atol(magnitude: float, step: float = 1e-7) -> float:
+    """Absolute error a central difference of ``step`` can carry from float64 round-off alone.
+
+    A residual ``measured - predicted`` is the difference of two numbers of about ``magnitude``
+    (here the positions in the instrument frame, m), each rounded to ``eps * magnitude``; dividing
+    by ``2 step`` turns that into ``eps * magnitude / step`` per entry. A factor 10 covers the
+    chain of products before the subtraction.
+    """
+    return 10 * torch.finfo(torch.float64).eps * magnitude / step
