@@ -82,6 +82,22 @@ def test_mlp_fits_the_smooth_function():
     assert rms(head.predict(xt) - yt) < 0.35 * rms(yt)
 
 
+def test_ctrl_c_during_mlp_training_is_a_keyboard_interrupt(monkeypatch):
+    """Lightning turns Ctrl-C into its own shutdown and ``sys.exit(1)``; the head raises
+    ``KeyboardInterrupt`` instead, so that the command says what it kept and exits 130."""
+    import signal
+
+    x, y = _smooth_problem(200, seed=1)
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(torch.optim.Adam, "step", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        MLPHead(max_epochs=3, patience=2, seed=0).fit(x[:150], y[:150], x[150:], y[150:])
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # Lightning had left it ignored
+
+
 @pytest.mark.parametrize("name", sorted(HEADS))
 def test_head_contract_and_state_round_trip(name, tmp_path):
     from torchcal.stages.residual_store import StoredResidual, load_residual, save_residual

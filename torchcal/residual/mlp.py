@@ -125,7 +125,7 @@ class MLPHead(ResidualHead):
                 devices=1, deterministic=True, default_root_dir=tmp, num_sanity_val_steps=0,
             )
             module = Module()
-            trainer.fit(module, datamodule=Data())
+            _fit_interruptible(trainer, module, Data())
             self.epochs_trained = int(trainer.current_epoch)
             best = torch.load(Path(checkpoint.best_model_path), weights_only=True, map_location="cpu")
             state = {k.removeprefix("net."): v for k, v in best["state_dict"].items()}
@@ -155,3 +155,23 @@ class MLPHead(ResidualHead):
         head.network = net.eval()
         head.output_scale = float(settings["output_scale"])
         return head
+
+
+def _fit_interruptible(trainer, module, data) -> None:
+    """``trainer.fit``, with Ctrl-C raised as ``KeyboardInterrupt`` like everywhere else.
+
+    Lightning answers Ctrl-C with its own shutdown, which leaves SIGINT ignored and ends in
+    ``sys.exit(1)``: a command interrupted during training would exit 1 without a word instead of
+    saying what it kept (exit 130).
+    """
+    import signal
+    import threading
+
+    try:
+        trainer.fit(module, datamodule=data)
+    except SystemExit:
+        if not trainer.interrupted:
+            raise
+        if threading.current_thread() is threading.main_thread():
+            signal.signal(signal.SIGINT, signal.default_int_handler)
+        raise KeyboardInterrupt from None
