@@ -74,6 +74,34 @@ def test_staged_folder_keeps_the_earlier_on_error(tmp_path):
     assert [p.name for p in tmp_path.iterdir()] == ["m"]
 
 
+@pytest.mark.parametrize("moment", ["mkdtemp returned", "chmod"])
+def test_an_interrupt_just_after_the_staging_folder_is_made_leaves_nothing(tmp_path, monkeypatch, moment):
+    """Ctrl-C lands as the staging folder appears (before its name is even kept): cleaned up all the same."""
+    import tempfile
+
+    import torchcal.core.folder as folder
+
+    dest = _folder(tmp_path / "m", **{"calibration.json": "{}"})
+    before = {p.name: p.read_bytes() for p in dest.iterdir()}
+    real_mkdtemp = tempfile.mkdtemp
+
+    def interrupted_after(*args, **kwargs):
+        real_mkdtemp(*args, **kwargs)
+        raise KeyboardInterrupt
+
+    def interrupted_chmod(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    if moment == "mkdtemp returned":
+        monkeypatch.setattr(folder.tempfile, "mkdtemp", interrupted_after)
+    else:
+        monkeypatch.setattr(folder.os, "chmod", interrupted_chmod)
+    with pytest.raises(KeyboardInterrupt), staged_folder(dest):
+        pass
+    assert {p.name: p.read_bytes() for p in dest.iterdir()} == before
+    assert [p.name for p in tmp_path.iterdir()] == ["m"]
+
+
 def test_staged_folder_creates_a_new_one_and_seals_unrecorded_files(tmp_path):
     dest = tmp_path / "sub" / "export"
     with staged_folder(dest) as staging:

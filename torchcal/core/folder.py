@@ -207,9 +207,11 @@ def staged_folder(dest: str | Path, what: str = "--out") -> Iterator[Path]:
     check_output_folder(dest, what)
     dest.parent.mkdir(parents=True, exist_ok=True)
     _remove_dead_stagings(dest)
-    staging = Path(tempfile.mkdtemp(dir=dest.parent, prefix=f".{dest.name}.staging-{os.getpid()}-"))
-    os.chmod(staging, 0o755)
+    prefix = f".{dest.name}.staging-{os.getpid()}-"
     try:
+        # made inside the try: a Ctrl-C that lands just after mkdtemp is cleaned up below too
+        staging = Path(tempfile.mkdtemp(dir=dest.parent, prefix=prefix))
+        os.chmod(staging, 0o755)
         yield staging
         listed = _read_checksums(staging)
         unlisted = [p for p in staging.iterdir() if p.is_file() and p.name != CHECKSUMS and p.name not in listed]
@@ -229,6 +231,9 @@ def staged_folder(dest: str | Path, what: str = "--out") -> Iterator[Path]:
             os.rename(staging, dest)
         _fsync_dir(dest.parent)
     except BaseException:
-        if staging.exists():
-            shutil.rmtree(staging, ignore_errors=True)
+        # this process's staging folders, also one whose name an interrupt kept from ``staging``;
+        # never the "-old-" folder that may hold the earlier ``dest`` while it is being replaced
+        for leftover in dest.parent.glob(prefix + "*"):
+            if not leftover.name.startswith(prefix + "old-"):
+                shutil.rmtree(leftover, ignore_errors=True)
         raise
