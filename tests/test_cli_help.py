@@ -57,7 +57,11 @@ def test_help_lists_every_option_with_its_default_and_a_description(command):
         options = {o.key: o for o in list_options(config, prefix=prefix)}
         assert set(options) == set(_dotted_fields(config, prefix))  # every field, nested ones dotted
         for key, option in options.items():
-            assert f"{key}={option.default}" in listed or command in ("fit", "evaluate"), f"{command}: {key} not listed"
+            if command in ("fit", "evaluate"):
+                # fit and evaluate list a key shared by several instruments once, with the first one's default
+                assert key in {item.split("=", 1)[0] for item in listed}, f"{command}: {key} not listed"
+            else:
+                assert f"{key}={option.default}" in listed, f"{command}: {key} not listed"
             assert option.help, f"{command}: {key} has no description in its class's Attributes"
     if command in ("fit", "evaluate"):  # instrument options extend the tracker's: each key once, with its default
         from torchcal.config.schema import FitConfig
