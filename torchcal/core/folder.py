@@ -223,7 +223,7 @@ def staged_folder(dest: str | Path, what: str = "--out") -> Iterator[Path]:
             shutil.rmtree(staging, ignore_errors=True)  # now the earlier folder
             return
         if dest.is_dir():
-            old = Path(tempfile.mkdtemp(dir=dest.parent, prefix=f".{dest.name}.staging-{os.getpid()}-old-"))
+            old = Path(tempfile.mkdtemp(dir=dest.parent, prefix=prefix + "old-"))
             os.rename(dest, old / dest.name)
             os.rename(staging, dest)
             shutil.rmtree(old, ignore_errors=True)
