@@ -53,13 +53,14 @@ def _expected(command: str) -> list[tuple[object, str]]:
 def test_help_lists_every_option_with_its_default_and_a_description(command):
     text = _help(command)
     listed = {line.split()[0] for line in text.splitlines() if line.startswith("  ") and "=" in line.split()[0]}
+    listed_keys = {item.split("=", 1)[0] for item in listed}
     for config, prefix in _expected(command):
         options = {o.key: o for o in list_options(config, prefix=prefix)}
         assert set(options) == set(_dotted_fields(config, prefix))  # every field, nested ones dotted
         for key, option in options.items():
             if command in ("fit", "evaluate"):
                 # fit and evaluate list a key shared by several instruments once, with the first one's default
-                assert key in {item.split("=", 1)[0] for item in listed}, f"{command}: {key} not listed"
+                assert key in listed_keys, f"{command}: {key} not listed"
             else:
                 assert f"{key}={option.default}" in listed, f"{command}: {key} not listed"
             assert option.help, f"{command}: {key} has no description in its class's Attributes"
