@@ -32,6 +32,16 @@ sys.path.insert(0, str(HERE))
 from fuzz_cases import CASES, make_fixtures, out_state_problem, snapshot
 
 
+def _nonblank(text: str) -> list[str]:
+    return [ln for ln in text.splitlines() if ln.strip()]
+
+
+def print_case(name: str, rc: int, kind: str, ok: bool, last: str, state: str = "") -> None:
+    """One result line: case, exit status, class, verdict, what went wrong with the output, last message."""
+    print(f"{name:32s} rc={rc:<3d} {kind:9s} {'as expected' if ok else 'NOT as expected'}"
+          f"{'; ' + state if state else ''} | {last[:150]}", flush=True)
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--checkout", type=Path, required=True, help="repository root whose torchcal runs the commands")
@@ -82,9 +92,7 @@ def main() -> int:
               and (any(case.message in e for e in errors) if case.rc else bool(warned)))
         expected += ok
         classes[kind] += 1
-        last = (errors or [ln for ln in err.splitlines() if ln.strip()] or [""])[-1]
-        print(f"{name:32s} rc={proc.returncode:<3d} {kind:9s} {'as expected' if ok else 'NOT as expected'}"
-              f"{'; ' + state if state else ''} | {last[:150]}", flush=True)
+        print_case(name, proc.returncode, kind, ok, (errors or _nonblank(err) or [""])[-1], state)
     if args.only is None or "ctrl_c" in args.only:
         # Ctrl-C into a refit over an earlier model folder at 25, 50 and 75 % of an uninterrupted
         # refit's duration (measured first): while fitting, while learning heads, while writing
@@ -114,8 +122,7 @@ def main() -> int:
             ok = stopped and "interrupted" in err and snapshot(out) == before
             expected += ok
             classes[kind] += 1
-            print(f"{name:32s} rc={proc.returncode:<3d} {kind:9s} {'as expected' if ok else 'NOT as expected'} | "
-                  f"{([ln for ln in err.splitlines() if ln.strip()] or [''])[-1][:150]}", flush=True)
+            print_case(name, proc.returncode, kind, ok, (_nonblank(err) or [""])[-1])
     total = sum(classes.values())
     print(f"{total} cases: " + ", ".join(f"{k} {v}" for k, v in sorted(classes.items()))
           + f"; as expected (status, text, output state) {expected} of {total}")
