@@ -45,6 +45,8 @@ from torchcal.identify.problem import LeastSquaresProblem
 KINDS = ("length_mm", "angle_deg", "joint_offset_deg", "tool_mm", "tool_deg")
 #: A parameter beyond this many (unscaled) prior sigmas from its prior mean is named in a warning.
 TOLERANCE_SIGMAS = 3.0
+#: The first solve weights the data with this fraction of the starting residual's RMS as sigma.
+START_FACTOR = 0.3
 
 
 def parameter_kind(name: str) -> str | None:
@@ -298,27 +300,22 @@ def solve_map(problem: LeastSquaresProblem, prior: Prior, x0: torch.Tensor, iden
     """
     r0 = problem.residuals(x0)
     m = r0.numel()
-    # start data-dominated (a small sigma): the first solve is then close to least squares with the
-    # prior holding only what the data cannot see, and the re-estimated sigma converges in a few steps
-    s = max(float(r0.norm()) / m**0.5 * 1e-2, 1e-300)
+    # start from a fraction of the starting residual: the prior then holds the first solve well
+    # conditioned, and the re-estimated sigma settles within a few warm-started solves
+    s = max(float(r0.norm()) / m**0.5 * START_FACTOR, 1e-300)
     x = x0.clone()
     solve = None
-    p_eff = 0.0
     for _ in range(iterations):
         solve = identifier.solve(PriorProblem(problem, prior, s), x)
         x = solve.x
         r, jac = problem.jacobian(x)
         _, p_eff = _effective(jac, prior.precision, s)
-        s_new = (float(r @ r) / max(m - p_eff, 1.0)) ** 0.5
-        s_new = max(s_new, 1e-300)
+        s_new = max((float(r @ r) / max(m - p_eff, 1.0)) ** 0.5, 1e-300)
         done = abs(s_new / s - 1.0) < 0.02
         s = s_new
         if done:
             break
     assert solve is not None
-    solve = identifier.solve(PriorProblem(problem, prior, s), x)
-    x = solve.x
-    r, jac = problem.jacobian(x)
     cov, p_eff = posterior_covariance(jac, r, prior.precision, s, units, rows_per_pose)
     return MapFit(x=x, covariance=cov, noise_sigma=s, effective_parameters=p_eff, solve=solve)
 
