@@ -25,6 +25,7 @@ from torchcal.core.metrics import iso9283_repeated, position_metrics
 from torchcal.data.measurements import Measurements
 from torchcal.report import plots
 from torchcal.report.document import Figure, Paragraph, Preformatted, Report, Section, Table
+from torchcal.report.prior import prior_sections
 from torchcal.stages.store import StoredModel
 
 #: Poses listed in the worst-poses table of each file.
@@ -507,6 +508,7 @@ def parameter_sections(stored: StoredModel, truth_x: torch.Tensor | None = None,
             "Where the robot stands in the instrument's frame and where the measured point sits on the flange, as "
             "identified (calibration.json frames holds the same, with the 4x4 matrix)."), frames_table(stored)]),
         Section("Parameters against nominal", blocks),
+        *prior_sections(stored.metadata),
     ]
 
 

@@ -63,6 +63,14 @@ class TrackerInstrument(Instrument):
             structure=structure, uncertainty=config.uncertainty)
         save_resolved_config(folder / "config.yaml", config)
         lines = [result.identifiability.summary()]
+        if result.prior_selection is not None:
+            lines += [f"prior: {result.prior.spec.describe()}; strength chosen by cross-validation:",
+                      result.prior_selection["table"]]
+        from torchcal.stages.prior_options import prior_metadata
+
+        prior_meta = prior_metadata(result)
+        if prior_meta is not None:
+            lines.append(prior_meta["summary"])
         residual = None
         if config.residual != "none":
             request.progress("cross-validating residual heads")
