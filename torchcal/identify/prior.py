@@ -7,7 +7,7 @@ known with its covariance. The fit combines that prior with the measurements: it
 
 (``r`` the data residuals, ``s`` their standard deviation per coordinate, ``x0`` the prior mean,
 ``Lambda`` the prior precision) by damped Gauss-Newton (the project's Levenberg-Marquardt) on the
-stacked residual ``[r / s ; W (x - x0)]`` with ``W^T W = Lambda``. Directions the data cannot see
+stacked residual ``[r / s ; W (x - x0)]`` with ``W^T W = Lambda`` (times ``s``, see :class:`PriorProblem`). Directions the data cannot see
 stay at the prior with the prior's uncertainty, instead of being cut (the earlier rank cut) or
 fitted to noise. ``s`` is the data's own: ``s^2 = |r|^2 / (m - p_eff)`` with ``p_eff`` the
 effective number of parameters the data determine, iterated with the solution.
@@ -241,7 +241,12 @@ class Prior:
 
 
 class PriorProblem:
-    """The stacked MAP residual ``[r(x) / s ; W (x_free - mean_free)]`` of an inner least-squares problem."""
+    """The stacked MAP residual ``[r(x) ; s W (x_free - mean_free)]`` of an inner least-squares problem.
+
+    That is ``s`` times ``[r / s ; W (x - x0)]``: the same minimizer, with the data rows in their own
+    units, so the identifier's damping (``lambda`` relative to the largest diagonal of ``J^T J``)
+    acts as it does without a prior.
+    """
 
     def __init__(self, inner: LeastSquaresProblem, prior: Prior, noise_sigma: float) -> None:
         self.inner, self.prior, self.noise_sigma = inner, prior, float(noise_sigma)
@@ -259,7 +264,7 @@ class PriorProblem:
         return self.prior.sqrt_precision.to(x) @ (x[self.free] - self._mean_free.to(x))
 
     def residuals(self, x: torch.Tensor) -> torch.Tensor:
-        return torch.cat([self.inner.residuals(x) / self.noise_sigma, self._prior_rows(x)])
+        return torch.cat([self.inner.residuals(x), self.noise_sigma * self._prior_rows(x)])
 
     def jacobian(self, x: torch.Tensor, columns: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         r, jac = self.inner.jacobian(x, columns)
@@ -267,7 +272,8 @@ class PriorProblem:
         if columns is not None:
             position = {int(i): k for k, i in enumerate(self.free.tolist())}
             w = w[:, [position[int(c)] for c in columns.tolist()]]
-        return torch.cat([r / self.noise_sigma, self._prior_rows(x)]), torch.cat([jac / self.noise_sigma, w])
+        s = self.noise_sigma
+        return torch.cat([r, s * self._prior_rows(x)]), torch.cat([jac, s * w])
 
 
 @dataclass
