@@ -312,7 +312,7 @@ def solve_map(problem: LeastSquaresProblem, prior: Prior, x0: torch.Tensor, iden
     x = x0.clone()
     solve = None
     for _ in range(iterations):
-        solve = identifier.solve(PriorProblem(problem, prior, s), x)
+        solve = identifier.solve(PriorProblem(problem, prior, s), x)  # type: ignore[arg-type]  # any LeastSquaresProblem
         x = solve.x
         r, jac = problem.jacobian(x)
         _, p_eff = _effective(jac, prior.precision, s)

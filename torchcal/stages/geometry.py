@@ -196,6 +196,7 @@ def fit_with_selection(robot: RobotModel, data: Measurements, config: FitConfig,
         folds = make_config_folds(robot, data, config)
         structure = cross_validate_structures(robot, data, geometry, options, folds, progress=progress,
                                               harmonic_min_range_deg=config.harmonic_min_range_deg)
+        structure.prior = prior
         gravity, harmonics = structure.chosen
     if progress is not None:
         progress("fitting the chosen structure on all poses")
@@ -233,8 +234,18 @@ def cross_validate_stored_structure(stored: StoredModel, data: Measurements, con
     gravity = next(name for name, members in POINT_SETS.items() if members == points)
     harmonics = "first" if terms.harmonics is not None else "none"
     folds = make_config_folds(stored.robot, data, config)
-    return cross_validate_structures(stored.robot, data, geometry_fitter(stored.robot, config), [(gravity, harmonics)],
-                                     folds, harmonic_min_range_deg=config.harmonic_min_range_deg)
+    prior = None
+    if stored.metadata.get("prior"):  # the folder's fit had a prior: its scale as chosen then
+        from dataclasses import replace
+
+        from torchcal.stages.prior_options import base_spec
+
+        base = base_spec(stored.robot, config)
+        prior = None if base is None else replace(base, scale=float(stored.metadata["prior"]["scale"]))
+    structure = cross_validate_structures(stored.robot, data, geometry_fitter(stored.robot, config, prior),
+                                          [(gravity, harmonics)], folds, harmonic_min_range_deg=config.harmonic_min_range_deg)
+    structure.prior = prior
+    return structure
 
 
 #: Corrections of the MDH table beyond these are far outside manufacturing tolerances (mm, deg).

@@ -262,7 +262,7 @@ def load_model(folder: str | Path, device: str | torch.device = "cpu") -> Stored
     robot_path = _member_path(folder, meta.get("robot_file"), "robot_file")
     tool = meta.get("nominal_tool_mm")  # a URDF has no tool: the one the fit was given is kept here
     robot = load_robot(robot_path, base_link=meta.get("base_link"), end_link=meta.get("end_link"),
-                       tool=None if tool is None else tuple(float(v) * 1e-3 for v in tool))
+                       tool=None if tool is None else (float(tool[0]) * 1e-3, float(tool[1]) * 1e-3, float(tool[2]) * 1e-3))
     tensors = read_tensors(folder / "calibration.safetensors",
                            {"x": 1, "T_reference": 2, "free": 1, "covariance": 2}, finite=("x", "T_reference", "training_q"))
     if tuple(tensors["T_reference"].shape) != (4, 4):
