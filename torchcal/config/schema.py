@@ -59,9 +59,12 @@ class FitConfig:
             cut of earlier versions) or an earlier model folder (its parameters and covariance).
         prior_scale: ``auto`` (default: grouped cross-validation between the nominal robot and the
             tolerances scaled x0.25, x1, x4, x16), ``nominal`` or a number multiplying the MDH sigmas.
-        tolerance_length_mm / tolerance_angle_deg / tolerance_joint_offset_deg / tolerance_tool_mm /
-            tolerance_tool_deg: 1-sigma of the prior per kind, overriding the robot file's
-            ``calibration_prior`` and the defaults (0.5 mm, 0.05 deg, 0.1 deg, 10 mm, 5 deg).
+        tolerance_length_mm: prior 1-sigma of MDH lengths a, d (mm; overrides the robot file's
+            ``calibration_prior`` and the default 0.5).
+        tolerance_angle_deg: prior 1-sigma of MDH angles alpha, beta (deg; default 0.05).
+        tolerance_joint_offset_deg: prior 1-sigma of joint zero offsets theta (deg; default 0.1).
+        tolerance_tool_mm: prior 1-sigma of the tool point per axis (mm; default 10).
+        tolerance_tool_deg: prior 1-sigma of the tool rotation, orientation data only (deg; default 5).
     """
 
     method: str = "lm"
