@@ -83,6 +83,7 @@ def test_large_corrections_are_refused_unless_allowed(tmp_path):
     extent = {"training poses": correction_extent(graph, train.q)}
     assert extent["training poses"]["joint"] == 4
     assert 4.5 < extent["training poses"]["largest_joint_correction_deg"] < 6.0  # 5 deg, the wrist follows
+    assert extent["training poses"]["median_joint_correction_deg"] > 2.0
     with pytest.raises(TorchcalError, match="--allow-large-corrections"):
         check_corrections(extent, allow=False)
     assert check_corrections(extent, allow=True)

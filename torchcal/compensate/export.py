@@ -422,9 +422,10 @@ def _export_into(out_dir: Path, model_dir: Path, stored, *, wrench_frame: str, i
     graphs = build_graphs(stored, wrench_frame=wrench_frame, iterations=iterations, portable=portable, task=task)
     extent = {}
     if not has_wrench_input(graphs):
-        if stored.training_q is not None:
-            extent["training poses"] = correction_extent(compensator_of(graphs), stored.training_q)
-        extent["joint range"] = correction_extent(compensator_of(graphs), _regular_poses(stored.robot))
+        if stored.training_q is not None and len(_regular(stored.robot, stored.training_q)):
+            extent["training poses"] = correction_extent(compensator_of(graphs), _regular(stored.robot, stored.training_q))
+        extent["joint range"] = correction_extent(
+            compensator_of(graphs), _regular(stored.robot, stored.robot.sample_joints(2000, torch.Generator().manual_seed(2))))
     exceeded = check_corrections(extent, allow_large_corrections)
     loaded = has_wrench_input(graphs)
     robot = stored.robot
@@ -482,11 +483,10 @@ def _export_into(out_dir: Path, model_dir: Path, stored, *, wrench_frame: str, i
     return manifest
 
 
-def _regular_poses(robot, n: int = 2000, seed: int = 2) -> torch.Tensor:
-    """``n`` poses uniform within the joint limits, less those near a singularity (the convergence
-    report's strata): there any compensator's step is large by the geometry, not by the model."""
-    q = robot.sample_joints(n, torch.Generator().manual_seed(seed))
-    sigma_p, sigma_w = singular_values(robot, q)
+def _regular(robot, q: torch.Tensor) -> torch.Tensor:
+    """``q`` less the poses near a singularity (the convergence report's strata): there any
+    compensator's step is large by the geometry, not by the model."""
+    sigma_p, sigma_w = singular_values(robot, q.to(torch.float64))
     return q[(sigma_p >= POSITION_SINGULAR_BELOW_M) & (sigma_w >= WRIST_SINGULAR_BELOW)]
 
 
@@ -494,8 +494,8 @@ def _correction_limits() -> dict:
     from torchcal.compensate.production_tcp import MAX_JOINT_CORRECTION_DEG, MAX_TOOL_ROTATION_DEG
 
     return {"largest_joint_correction_deg": MAX_JOINT_CORRECTION_DEG, "largest_tool_rotation_deg": MAX_TOOL_ROTATION_DEG,
-            "sampling": ("the model's training poses, and 2000 poses uniform within the joint limits (seed 2) less those "
-                         "in the convergence report's singular strata")}
+            "sampling": ("the model's training poses and 2000 poses uniform within the joint limits (seed 2), both less "
+                         "those in the convergence report's singular strata")}
 
 
 def _solver_description(compensator: CompensatorGraph, portable: bool) -> dict:

@@ -10,7 +10,7 @@ using the flange orientation the model knows, not the measuring reflector's fitt
 
 :func:`correction_extent` measures the largest joint correction and the largest orientation
 deviation of the tool that the compensator's commands leave, over the training poses and over
-the joint range; :func:`check_corrections` refuses an export whose 99th percentile over the training
+the joint range; :func:`check_corrections` refuses an export whose median over the training
 poses exceeds :data:`MAX_JOINT_CORRECTION_DEG` or :data:`MAX_TOOL_ROTATION_DEG` unless the user allows it explicitly: corrections that large
 come from parameters the data did not determine, or from a wrong robot file.
 """
@@ -26,11 +26,11 @@ from torchcal.core.errors import TorchcalError
 from torchcal.kinematics import transforms as tf
 from torchcal.kinematics.error_model import ErrorModel
 
-#: An export whose joint corrections exceed this (deg; 99th percentile over the training poses: the
-#: largest is reported, and over the joint range too, but near singular poses any step is large) is
-#: refused without ``allow_large_corrections``.
+#: An export whose joint corrections exceed this (deg; median over the training poses: the largest and
+#: the 99th percentile are reported, over the joint range too, but near singular poses any step is
+#: large, so they are not judged) is refused without ``allow_large_corrections``.
 MAX_JOINT_CORRECTION_DEG = 2.0
-#: An export whose tool orientation deviation exceeds this (deg, 99th percentile as above) is refused likewise.
+#: An export whose tool orientation deviation exceeds this (deg, median as above) is refused likewise.
 MAX_TOOL_ROTATION_DEG = 2.0
 
 
@@ -87,6 +87,7 @@ def correction_extent(graph, q: torch.Tensor) -> dict:
         "median_joint_correction_deg": math.degrees(float(per_pose.median())),
         "largest_tool_rotation_deg": math.degrees(float(residual[:, 1].max())),
         "p99_tool_rotation_deg": math.degrees(float(residual[:, 1].quantile(0.99))),
+        "median_tool_rotation_deg": math.degrees(float(residual[:, 1].median())),
     }
 
 
@@ -96,12 +97,13 @@ def check_corrections(extent: dict[str, dict], allow: bool) -> list[str]:
     for where, e in extent.items():
         if where != "training poses":
             continue  # reported, not judged: near (not at) singular poses any orientation step is large
-        if e["p99_joint_correction_deg"] > MAX_JOINT_CORRECTION_DEG:
-            found.append(f"joint corrections up to {e['largest_joint_correction_deg']:.3g} deg (joint {e['joint']}; 99th "
-                         f"percentile {e['p99_joint_correction_deg']:.3g}) over the {where} (limit {MAX_JOINT_CORRECTION_DEG:g} deg)")
-        if e["p99_tool_rotation_deg"] > MAX_TOOL_ROTATION_DEG:
-            found.append(f"tool orientation off by up to {e['largest_tool_rotation_deg']:.3g} deg (99th percentile "
-                         f"{e['p99_tool_rotation_deg']:.3g}) over the {where} (limit {MAX_TOOL_ROTATION_DEG:g} deg)")
+        if e["median_joint_correction_deg"] > MAX_JOINT_CORRECTION_DEG:
+            found.append(f"joint corrections of {e['median_joint_correction_deg']:.3g} deg (median; up to "
+                         f"{e['largest_joint_correction_deg']:.3g}, joint {e['joint']}) over the {where} "
+                         f"(limit {MAX_JOINT_CORRECTION_DEG:g} deg)")
+        if e["median_tool_rotation_deg"] > MAX_TOOL_ROTATION_DEG:
+            found.append(f"tool orientation off by {e['median_tool_rotation_deg']:.3g} deg (median; up to "
+                         f"{e['largest_tool_rotation_deg']:.3g}) over the {where} (limit {MAX_TOOL_ROTATION_DEG:g} deg)")
     if found and not allow:
         raise TorchcalError("export refused: " + "; ".join(found) + ". Corrections this large come from parameters the "
                             "data did not determine or from a wrong robot file; check the calibration's prior report, or "
