@@ -378,8 +378,9 @@ def export_model(
 ) -> dict:
     """Export the compensator of a model folder; returns the manifest (also written to disk).
 
-    ``tcp_mm`` / ``tcp_rpy_deg``: the production TCP in the flange frame (mm, fixed-axis XYZ deg;
-    default: the flange), the point the compensator serves (:mod:`torchcal.compensate.production_tcp`).
+    ``tcp_mm`` / ``tcp_rpy_deg``: the production TCP in the flange frame (mm, fixed-axis XYZ deg), the
+    point the compensator serves (:mod:`torchcal.compensate.production_tcp`); neither given: the
+    calibration's measured point (the fitted tool), stated as such in the manifest.
     ``allow_large_corrections``: export even when a joint correction or the tool orientation
     deviation exceeds the stated limits (otherwise refused).
 
@@ -406,9 +407,12 @@ def export_model(
     from torchcal.compensate.production_tcp import production_view, tcp_entry, tcp_transform
 
     stored = load_model(model_dir)
-    T_tcp = tcp_transform(tcp_mm, tcp_rpy_deg)
-    tcp = tcp_entry(T_tcp, tcp_mm, tcp_rpy_deg, stored)
-    stored = production_view(stored, T_tcp)
+    if tcp_mm is None and tcp_rpy_deg is None:
+        tcp = tcp_entry(None, None, None, stored)  # the calibration's measured point, as the graphs of run/evaluate
+    else:
+        T_tcp = tcp_transform(tcp_mm, tcp_rpy_deg)
+        tcp = tcp_entry(T_tcp, tcp_mm, tcp_rpy_deg, stored)
+        stored = production_view(stored, T_tcp)
     with staged_folder(out_dir) as staging:
         return _export_into(staging, model_dir, stored, wrench_frame=wrench_frame, iterations=iterations,
                             portable=portable, task=task, tcp=tcp, allow_large_corrections=allow_large_corrections)
