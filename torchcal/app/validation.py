@@ -5,8 +5,8 @@ regions (:mod:`torchcal.data.folds`); a seeded hold-out; fit on one measurement 
 and score others after re-registering the tracker frame (the transfer protocols, the honest
 ones: another day, another tracker placement); or the source's in-sample scoring. Every split
 goes through the same steps as ``torchcal fit`` / ``torchcal evaluate``
-(:func:`torchcal.app.pipeline.fit_with_selection`, :func:`~torchcal.app.pipeline.save_fit`, the residual
-stage, :func:`~torchcal.stages.store.load_model`, :func:`~torchcal.app.pipeline.held_out_errors`), with
+(the one fit pipeline :func:`torchcal.stages.pipeline.fit_model`, :func:`~torchcal.stages.store.load_model`,
+:func:`~torchcal.stages.geometry.held_out_errors`), with
 a model folder in a temporary directory. Stages, each scored on poses the fit did not see:
 
 * ``nominal (registered)``: the nominal model, instrument frame and tool fitted on the training
@@ -165,19 +165,19 @@ def _predictions(stored, test: Measurements, errors: torch.Tensor) -> dict[str, 
 
 def _fit_and_score(robot, train: Measurements, tests: list[Measurements], protocol: Protocol, config,
                    folder: Path) -> dict:
-    """One split through fit -> save -> residual stage -> load -> held-out errors of every scored set."""
-    from torchcal.stages.geometry import fit_with_selection, held_out_errors, save_fit
-    from torchcal.stages.residual import fit_residual_stage
+    """One split through the fit pipeline -> load -> held-out errors of every scored set."""
+    from torchcal.stages.geometry import held_out_errors
+    from torchcal.stages.pipeline import fit_model
     from torchcal.stages.store import load_model
 
-    result, structure = fit_with_selection(robot, train, config)
-    save_fit(folder, robot, train, result, {}, structure=structure, uncertainty=config.uncertainty)
-    summary = fit_residual_stage(folder, train, config, structure=structure) if config.residual != "none" else None
+    fitted = fit_model(folder, robot, train, config)
+    result = fitted.result
     stored = load_model(folder)
     errors = [held_out_errors(stored, test, register=protocol.register_test) for test in tests]
     inside = [_predictions(stored, test, e) for test, e in zip(tests, errors)]
     structure_note = next((n for n in result.notes if n.startswith("structure chosen")), "")
-    return {"result": result, "errors": errors, "inside": inside, "summary": summary, "structure_note": structure_note}
+    return {"result": result, "errors": errors, "inside": inside, "residual": fitted.residual,
+            "structure_note": structure_note}
 
 
 def _structure_name(result) -> str:
@@ -215,11 +215,12 @@ def run_protocol(root: Path, protocol: Protocol, *, residual: bool = True, seed:
                         stages[(name, k)].inside.setdefault(method, []).append(inside)
                         stages[(name, k)].pooled.setdefault(method, []).append(pooled)
                 if name == "default fit":
-                    head = out["summary"]["kept"] if out["summary"] else None
+                    outcome = out["residual"]
+                    head = outcome.kept if outcome is not None else None
                     choices.append(_structure_name(out["result"]) + (f" + {head}" if head else ""))
                     stages[(name, 0)].notes.append(out["structure_note"])
-                    if out["summary"]:
-                        stages[(name, 0)].notes.append(out["summary"]["decision"])
+                    if outcome is not None:
+                        stages[(name, 0)].notes.append(outcome.decision)
     labels = list(protocol.test_files) if protocol.test_files else ["held out" if not in_sample else "in-sample"]
     out = {"dataset": protocol.dataset, "protocol": protocol.label, "slug": protocol.slug,
            "published": protocol.published, "in_sample": in_sample, "n_splits": len(pairs), "scored_sets": labels,

@@ -190,6 +190,11 @@ class Instrument(ABC):
         """The configuration dataclass of ``fit`` / ``evaluate`` on this instrument's files (their
         ``key=value`` options; ``--help`` lists its fields)."""
 
+    def shown_metrics(self, metrics: dict) -> dict:
+        """The part of ``evaluate``'s metrics the command prints as JSON (all of them unless the
+        instrument's lines already say the rest); ``--json`` writes all of them."""
+        return metrics
+
     @abstractmethod
     def twin(self) -> TwinSpec:
         """The twin writer of ``torchcal simulate instrument=<name>``."""

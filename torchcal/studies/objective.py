@@ -154,21 +154,19 @@ class StudyObjective:
         """Fit ``config`` as ``fit`` does and record the numbers; the objective value(s)."""
         from torchcal.config import save_resolved_config
         from torchcal.core.metrics import position_metrics
-        from torchcal.residual import head_names
-        from torchcal.stages.geometry import held_out_errors, save_fit
-        from torchcal.stages.residual import fit_residual_stage
+        from torchcal.stages.geometry import held_out_errors
+        from torchcal.stages.pipeline import fit_model
         from torchcal.stages.store import load_model
 
         trial_dir = self.study_dir / "trials" / f"{trial.number:04d}"
         save_resolved_config(trial_dir / "config.yaml", config)
         started = time.perf_counter()
         data = self.prepare(config)
-        folder = save_fit(trial_dir / "model", data.robot, data.train, data.result, {})
-        if head_names(config.fit.residual):
-            selection = fit_residual_stage(folder, data.train, config.fit, structure=data.structure)
-            comparison, kept = selection["comparison"], selection["kept"]
-        else:
-            comparison, kept = data.structure.comparison.to_dict(), None
+        fitted = fit_model(trial_dir / "model", data.robot, data.train, config.fit,
+                           fitted=(data.result, data.structure))
+        folder, kept = fitted.folder, fitted.head
+        assert fitted.comparison is not None  # the prepared fit always cross-validates its structure
+        comparison = fitted.comparison.to_dict()
         seconds = time.perf_counter() - started
         chosen = next(r for r in comparison["candidates"] if r["name"] == comparison["chosen"])
         stored = load_model(folder)

@@ -157,29 +157,34 @@ def refit_best(base, config: StudyConfig, study, study_dir: Path, console=None) 
 def _refit_best_on_files(run_config, config: StudyConfig, best, study_dir: Path, console=None) -> dict:
     """The best trial on measured data: ``fit`` (geometry, gated residual), model folder, export."""
     from torchcal.compensate.export import export_model
-    from torchcal.config import save_resolved_config
     from torchcal.data.measurements import load_measurements
-    from torchcal.instruments.tracker.evaluate import evaluate
+    from torchcal.instruments.base import EvaluateRequest
+    from torchcal.instruments.registry import default
     from torchcal.kinematics.robot import load_robot
-    from torchcal.stages.geometry import fit_with_selection, save_fit, with_tool
-    from torchcal.stages.residual import fit_residual_stage
+    from torchcal.stages.geometry import with_tool
+    from torchcal.stages.pipeline import fit_model
 
     fit_config = run_config.fit
     units = {"joint_unit": fit_config.joint_unit, "length_unit": fit_config.length_unit}
     robot_file, train_file = config.measured()
     robot = with_tool(load_robot(robot_file), fit_config)
     train = load_measurements(train_file, robot, **units)
-    result, structure = fit_with_selection(robot, train, fit_config)
-    folder = save_fit(study_dir / "best" / "model", robot, train, result, {}, structure=structure,
-                      uncertainty=fit_config.uncertainty)
-    save_resolved_config(folder / "config.yaml", fit_config)
-    residual = fit_residual_stage(folder, train, fit_config, progress=console.log if console is not None else None, structure=structure) if fit_config.residual != "none" else None
+    fitted = fit_model(study_dir / "best" / "model", robot, train, fit_config,
+                       residual_progress=console.log if console is not None else None)
+    folder = fitted.folder
+    residual = fitted.residual.to_dict() if fitted.residual is not None else None
     out = {"trial": best.number, "params": dict(best.params), "run_folder": str(folder), "residual": residual}
+    units_overrides = [f"{k}={v}" for k, v in units.items()]
+
+    def evaluate(data: str, register: bool = False) -> dict:
+        # the file scored as `torchcal evaluate` scores it, through the instrument's protocol
+        return default().evaluate(EvaluateRequest(model=folder, data=Path(data), overrides=units_overrides,
+                                                  register=register)).metrics
+
     if config.test:
-        metrics = evaluate(folder, config.test, config=fit_config)
-        out.update({"test": {"model": metrics}, "final_stage": "model"})
+        out.update({"test": {"model": evaluate(config.test)}, "final_stage": "model"})
     if config.holdout:
-        out["holdout"] = evaluate(folder, config.holdout, register=config.holdout_register, config=fit_config)
+        out["holdout"] = evaluate(config.holdout, register=config.holdout_register)
     if run_config.export:
         manifest = export_model(folder, Path(run_config.export_dir) / "studies" / config.name / "best")
         out["export"] = manifest["files"]
