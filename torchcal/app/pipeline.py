@@ -12,6 +12,8 @@ from typing import Any
 
 import torch
 
+from torchcal.compensate.export import export_and_check
+from torchcal.config import save_resolved_config
 from torchcal.config.schema import RunConfig
 from torchcal.core.folder import write_member_json
 from torchcal.core.io import atomic_write_json
@@ -23,7 +25,14 @@ from torchcal.identify.problem import CalibrationProblem
 from torchcal.instruments.base import EvaluateRequest
 from torchcal.instruments.registry import default
 from torchcal.kinematics.robot import load_robot
-from torchcal.report.calibration import model_name
+from torchcal.report.calibration import (
+    ReportInputs,
+    calibration_report,
+    cross_validated_stage,
+    model_name,
+    score_pose_set,
+)
+from torchcal.report.document import write_report
 from torchcal.sim.twin import Twin, TwinConfig, write_twin_case
 from torchcal.stages.geometry import NOMINAL_PROTOCOL, held_out_errors, nominal_errors
 from torchcal.stages.pipeline import fit_model
@@ -52,8 +61,6 @@ def run(config: RunConfig, console=None) -> dict:
     from rich.console import Console
 
     console = console or Console()
-    from torchcal.config import save_resolved_config
-
     folder = Path(config.out) / config.name
     started = time.perf_counter()
     save_resolved_config(folder / "config.yaml", config)
@@ -111,8 +118,6 @@ def run(config: RunConfig, console=None) -> dict:
     }
     write_member_json(model_dir, "metrics.json", {"held_out_data": test.source, "stages": metrics, "final_stage": summary["final_stage"]})
     if config.export:
-        from torchcal.compensate.export import export_and_check
-
         export_dir = Path(config.export_dir) / config.name
         summary["export"] = export_and_check(model_dir, export_dir, test, true_positions=twin.true_positions)
         console.log(summary["export"]["summary"])
@@ -129,14 +134,6 @@ def run(config: RunConfig, console=None) -> dict:
 def _write_report(folder: Path, stored, train: Measurements, test: Measurements, structure, summary: dict,
                   truth_x: torch.Tensor) -> Path:
     """The run's report (the one report builder of ``fit`` and ``evaluate``): training and held-out file, truth."""
-    from torchcal.report.calibration import (
-        ReportInputs,
-        calibration_report,
-        cross_validated_stage,
-        score_pose_set,
-    )
-    from torchcal.report.document import write_report
-
     cv = cross_validated_stage(stored, structure)
     extra = [cv] if cv is not None else []
     pose_sets = [score_pose_set(stored, train, held_out=False, extra=extra, focus_extra=bool(extra)),

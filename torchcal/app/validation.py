@@ -32,13 +32,19 @@ from typing import Any
 import numpy as np
 import torch
 
+from torchcal.config.schema import FitConfig
 from torchcal.core.errors import IdentifiabilityWarning
 from torchcal.core.metrics import position_metrics
+from torchcal.data.folds import make_folds
 from torchcal.data.measurements import Measurements, load_measurements
 from torchcal.identify.compliance import POINT_SETS
 from torchcal.identify.joint_fit import option_label
 from torchcal.kinematics.robot import load_robot
 from torchcal.kinematics.transforms import rigid_registration
+from torchcal.stages.geometry import held_out_errors, nominal_fit
+from torchcal.stages.pipeline import fit_model
+from torchcal.stages.prediction_uncertainty import LEVEL, METHODS, stored_prediction, subsample
+from torchcal.stages.store import load_model
 
 STAGES = ("nominal (registered)", "geometry only", "default fit")
 
@@ -112,8 +118,6 @@ class StageErrors:
 
 def _pairs(data: Measurements, protocol: Protocol, robot, folder: Path, seed: int) -> list[tuple[Measurements, list]]:
     """``(training poses, [scored poses, ...])`` of every split of ``protocol``."""
-    from torchcal.data.folds import make_folds
-
     n = len(data)
     if protocol.in_sample_first is not None:
         return [(data, [data.subset(np.arange(protocol.in_sample_first))])]
@@ -140,8 +144,6 @@ def _nominal_errors(robot, train: Measurements, test: Measurements, register_tes
     re-registers, as for the calibrated stages."""
     from dataclasses import replace
 
-    from torchcal.stages.geometry import nominal_fit
-
     _, t, tool = nominal_fit(robot, train)
     fitted = replace(robot, tool=tool)
     if register_test:
@@ -152,8 +154,6 @@ def _nominal_errors(robot, train: Measurements, test: Measurements, register_tes
 
 def _predictions(stored, test: Measurements, errors: torch.Tensor) -> dict[str, tuple[torch.Tensor, torch.Tensor]]:
     """Per method: whether each scored point is inside its predicted 95 % region, and the set's draws."""
-    from torchcal.stages.prediction_uncertainty import METHODS, stored_prediction
-
     out = {}
     observed = errors.norm(dim=-1) * 1e3
     for method in METHODS:
@@ -166,10 +166,6 @@ def _predictions(stored, test: Measurements, errors: torch.Tensor) -> dict[str, 
 def _fit_and_score(robot, train: Measurements, tests: list[Measurements], protocol: Protocol, config,
                    folder: Path) -> dict:
     """One split through the fit pipeline -> load -> held-out errors of every scored set."""
-    from torchcal.stages.geometry import held_out_errors
-    from torchcal.stages.pipeline import fit_model
-    from torchcal.stages.store import load_model
-
     fitted = fit_model(folder, robot, train, config)
     result = fitted.result
     stored = load_model(folder)
@@ -188,8 +184,6 @@ def _structure_name(result) -> str:
 
 def run_protocol(root: Path, protocol: Protocol, *, residual: bool = True, seed: int = 0) -> dict:
     """Score one protocol; returns metrics per stage and scored set, coverage, choices and per-pose errors."""
-    from torchcal.config.schema import FitConfig
-
     folder = root / protocol.dataset
     robot = load_robot(folder / "robot.yaml")
     data = load_measurements(folder / protocol.fit_file, robot)
@@ -230,8 +224,6 @@ def run_protocol(root: Path, protocol: Protocol, *, residual: bool = True, seed:
         errors = torch.cat(stage.errors)
         metrics: dict[str, Any] = position_metrics(errors)
         if stage.inside:
-            from torchcal.stages.prediction_uncertainty import LEVEL, subsample
-
             metrics["uncertainty"] = {
                 method: {"coverage_95": float(torch.cat(stage.inside[method]).double().mean()),
                          "predicted_p95_mm": float(torch.quantile(subsample(torch.cat(stage.pooled[method])), LEVEL)),
