@@ -29,7 +29,7 @@ def _fit(tmp_path, twin, n_train, residual):
 
 def test_residual_rejected_on_the_geometric_twin(tmp_path):
     twin = Twin.create(TwinConfig(seed=4))
-    stored, test, summary = _fit(tmp_path, twin, 400, "elm+mma-elm")
+    stored, _test, summary = _fit(tmp_path, twin, 400, "elm+mma-elm")
     assert summary.kept is None and stored.residual is None
     assert "no residual head kept" in summary.decision
 
