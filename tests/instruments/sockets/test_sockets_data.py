@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import pytest
+from helpers import write_file
 
 from torchcal.core.errors import DataError
 from torchcal.instruments.registry import recognise
@@ -14,9 +15,7 @@ ROW = "front,{s},10,-20,30,5,40,6\n"
 
 
 def _write(tmp_path, text):
-    path = tmp_path / "s.csv"
-    path.write_text(text)
-    return path
+    return write_file(tmp_path, text, "s.csv")
 
 
 def test_header_with_placement_and_socket_is_the_sockets_kind(tmp_path):
