@@ -62,17 +62,8 @@ class ResidualOutcome:
 
 
 def _candidates(config) -> list[ResidualHead]:
-    heads: list[ResidualHead] = []
-    for name in head_names(config.residual):
-        make: Callable[..., ResidualHead] = HEADS[name]  # each head's constructor takes its own options
-        if name == "mma-elm":
-            heads.append(make(hidden=config.residual_hidden, population=config.mayfly_population,
-                              iterations=config.mayfly_iterations, seed=config.seed, progress=False))
-        elif name == "elm":
-            heads.append(make(hidden=config.residual_hidden, seed=config.seed))
-        else:
-            heads.append(make(seed=config.seed, progress=False))
-    return heads
+    """The heads of ``config.residual``, each built by its own :meth:`ResidualHead.from_options`."""
+    return [HEADS[name].from_options(config) for name in head_names(config.residual)]
 
 
 def residual_targets_mm(model, x, data: Measurements, joints: torch.Tensor | None = None) -> torch.Tensor:
