@@ -159,7 +159,7 @@ def test_few_poses_are_calibrated_where_the_rank_cut_refuses():
 
 
 def test_nominal_candidate_fits_only_frame_and_tool(robot):
-    twin, train, _ = _in_model_twin(2, 40)
+    _, train, _ = _in_model_twin(2, 40)
     result = calibrate(robot, train, prior=PriorSpec(scale=0.0))
     names = result.free_names
     assert all(n.startswith(("base_", "tool_")) for n in names)

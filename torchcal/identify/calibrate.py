@@ -20,6 +20,7 @@ from torchcal.core.errors import DataError, IdentifiabilityWarning
 from torchcal.data.measurements import Measurements
 from torchcal.identify.base import Identifier, SolveResult
 from torchcal.identify.identifiability import IdentifiabilityReport, analyze
+from torchcal.identify.lm import LevenbergMarquardt
 from torchcal.identify.prior import Prior, PriorSpec, solve_map
 from torchcal.identify.problem import CalibrationProblem
 from torchcal.identify.uncertainty import covariance
@@ -116,8 +117,6 @@ def calibrate(
             is estimated, the rank analysis is a diagnostic and what the data cannot see stays at
             the prior. ``None``: the rank cut (non-identifiable parameters fixed at nominal).
     """
-    from torchcal.identify.lm import LevenbergMarquardt
-
     identifier = identifier or LevenbergMarquardt()
     use_orientation = data.rotation is not None if use_orientation is None else use_orientation
     if whitening is not None and use_orientation:
