@@ -9,7 +9,7 @@
 4. The total time is stretched to a whole number of periods ``dt``; at each sample ``t_k = k dt``
    the joints are the spline at ``s(t_k)`` followed by a minimum-norm position correction onto
    the path point, so the position is exact at every sample while the velocity stays that of
-   ``q(s) s_dot``.
+   ``q(s) s_dot`` (the correction is of the order of the spline's interpolation error).
 5. The samples are measured by finite differences (speeds, accelerations) and forward kinematics
    (path error, orientation deviation); the rare overshoot of a limit left by the grid is removed
    by stretching time, never by moving off the path.
@@ -267,9 +267,10 @@ def measure(kin: TcpKinematics, planned: PlannedMotion, settings: PrioritySettin
     """Figures of a planned motion (mm, deg, s), measured on its samples by forward kinematics and
     finite differences: what a controller interpolating the joints every ``dt`` would get.
 
-    ``singular`` marks the samples inside a singular neighbourhood (either task's smallest
-    singular value below its ``eps``): the orientation (wrist) or the position (shoulder, elbow)
-    may yield there.
+    The singular neighbourhoods are the samples where a task's smallest singular value is below its
+    ``eps``: there the orientation (``Jo'``: wrist singularities, and shoulder or stretched-elbow
+    ones, where the wrist can still place the TCP) or the position (``Jp``: the TCP at the edge of
+    its reach) yields.
     """
     q = torch.from_numpy(planned.q)
     pose = kin.pose(q)
@@ -299,8 +300,8 @@ def measure(kin: TcpKinematics, planned: PlannedMotion, settings: PrioritySettin
         "orientation_deviation_max_deg": peak(rotation),
         "orientation_deviation_regular_max_deg": peak(rotation, regular),
         "orientation_deviation_singular_max_deg": peak(rotation, singular),
-        "samples_wrist_singular": int(wrist.sum()),
-        "samples_arm_singular": int(arm.sum()),
+        "samples_orientation_yielding": int(wrist.sum()),
+        "samples_position_yielding": int(arm.sum()),
         "joint_speed_max_deg_s": (np.abs(speed).max(0) / DEG).tolist(),
         "joint_speed_limit_deg_s": (planned.joint_speed / DEG).tolist(),
         "joint_accel_max_deg_s2": (np.abs(accel).max(0) / DEG).tolist(),

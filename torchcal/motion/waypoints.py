@@ -18,6 +18,7 @@ import math
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from torchcal.core.errors import DataError
@@ -63,7 +64,7 @@ def load_waypoints(path: str | Path, device: str | torch.device = "cpu") -> Wayp
     if extra:
         raise DataError(f"unknown column(s) {extra}; a path file has columns {', '.join(COLUMNS)}",
                         path=where, row=1, column=extra[0])
-    values = torch.tensor([table.column(name) for name in COLUMNS], dtype=torch.float64).T
+    values = torch.from_numpy(np.stack([table.column(name) for name in COLUMNS], 1))
     if values.shape[0] < 2:
         raise DataError("a path needs at least 2 waypoints", path=where, row=table.line_numbers[0])
     rotation = tf.euler_xyz_to_matrix(values[:, 3:] * (math.pi / 180.0))
