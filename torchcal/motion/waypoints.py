@@ -123,3 +123,10 @@ class WaypointPath:
         """``d(pose)/ds`` ``(..., 6)``: linear (m/m) and angular (rad/m) rates, base frame."""
         i = self.segment(s.to(self.poses))
         return torch.cat([self.delta[i], self.rotvec[i]], -1) / self.ell[i].unsqueeze(-1)
+
+
+def waypoints_csv(poses: torch.Tensor) -> str:
+    """The path file text of waypoint poses ``(M, 4, 4)`` (m): ``x, y, z`` mm, ``rx, ry, rz`` deg."""
+    angles = tf.matrix_to_euler_xyz(poses[:, :3, :3].to(torch.float64)) * (180.0 / math.pi)
+    rows = torch.cat([poses[:, :3, 3].to(torch.float64) * 1e3, angles], -1).tolist()
+    return "\n".join([",".join(COLUMNS)] + [",".join(f"{v:.12g}" for v in row) for row in rows]) + "\n"
