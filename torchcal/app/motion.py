@@ -125,6 +125,12 @@ def run_motion(robot_file: Path, path_file: Path, out: Path, overrides: list[str
         failures.append(f"path error {metrics['path_error_max_mm']:.3g} mm at t = {planned.t[k]:.3f} s (between rows "
                         f"{waypoints.lines[seg]} and {waypoints.lines[seg + 1]} of {waypoints.path}) exceeds the "
                         f"tolerance {options.tolerance:g} mm")
+    over_v = np.array(metrics["joint_speed_max_deg_s"]) / np.array(metrics["joint_speed_limit_deg_s"])
+    over_a = np.array(metrics["joint_accel_max_deg_s2"]) / np.array(metrics["joint_accel_limit_deg_s2"])
+    for name, ratio, unit in (("speed", over_v, "deg/s"), ("acceleration", over_a, "deg/s^2")):
+        if ratio.max() > 1.0 + 1e-6:
+            j = int(np.argmax(ratio))
+            failures.append(f"q{j + 1} {name} reaches {100 * ratio[j]:.1f} % of its limit")
     if outside.any():
         k, j = map(int, np.argwhere(outside)[0])
         failures.append(f"q{j + 1} = {planned.q[k, j] / DEG:.3f} deg at t = {planned.t[k]:.3f} s is outside its range "

@@ -24,10 +24,11 @@ so each inverse is exact outside its task's singular neighbourhood and continuou
 * At a shoulder or elbow singularity ``Jp`` itself loses a direction: there the position yields
   too (a path through a stretched elbow is out of reach; the report says by how much).
 
-Feedback: the position error is corrected in full at every step (``dp`` includes it), the
-orientation error by the fraction ``gain * h`` (``gain`` in 1/m of path, ``h`` the step), so the
-orientation deviation left by the secondary task's damping is recovered over about ``1/gain`` of
-path once the wrist leaves the neighbourhood.
+Feedback: the position error is corrected in full at every step (``dp`` includes it; clipped to
+the step's length, so a path beyond the reach, where the position must yield, leaves the arm
+stretched towards it instead of swinging), the orientation error by the fraction ``gain * h``
+(``gain`` in 1/m of path, ``h`` the step), so the orientation deviation left by the secondary
+task's damping is recovered over about ``1/gain`` of path once the wrist leaves the neighbourhood.
 """
 
 from __future__ import annotations
@@ -204,7 +205,10 @@ def follow_geometric(kin: TcpKinematics, poses_at: Callable[[torch.Tensor], torc
             break
         h = float(s[k + 1] - s[k])
         nxt = targets[k + 1]
-        dp = nxt[:3, 3] - pose[:3, 3]  # feed-forward and the whole position error
+        # feed-forward and the position error, the error clipped to the step's length: where the
+        # position yields (beyond the reach) a growing error must not turn into growing steps
+        error = targets[k, :3, 3] - pose[:3, 3]
+        dp = nxt[:3, 3] - targets[k, :3, 3] + error * min(1.0, h / max(float(error.norm()), 1e-300))
         # feed-forward rotation of the path plus a fraction of the orientation error
         ff = tf.so3_log(nxt[:3, :3] @ targets[k, :3, :3].T)
         err = tf.so3_log(targets[k, :3, :3] @ pose[:3, :3].T)
@@ -220,16 +224,20 @@ def follow_geometric(kin: TcpKinematics, poses_at: Callable[[torch.Tensor], torc
 
 
 def correct_position(kin: TcpKinematics, q: torch.Tensor, targets: torch.Tensor, settings: PrioritySettings,
-                     iterations: int = 2) -> torch.Tensor:
+                     iterations: int = 2, max_correction: float = 1e-4) -> torch.Tensor:
     """Minimum-norm position corrections of joints ``q`` ``(..., N)`` onto ``targets`` ``(..., 4, 4)``.
 
     Damped like the position task, so a correction never jumps at a shoulder or elbow singularity;
-    elsewhere two Newton steps put interpolated joints on the path point to round-off. The
+    elsewhere two Newton steps put interpolated joints on the path point to round-off (an error
+    above ``max_correction`` m, a path out of reach, is corrected by that much only). The
     orientation is left as the geometric pass made it (a position-and-orientation correction would
     undo the wrist's yielding near a singularity, and with it the planned joint accelerations).
     """
     for _ in range(iterations):
         pose, jac = kin(q)
         jp_inv, _ = filtered_inverse(jac[..., :3, :], settings.position_eps, settings.position_damping)
-        q = q + (jp_inv @ (targets[..., :3, 3] - pose[..., :3, 3]).unsqueeze(-1)).squeeze(-1)
+        error = targets[..., :3, 3] - pose[..., :3, 3]
+        norm = error.norm(dim=-1, keepdim=True)
+        error = error * (max_correction / norm.clamp_min(max_correction))  # where the path is out of reach
+        q = q + (jp_inv @ error.unsqueeze(-1)).squeeze(-1)
     return q

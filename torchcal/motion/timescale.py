@@ -77,8 +77,9 @@ def velocity_curve(dq: np.ndarray, ddq: np.ndarray, speed: float, path_accel: fl
                    joint_speed: np.ndarray, joint_accel: np.ndarray) -> np.ndarray:
     """Largest admissible ``x = s_dot^2`` ``(G,)`` at each grid point (module docstring)."""
     x = np.full(dq.shape[0], speed**2)
-    with np.errstate(divide="ignore"):
-        x = np.minimum(x, np.min(np.where(np.abs(dq) > _TINY, (joint_speed / np.abs(dq)) ** 2, np.inf), 1))
+    moving = np.abs(dq) > _TINY
+    with np.errstate(divide="ignore", over="ignore"):
+        x = np.minimum(x, np.min(np.where(moving, (joint_speed / np.where(moving, np.abs(dq), 1.0)) ** 2, np.inf), 1))
         # a joint that does not move with s but is curved (q' = 0, q'' != 0): |q''| x <= A
         flat = (np.abs(dq) <= _TINY) & (np.abs(ddq) > _TINY)
         x = np.minimum(x, np.min(np.where(flat, joint_accel / np.abs(np.where(flat, ddq, 1.0)), np.inf), 1))
@@ -86,7 +87,7 @@ def velocity_curve(dq: np.ndarray, ddq: np.ndarray, speed: float, path_accel: fl
     # lower bound j <= upper bound k for every pair: (lo_j - hi_k) + (beta_j - beta_k) x <= 0
     gap0 = lo_alpha[:, :, None] - hi_alpha[:, None, :]
     slope = beta[:, :, None] - beta[:, None, :]
-    with np.errstate(divide="ignore", invalid="ignore"):
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         cap = np.where((slope > _TINY) & np.isfinite(gap0), -gap0 / slope, np.inf)
     return np.minimum(x, cap.reshape(cap.shape[0], -1).min(1))
 
@@ -125,12 +126,19 @@ def time_optimal(s: np.ndarray, dq: np.ndarray, ddq: np.ndarray, *, speed: float
         cap[stops] = 0.0
     x = np.empty(n)
     x[0] = 0.0
+    # Where the grid cannot honour a bound exactly (the interval empties between grid points) the
+    # passes keep the speed instead of stopping; the caller measures the samples and stretches time.
     for i in range(n - 1):  # forward: largest acceleration, capped by the velocity curve
         _, hi = _interval(dq[i], ddq[i], x[i], joint_accel, path_accel)
-        x[i + 1] = min(cap[i + 1], max(x[i] + 2.0 * h[i] * hi, 0.0))
+        reached = x[i] + 2.0 * h[i] * hi
+        x[i + 1] = min(cap[i + 1], reached if reached > 0.0 else x[i])
     for i in range(n - 2, -1, -1):  # backward: largest deceleration into the next point
         lo, _ = _interval(dq[i + 1], ddq[i + 1], x[i + 1], joint_accel, path_accel)
-        x[i] = min(x[i], max(x[i + 1] - 2.0 * h[i] * lo, 0.0))
+        allowed = x[i + 1] - 2.0 * h[i] * lo
+        x[i] = min(x[i], allowed if allowed > 0.0 else x[i + 1])
+    if n > 2:  # interior points keep some speed, so every interval takes a finite time
+        floor = 1e-6 * float(np.max(x))
+        x[1:-1] = np.maximum(x[1:-1], floor)
     s_dot = np.sqrt(np.maximum(x, 0.0))
     with np.errstate(divide="ignore"):
         dt = 2.0 * h / (s_dot[1:] + s_dot[:-1])
