@@ -102,8 +102,8 @@ def test_out_of_reach_writes_the_report_but_no_trajectory(tmp_path, capsys):
     path.write_text("x,y,z,rx,ry,rz\n600,0,700,0,90,0\n1400,0,700,0,90,0\n")  # 1.4 m: beyond the arm's reach
     out = tmp_path / "t.csv"
     model = ErrorModel(load_robot(default_robot_path()))
-    from torchcal.kinematics.ik import solve_ik
     from torchcal.kinematics import transforms as tf
+    from torchcal.kinematics.ik import solve_ik
 
     target = tf.homogeneous(tf.euler_xyz_to_matrix(torch.tensor([0.0, 90 * DEG, 0.0], dtype=torch.float64)),
                             torch.tensor([0.6, 0.0, 0.7], dtype=torch.float64))
@@ -119,3 +119,42 @@ def test_out_of_reach_writes_the_report_but_no_trajectory(tmp_path, capsys):
 def test_out_names_a_folder(tmp_path, line_file, capsys):
     code = main(["motion", "--robot", ROBOT, "--path", str(line_file[0]), "--out", str(tmp_path), _start_arg()])
     assert code == 2 and "names an existing folder" in capsys.readouterr().err
+
+
+@pytest.fixture(scope="module")
+def calibrated(tmp_path_factory):
+    """A twin with geometric errors, calibrated from 150 simulated tracker poses."""
+    from torchcal.config.schema import FitConfig
+    from torchcal.sim.twin import Twin, TwinConfig
+    from torchcal.stages.geometry import fit, save_fit
+
+    twin = Twin.create(TwinConfig(seed=3, gravity=False, gear=False))
+    train = twin.sample(150, torch.Generator().manual_seed(11))
+    result = fit(twin.robot, train, FitConfig(residual="none", gravity_compliance="none", joint_harmonics="none"))
+    return twin, save_fit(tmp_path_factory.mktemp("model") / "model", twin.robot, train, result, {})
+
+
+def test_model_plans_the_real_robot(tmp_path, line_file, calibrated):
+    """With --model the joints put the twin's true TCP on the path; the nominal joints miss it by about a mm."""
+    from torchcal.stages.store import load_model
+
+    twin, model_dir = calibrated
+    path, poses = line_file
+    runs = {}
+    for name, extra in (("model", ["--model", str(model_dir)]), ("nominal", [])):
+        out = tmp_path / f"{name}.csv"
+        assert main(["motion", "--robot", ROBOT, "--path", str(path), "--out", str(out), _start_arg(), *extra]) == 0
+        runs[name] = _read_trajectory(out)[1]
+    stored = load_model(model_dir)
+    # the path in the instrument frame, through the calibrated base frame; the twin's truth is there too
+    frame = stored.model.instrument_from_base(stored.x)
+    start, end = (frame[:3, :3] @ poses[:, :3, 3].T).T + frame[:3, 3]
+    start, end = start.numpy(), end.numpy()
+    errors = {}
+    for name, data in runs.items():
+        tcp = twin.model.tcp_pose(torch.from_numpy(data[:, 1:] * DEG), twin.x_true)[:, :3, 3].numpy()
+        u = end - start
+        lam = np.clip((tcp - start) @ u / (u @ u), 0, 1)
+        errors[name] = np.linalg.norm(tcp - (start + lam[:, None] * u), axis=-1).max() * 1e3
+    assert errors["model"] < 0.1
+    assert errors["nominal"] > 5 * errors["model"]

@@ -1,10 +1,9 @@
 import math
 
 import numpy as np
-import yaml
-
 import pytest
 import torch
+import yaml
 
 from torchcal.kinematics.error_model import ErrorModel
 from torchcal.kinematics.robot import default_robot_path, load_robot

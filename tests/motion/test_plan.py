@@ -7,7 +7,6 @@ import numpy as np
 import pytest
 import torch
 
-from torchcal.kinematics.error_model import ErrorModel
 from torchcal.motion.plan import PlanOptions, plan_motion
 from torchcal.motion.priority import TcpKinematics
 from torchcal.motion.scenario import perturbed_parameters, singular_line
@@ -125,5 +124,5 @@ def test_corner_waypoint_stops_with_continuous_velocity(robot, model, x_nom, mdh
     corner = int(np.argmin(np.linalg.norm(tcp - poses[1, :3, 3].numpy(), axis=-1)))
     tcp_speed = np.linalg.norm(np.diff(tcp, axis=0), axis=-1) / 0.002 * 1e3
     assert tcp_speed[corner - 1 : corner + 1].max() < 10.0  # it (nearly) stops at the corner sample
-    speed, accel = _rates(planned.q, 0.002)
+    _, accel = _rates(planned.q, 0.002)
     assert accel.max() <= 3000.0  # continuous joint velocity: bounded second differences through the stop

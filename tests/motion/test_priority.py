@@ -47,7 +47,7 @@ def test_jacobian_matches_finite_differences(robot):
     for mapping in (None, joint_map):
         kin = _kin(model, x, mapping)
         q = robot.sample_joints(3, torch.Generator().manual_seed(1))
-        pose, jac = kin(q)
+        _, jac = kin(q)
         h = 1e-6
         for j in range(robot.dof):
             dq = torch.zeros(robot.dof, dtype=torch.float64)
@@ -68,7 +68,7 @@ def test_filtered_inverse_is_pinv_outside_eps_and_continuous_inside():
     def matrix(smallest):
         return u @ torch.diag(torch.tensor([1.0, 0.5, smallest], dtype=torch.float64)) @ v[:3]
 
-    inv, s = filtered_inverse(matrix(0.2), eps=0.1, a_max=0.05)
+    inv, _ = filtered_inverse(matrix(0.2), eps=0.1, a_max=0.05)
     torch.testing.assert_close(inv, torch.linalg.pinv(matrix(0.2)))
     values = torch.linspace(0.0, 0.15, 3001, dtype=torch.float64)
     gains = torch.stack([filtered_inverse(matrix(float(x)), 0.1, 0.05)[0] for x in values])

@@ -127,7 +127,7 @@ def run_motion(robot_file: Path, path_file: Path, out: Path, overrides: list[str
                         f"tolerance {options.tolerance:g} mm")
     over_v = np.array(metrics["joint_speed_max_deg_s"]) / np.array(metrics["joint_speed_limit_deg_s"])
     over_a = np.array(metrics["joint_accel_max_deg_s2"]) / np.array(metrics["joint_accel_limit_deg_s2"])
-    for name, ratio, unit in (("speed", over_v, "deg/s"), ("acceleration", over_a, "deg/s^2")):
+    for name, ratio in (("speed", over_v), ("acceleration", over_a)):
         if ratio.max() > 1.0 + 1e-6:
             j = int(np.argmax(ratio))
             failures.append(f"q{j + 1} {name} reaches {100 * ratio[j]:.1f} % of its limit")
@@ -138,17 +138,16 @@ def run_motion(robot_file: Path, path_file: Path, out: Path, overrides: list[str
     metrics.update({"within_tolerance": not failures, "tolerance_mm": options.tolerance,
                     "limit_source": planned.limit_source, "kinematics": source})
 
-    summary = [
-        f"Path {waypoints.path} ({len(waypoints.lines)} waypoints, base frame), {source}; speed {options.speed:g} mm/s, "
-        f"acceleration {options.accel:g} mm/s^2, interpolation period {options.dt:g} s; joint limits: "
-        f"{planned.limit_source}.",
-        "Position first: the TCP position is the primary task, the orientation acts only in the position task's "
-        "null space and yields near a wrist singularity (damping of its own singular values below "
-        f"orientation_eps = {options.orientation_eps:g}); limits are met by slowing down along the path "
-        "(time-optimal time law), never by leaving it. The robot stops at every waypoint.",
-        ("Verdict: every sample within the path tolerance and the joint ranges; trajectory written to "
-         f"{out}." if not failures else "Verdict: NOT written: " + "; ".join(failures) + "."),
-    ]
+    inputs = (f"Path {waypoints.path} ({len(waypoints.lines)} waypoints, base frame), {source}; speed "
+              f"{options.speed:g} mm/s, acceleration {options.accel:g} mm/s^2, interpolation period {options.dt:g} s; "
+              f"joint limits: {planned.limit_source}.")
+    method = ("Position first: the TCP position is the primary task, the orientation acts only in the position "
+              "task's null space and yields near a wrist singularity (damping of its own singular values below "
+              f"orientation_eps = {options.orientation_eps:g}); limits are met by slowing down along the path "
+              "(time-optimal time law), never by leaving it. The robot stops at every waypoint.")
+    verdict = (f"Verdict: every sample within the path tolerance, the joint limits and ranges; trajectory written to {out}."
+               if not failures else "Verdict: NOT written: " + "; ".join(failures) + ".")
+    summary = [inputs, method, verdict]
     series = {
         "t": planned.t,
         "position_error_mm": measured["position_error_mm"],
@@ -181,16 +180,16 @@ def summary_lines(metrics: dict, out: Path, report_dir: Path) -> list[str]:
     peak_v, peak_a = np.array(metrics["joint_speed_max_deg_s"]), np.array(metrics["joint_accel_max_deg_s2"])
     speed = peak_v / np.array(metrics["joint_speed_limit_deg_s"])
     accel = peak_a / np.array(metrics["joint_accel_limit_deg_s2"])
-    return [
-        f"trajectory: {out} ({metrics['n_samples']} samples, {metrics['duration_s']:.3f} s)",
-        f"path error: max {metrics['path_error_max_mm']:.2g} mm over the samples (start {metrics['start_error_mm']:.2g}, "
-        f"end {metrics['end_error_mm']:.2g}; tolerance {metrics['tolerance_mm']:g} mm)",
-        f"orientation deviation: max {metrics['orientation_deviation_max_deg']:.3g} deg "
-        f"({metrics['orientation_deviation_regular_max_deg']:.3g} deg outside singular neighbourhoods; "
-        f"{metrics['samples_orientation_yielding']} samples where the orientation task is near-singular and yields, "
-        f"{metrics['samples_position_yielding']} where the position task does)",
-        f"joint speed: max {peak_v.max():.1f} deg/s (q{int(np.argmax(peak_v)) + 1}), at most {100 * speed.max():.0f} % "
-        f"of a limit (q{int(np.argmax(speed)) + 1}); joint acceleration: max {peak_a.max():.0f} deg/s^2 "
-        f"(q{int(np.argmax(peak_a)) + 1}), at most {100 * accel.max():.0f} % of a limit (q{int(np.argmax(accel)) + 1})",
-        f"report: {report_dir / 'report.md'} (and report.html)",
-    ]
+    trajectory = f"trajectory: {out} ({metrics['n_samples']} samples, {metrics['duration_s']:.3f} s)"
+    path_error = (f"path error: max {metrics['path_error_max_mm']:.2g} mm over the samples (start "
+                  f"{metrics['start_error_mm']:.2g}, end {metrics['end_error_mm']:.2g}; tolerance "
+                  f"{metrics['tolerance_mm']:g} mm)")
+    orientation = (f"orientation deviation: max {metrics['orientation_deviation_max_deg']:.3g} deg "
+                   f"({metrics['orientation_deviation_regular_max_deg']:.3g} deg outside singular neighbourhoods; "
+                   f"{metrics['samples_orientation_yielding']} samples where the orientation task is near-singular "
+                   f"and yields, {metrics['samples_position_yielding']} where the position task does)")
+    joints = (f"joint speed: max {peak_v.max():.1f} deg/s (q{int(np.argmax(peak_v)) + 1}), at most "
+              f"{100 * speed.max():.0f} % of a limit (q{int(np.argmax(speed)) + 1}); joint acceleration: max "
+              f"{peak_a.max():.0f} deg/s^2 (q{int(np.argmax(peak_a)) + 1}), at most {100 * accel.max():.0f} % of a "
+              f"limit (q{int(np.argmax(accel)) + 1})")
+    return [trajectory, path_error, orientation, joints, f"report: {report_dir / 'report.md'} (and report.html)"]

@@ -251,7 +251,7 @@ def plan_motion(kin: TcpKinematics, robot: RobotModel, waypoints: torch.Tensor, 
 def _sample(laws: list[TimeLaw], splines: list, stretch: float, dt: float):
     """Times, spline joints, path parameter and segment of every sample of the stretched laws."""
     end = laws[-1].t[-1] * stretch
-    k = int(round(end / dt))
+    k = round(end / dt)
     t = np.arange(k + 1) * dt
     local = t / stretch  # time of the unstretched laws
     bounds = np.array([law.t[0] for law in laws] + [laws[-1].t[-1]])
@@ -293,7 +293,7 @@ def measure(kin: TcpKinematics, planned: PlannedMotion, settings: PrioritySettin
         return float(np.max(chosen)) if chosen.size else float("nan")
 
     return {
-        "n_samples": int(len(planned.t)),
+        "n_samples": len(planned.t),
         "duration_s": float(planned.t[-1]),
         "path_error_max_mm": peak(position),
         "path_error_rms_mm": float(np.sqrt(np.mean(position**2))),

@@ -11,7 +11,7 @@ import numpy as np
 from torchcal.report.document import Figure, Paragraph, Report, Section, Table
 from torchcal.report.plots import COLOURS, _figure, _png
 
-_JOINT_COLOURS = COLOURS[1:] + ("#e377c2", "#17becf", "#bcbd22")
+_JOINT_COLOURS = (*COLOURS[1:], "#e377c2", "#17becf", "#bcbd22")
 
 
 def _shade(ax, t: np.ndarray, singular: np.ndarray) -> None:
@@ -114,8 +114,8 @@ def motion_report(title: str, summary: list[str], metrics: dict, series: dict, s
          f"{metrics['path_error_singular_max_mm']:.3g} / {metrics['path_error_regular_max_mm']:.3g}"],
         ["orientation deviation, max (deg)", f"{metrics['orientation_deviation_max_deg']:.3g}"],
         ["orientation deviation, max in / outside singular neighbourhoods (deg)",
-         f"{metrics['orientation_deviation_singular_max_deg']:.3g} / "
-         f"{metrics['orientation_deviation_regular_max_deg']:.3g}"],
+         (f"{metrics['orientation_deviation_singular_max_deg']:.3g} / "
+          f"{metrics['orientation_deviation_regular_max_deg']:.3g}")],
         ["samples where the orientation / the position task yields (smallest singular value below its eps)",
          f"{metrics['samples_orientation_yielding']} / {metrics['samples_position_yielding']} of {metrics['n_samples']}"],
         ["duration (s)", f"{metrics['duration_s']:.3f}"],
