@@ -7,8 +7,8 @@ those joints. Scenarios (base frame, constant tool orientation, 250 mm/s, dt = 4
 
 * ``wrist``: 400 mm line of the nominal robot through its wrist singularity (q5 = 0 at its middle);
 * ``regular``: 400 mm line far from any singularity (q5 about 60 deg at its middle);
-* ``shoulder_x`` / ``shoulder_y``: 400 mm lines through a shoulder singularity (the wrist centre on
-  axis 1);
+* ``shoulder_x``, ``shoulder_xy`` (300 mm), ``shoulder_z``: lines through a shoulder singularity (the
+  wrist centre on axis 1 at the middle; along ``shoulder_z`` it stays on axis 1 the whole way);
 * ``elbow``: 300 mm radial line ending at the stretched elbow (q3 = -85.25 deg), and ``elbow_beyond``
   2 mm past it; ``reach``: a line out of the TCP's reach (the command refuses it);
 * ``wrist_model``: the wrist line planned with ``--model`` (a twin calibrated by ``torchcal fit``):
@@ -93,7 +93,8 @@ def scenarios(model: ErrorModel, x: torch.Tensor) -> dict:
     line("wrist", [10, -80, 10, 0, 0, 20], [1, 0, 0])
     line("regular", [10, -80, 10, 0, 60, 20], [1, 0, 0])
     line("shoulder_x", [10, -80, 84.7, 0, 40, 20], [1, 0, 0])
-    line("shoulder_y", [10, -80, 84.7, 0, 40, 20], [0, 1, 0])
+    line("shoulder_xy", [10, -80, 84.7, 0, 40, 20], [1, 1, 0], length=0.3)
+    line("shoulder_z", [10, -80, 84.7, 0, 40, 20], [0, 0, 1])
     q_elbow = torch.tensor([10, -60, -85.25, 0, 40, 20], dtype=torch.float64) * DEG
     stretched = model.tcp_pose(q_elbow, x)
     bent = q_elbow.clone()
@@ -180,7 +181,7 @@ def main(argv: list[str] | None = None) -> int:
             results["runs"][name] = entry
             print(f"{name}: exit {code}; " + "; ".join(text.splitlines()[1:3]))
         results["before_after"] = before_after(model, x, cases["wrist"])
-        results["damping_sweep"] = damping_sweep(model, cases["wrist"])
+        results["damping_sweep"] = damping_sweep(model, cases)
     finally:
         shutil.rmtree(work, ignore_errors=True)
     atomic_write_json(args.docs / "motion_cli.json", results)
@@ -223,14 +224,15 @@ SWEEP = ((0.02, 0.02), (0.05, 0.05), (0.1, 0.1))
 SWEEP_SEEDS = (0, 1, 2, 3, 4)
 
 
-def damping_sweep(model: ErrorModel, case) -> dict:
+def damping_sweep(model: ErrorModel, cases: dict) -> dict:
     """Orientation damping against what it costs, on the wrist line executed by five true robots
     (nominal + the twin's error magnitudes, seeds 0-4): each passes the singularity at its own
     small distance, the case where the orientation must yield."""
     from torchcal.motion.plan import PlanOptions, plan_motion
     from torchcal.motion.priority import TcpKinematics
 
-    poses, start = case
+    poses, start = cases["wrist"]
+    x_nom = model.nominal_vector()
     out = {}
     for eps, damping in SWEEP:
         rows = []
@@ -247,7 +249,18 @@ def damping_sweep(model: ErrorModel, case) -> dict:
             rows.append([float(np.linalg.norm(pose[:, :3, 3] - planned.targets[:, :3, 3], axis=-1).max() * 1e3),
                          float(rot.max()), float(speed.max()), float(planned.t[-1])])
         arr = np.array(rows)
+        exact = {}
+        for name in ("wrist", "shoulder_x"):  # the nominal robot on its own lines: exact crossings
+            poses_n, start_n = cases[name]
+            kin = TcpKinematics(model.table(x_nom), model.T_base_0, model.T_n_flange @ model.flange_from_tool(x_nom))
+            planned = plan_motion(kin, model.robot, poses_n, PlanOptions(start=start_n, orientation_eps=eps,
+                                                                        orientation_damping=damping))
+            pose = kin.pose(torch.from_numpy(planned.q)).numpy()
+            exact[name] = float(np.degrees(np.arccos(np.clip((np.trace(
+                planned.targets[:, :3, :3] @ np.swapaxes(pose[:, :3, :3], -1, -2), axis1=-2, axis2=-1) - 1) / 2, -1, 1))).max())
         out[f"eps={eps:g}, damping={damping:g}"] = {
+            "nominal_wrist_orientation_deviation_max_deg": exact["wrist"],
+            "nominal_shoulder_x_orientation_deviation_max_deg": exact["shoulder_x"],
             "path_error_max_mm": float(arr[:, 0].max()), "orientation_deviation_max_deg": float(arr[:, 1].max()),
             "orientation_deviation_median_deg": float(np.median(arr[:, 1])), "joint_speed_max_deg_s": float(arr[:, 2].max()),
             "duration_max_s": float(arr[:, 3].max()), "duration_median_s": float(np.median(arr[:, 3]))}
@@ -273,11 +286,14 @@ def write_section(path: Path, results: dict) -> None:
                       f"{m['joint_speed_max_deg_s']:.1f} | {m['joint_accel_max_deg_s2']:.0f} | {m['duration_s']:.3f} |")
     commands = "\n".join(f"    {entry['command']}" for entry in runs.values())
     sweep = ["| orientation_eps, orientation_damping | path error max (mm) | orientation dev. median / max (deg) | "
-             "joint speed max (deg/s) | duration median / max (s) |", "| --- | ---: | ---: | ---: | ---: |"]
+             "joint speed max (deg/s) | duration median / max (s) | nominal wrist / shoulder_x: orientation dev. (deg) |",
+             "| --- | ---: | ---: | ---: | ---: | ---: |"]
     for name, m in results["damping_sweep"].items():
         sweep.append(f"| {name} | {m['path_error_max_mm']:.2g} | {m['orientation_deviation_median_deg']:.3g} / "
                      f"{m['orientation_deviation_max_deg']:.3g} | {m['joint_speed_max_deg_s']:.0f} | "
-                     f"{m['duration_median_s']:.3f} / {m['duration_max_s']:.3f} |")
+                     f"{m['duration_median_s']:.3f} / {m['duration_max_s']:.3f} | "
+                     f"{m['nominal_wrist_orientation_deviation_max_deg']:.3g} / "
+                     f"{m['nominal_shoulder_x_orientation_deviation_max_deg']:.3g} |")
     section = "\n".join([
         BEGIN,
         "Generated by `scripts/motion_cli.py` (the figures in `docs/motion_cli.json`).",
@@ -300,8 +316,8 @@ def write_section(path: Path, results: dict) -> None:
         *before,
         "",
         "Orientation damping on the wrist line executed by five true robots (nominal plus the twin's error "
-        "magnitudes, seeds 0-4; each passes q5 = 0 at its own small distance, so the orientation must yield); "
-        "default: eps = damping = 0.05:",
+        "magnitudes, seeds 0-4; each passes q5 = 0 at its own small distance, so the orientation must yield), "
+        "and the nominal robot's exact crossings of the wrist and shoulder_x lines; default: eps = damping = 0.05:",
         "",
         *sweep,
         END,

@@ -192,4 +192,8 @@ def summary_lines(metrics: dict, out: Path, report_dir: Path) -> list[str]:
               f"{100 * speed.max():.0f} % of a limit (q{int(np.argmax(speed)) + 1}); joint acceleration: max "
               f"{peak_a.max():.0f} deg/s^2 (q{int(np.argmax(peak_a)) + 1}), at most {100 * accel.max():.0f} % of a "
               f"limit (q{int(np.argmax(accel)) + 1})")
-    return [trajectory, path_error, orientation, joints, f"report: {report_dir / 'report.md'} (and report.html)"]
+    lines = [trajectory, path_error, orientation, joints]
+    if metrics["first_waypoint_from_start_deg"] > 0.01:
+        lines.append(f"first waypoint solved {metrics['first_waypoint_from_start_deg']:.3g} deg (largest joint) away from "
+                     "start: the trajectory begins there, not at start")
+    return [*lines, f"report: {report_dir / 'report.md'} (and report.html)"]
