@@ -142,7 +142,7 @@ def run_motion(robot_file: Path, path_file: Path, out: Path, overrides: list[str
               f"{options.speed:g} mm/s, acceleration {options.accel:g} mm/s^2, interpolation period {options.dt:g} s; "
               f"joint limits: {planned.limit_source}.")
     method = ("Position first: the TCP position is the primary task, the orientation acts only in the position "
-              "task's null space and yields near a wrist singularity (damping of its own singular values below "
+              "task's null space and yields near a singularity of the pose (damping of its own singular values below "
               f"orientation_eps = {options.orientation_eps:g}); limits are met by slowing down along the path "
               "(time-optimal time law), never by leaving it. The robot stops at every waypoint.")
     verdict = (f"Verdict: every sample within the path tolerance, the joint limits and ranges; trajectory written to {out}."
@@ -175,6 +175,11 @@ def run_motion(robot_file: Path, path_file: Path, out: Path, overrides: list[str
     return MotionOutcome(trajectory=out, report=report_dir, metrics=metrics, lines=summary_lines(metrics, out, report_dir))
 
 
+def _outside(value: float) -> str:
+    return "no sample outside singular neighbourhoods" if math.isnan(value) else \
+        f"{value:.3g} deg outside singular neighbourhoods"
+
+
 def summary_lines(metrics: dict, out: Path, report_dir: Path) -> list[str]:
     """The lines ``torchcal motion`` prints."""
     peak_v, peak_a = np.array(metrics["joint_speed_max_deg_s"]), np.array(metrics["joint_accel_max_deg_s2"])
@@ -185,7 +190,7 @@ def summary_lines(metrics: dict, out: Path, report_dir: Path) -> list[str]:
                   f"{metrics['start_error_mm']:.2g}, end {metrics['end_error_mm']:.2g}; tolerance "
                   f"{metrics['tolerance_mm']:g} mm)")
     orientation = (f"orientation deviation: max {metrics['orientation_deviation_max_deg']:.3g} deg "
-                   f"({metrics['orientation_deviation_regular_max_deg']:.3g} deg outside singular neighbourhoods; "
+                   f"({_outside(metrics['orientation_deviation_regular_max_deg'])}; "
                    f"{metrics['samples_orientation_yielding']} samples where the orientation task is near-singular "
                    f"and yields, {metrics['samples_position_yielding']} where the position task does)")
     joints = (f"joint speed: max {peak_v.max():.1f} deg/s (q{int(np.argmax(peak_v)) + 1}), at most "

@@ -53,16 +53,16 @@ class PlanOptions:
         accel: TCP acceleration along the path, mm/s^2.
         angular_speed: largest tool turn rate between waypoints, deg/s.
         dt: interpolation period of the output, s.
-        joint_speed: joint speed limits, deg/s; empty: the robot file's ``velocity``, else KR6-like values.
-        joint_accel: joint acceleration limits, deg/s^2; empty: the robot file's ``acceleration``,
-            else 3000 for every joint.
+        joint_speed: joint speed limits, deg/s (empty: the robot file's ``velocity``, else KR6-like values).
+        joint_accel: joint acceleration limits, deg/s^2 (empty: the robot file's ``acceleration``,
+            else 3000 for every joint).
         step: grid step of the geometric pass along the path, mm.
         orientation_eps: singular value of the orientation task (in the position task's null
             space) below which the orientation yields, rad/rad.
-        orientation_damping: damping of the orientation task at an exact wrist singularity, rad/rad.
-        position_eps: singular value of the position task below which the position yields
-            (shoulder and elbow singularities), mm/rad.
-        position_damping: damping of the position task at an exact shoulder or elbow singularity, mm/rad.
+        orientation_damping: damping of the orientation task where its singular value is zero, rad/rad.
+        position_eps: singular value of the position task below which the position yields (the
+            TCP at the edge of its reach), mm/rad.
+        position_damping: damping of the position task where its singular value is zero, mm/rad.
         gain: orientation-error feedback per mm of path, 1/mm (recovers a yielded orientation over about 1/gain mm).
         tolerance: largest path error accepted at a sample, mm; beyond it the command writes the
             report but no trajectory.

@@ -21,8 +21,10 @@ so each inverse is exact outside its task's singular neighbourhood and continuou
   direction: the position stays exact and only the orientation component about the vanishing
   direction yields, by an amount that grows continuously as ``sigma(Jo')`` falls below ``eps``:
   no joint velocity jumps, and the wrist never spins to hold an orientation it can barely reach.
-* At a shoulder or elbow singularity ``Jp`` itself loses a direction: there the position yields
-  too (a path through a stretched elbow is out of reach; the report says by how much).
+* At a shoulder or stretched-elbow singularity of the 6-D pose, a tool offset from the wrist centre
+  keeps ``Jp`` regular (the wrist joints move the TCP), so again the orientation yields. ``Jp``
+  itself loses a direction only where the TCP reaches the edge of its workspace: there the
+  position yields too (the path is out of reach; the report says by how much).
 
 Feedback: the position error is corrected in full at every step (``dp`` includes it; clipped to
 the step's length, so a path beyond the reach, where the position must yield, leaves the arm
