@@ -194,7 +194,7 @@ def before_after(model: ErrorModel, x_nom: torch.Tensor, case) -> dict:
     from torchcal.motion.clik import follow
     from torchcal.motion.config import MotionConfig
     from torchcal.motion.path import CartesianLimits, LinePath
-    from torchcal.motion.plan import PlanOptions, plan_motion
+    from torchcal.motion.planner import PlanOptions, plan_motion
     from torchcal.motion.priority import TcpKinematics
 
     poses, start = case
@@ -228,7 +228,7 @@ def damping_sweep(model: ErrorModel, cases: dict) -> dict:
     """Orientation damping against what it costs, on the wrist line executed by five true robots
     (nominal + the twin's error magnitudes, seeds 0-4): each passes the singularity at its own
     small distance, the case where the orientation must yield."""
-    from torchcal.motion.plan import PlanOptions, plan_motion
+    from torchcal.motion.planner import PlanOptions, plan_motion
     from torchcal.motion.priority import TcpKinematics
 
     poses, start = cases["wrist"]

@@ -43,7 +43,7 @@ def _expected(command: str) -> list[tuple[object, str]]:
     if command == "run":
         return [(compose_run_config([])[0], "")]
     if command == "motion":
-        from torchcal.motion.plan import PlanOptions
+        from torchcal.motion.planner import PlanOptions
 
         return [(PlanOptions, "")]
     from torchcal.config.compose import merge_section

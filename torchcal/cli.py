@@ -186,7 +186,7 @@ def option_listing(command: str) -> str:
             own = [o for o in list_options(get(name).options()) if o.key not in common]
             blocks.append(format_options(f"options of {name} files ({get(name).description}):", own))
     elif command == "motion":
-        from torchcal.motion.plan import PlanOptions
+        from torchcal.motion.planner import PlanOptions
 
         blocks.append(format_options("key=value options (mm, deg, s):", list_options(PlanOptions)))
     elif command == "simulate":

@@ -2,7 +2,7 @@
 
 Reads the path file (:mod:`torchcal.motion.waypoints`), the robot file and, with a model folder,
 the calibrated kinematics (geometry and joint-space errors: the joints the real robot must be
-sent); plans the motion (:mod:`torchcal.motion.plan`); writes the report (always) and the
+sent); plans the motion (:mod:`torchcal.motion.planner`); writes the report (always) and the
 trajectory CSV (``t`` s, ``q1..qN`` deg, one row every ``dt``; atomically) when every sample is
 within the path tolerance and the joint limits. Returns the lines the command prints.
 """
@@ -21,7 +21,7 @@ from torchcal.core.io import atomic_write_json, atomic_write_text
 from torchcal.core.overrides import apply_overrides
 from torchcal.kinematics.error_model import ErrorModel
 from torchcal.kinematics.robot import RobotModel, load_robot
-from torchcal.motion.plan import PlannedMotion, PlanOptions, measure, plan_motion
+from torchcal.motion.planner import PlannedMotion, PlanOptions, measure, plan_motion
 from torchcal.motion.priority import TcpKinematics
 from torchcal.motion.waypoints import load_waypoints
 

@@ -81,7 +81,7 @@ def motion_report(title: str, summary: list[str], metrics: dict, series: dict, s
 
     Args:
         summary: paragraphs (inputs, options, verdict).
-        metrics: the scalar figures of :func:`torchcal.motion.plan.measure`.
+        metrics: the scalar figures of :func:`torchcal.motion.planner.measure`.
         series: ``t``, ``position_error_mm``, ``orientation_deviation_deg``, ``joint_speed_deg_s``,
             ``joint_accel_deg_s2``, ``singular``, ``sigma_orientation``, ``sigma_position_mm``,
             ``tcp_speed_mm_s`` arrays.

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from torchcal.motion.plan import PlanOptions, plan_motion
+from torchcal.motion.planner import PlanOptions, plan_motion
 from torchcal.motion.priority import TcpKinematics
 from torchcal.motion.scenario import perturbed_parameters, singular_line
 
