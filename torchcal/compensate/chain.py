@@ -18,7 +18,6 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from torchcal.compensate.linalg import cross
 from torchcal.kinematics import transforms as tf
 from torchcal.kinematics.mdh import link_transform
 
@@ -87,7 +86,7 @@ class ChainGraph(nn.Module):
         With ``with_frames``, also ``T_base_i`` ``(B, C, N, 4, 4)`` of every joint frame (joint
         ``i`` turns about the z axis of frame ``i``, through its origin); else ``None``.
         """
-        angle = q.unsqueeze(1).unsqueeze(-1).unsqueeze(-1)  # (B, 1, N, 1, 1)
+        angle = q.reshape(-1, 1, self.n_joints, 1, 1)  # one node (unsqueezes would be three)
         links = torch.cos(angle) * self.k_cos + torch.sin(angle) * self.k_sin + self.k_one
         parts = torch.split(links, 1, dim=2)  # N x (B, C, 1, 4, 4)
         pose = parts[0]
@@ -99,6 +98,25 @@ class ChainGraph(nn.Module):
         if not with_frames:
             return tcp, None
         return tcp, torch.cat(frames, 2)
+
+    def single(self, q: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """TCP pose ``(B, 4, 4)`` and joint frames ``(B, N, 4, 4)`` of a one-chain graph (``C = 1``).
+
+        :meth:`forward` without the chain axis, so the compensator's iteration spends no node on
+        it: one Cos, one Sin, the link tensors in four elementwise nodes, ``N`` products down
+        the chain and one to the tool.
+        """
+        if self.k_cos.shape[0] != 1:
+            raise ValueError("single() is for a graph of one chain")
+        angle = q.reshape(-1, self.n_joints, 1, 1)
+        links = torch.cos(angle) * self.k_cos[0] + torch.sin(angle) * self.k_sin[0] + self.k_one[0]
+        parts = torch.split(links, 1, dim=1)  # N x (B, 1, 4, 4)
+        pose = parts[0]
+        frames = [pose]
+        for link in parts[1:]:
+            pose = pose @ link
+            frames.append(pose)
+        return (pose @ self.t_end[0])[:, 0], torch.cat(frames, 1)
 
     def positions(self, q: torch.Tensor) -> torch.Tensor:
         """TCP positions ``(B, C, 3)`` in ``base``, m, for joints ``q`` ``(B, N)`` rad.
@@ -121,17 +139,37 @@ class ChainGraph(nn.Module):
             point = turned @ self.link_rot_t[:, i] + self.link_trans[:, i]
         return point.transpose(0, 1)
 
+# The Jacobian from the flattened frames (row-major 4x4 -> 16): z_i at 4r+2, o_i at 4r+3, and 1 at
+# 15. With w = o_i - p (the TCP's origin subtracted at the slots 3, 7, 11), the position column
+# z x (p - o) = w x z has the components w_(r+1) z_(r+2) - w_(r+2) z_(r+1): two gathers, one
+# product, one constant matrix that takes the differences and passes z through.
+_TCP_ORIGIN_MASK = [1.0 if k in (3, 7, 11) else 0.0 for k in range(16)]
+_GATHER_A = [7, 11, 3, 11, 3, 7, 2, 6, 10]  # w1 w2 w0 | w2 w0 w1 | z0 z1 z2
+_GATHER_B = [10, 2, 6, 6, 10, 2, 15, 15, 15]  # z2 z0 z1 | z1 z2 z0 | 1 1 1
+
+
+def _jacobian_combination() -> torch.Tensor:
+    a = torch.zeros(9, 6, dtype=torch.float64)
+    for r in range(3):
+        a[r, r], a[3 + r, r], a[6 + r, 3 + r] = 1.0, -1.0, 1.0
+    return a
+
+
 def geometric_jacobian_t(tcp: torch.Tensor, frames: torch.Tensor) -> torch.Tensor:
-    """Transposed geometric Jacobian ``(..., N, 6)`` from :meth:`ChainGraph.forward` outputs.
+    """Transposed geometric Jacobian ``(B, N, 6)`` from :meth:`ChainGraph.single` outputs.
 
     Args:
-        tcp: ``(..., 4, 4)`` TCP pose in ``base``.
-        frames: ``(..., N, 4, 4)`` joint frames in ``base``.
+        tcp: ``(B, 4, 4)`` TCP pose in ``base``.
+        frames: ``(B, N, 4, 4)`` joint frames in ``base``.
 
     Returns:
         Row ``i`` = ``[z_i x (p - o_i), z_i]``: TCP linear velocity (m/rad) and tool angular
-        velocity (rad/rad) in ``base`` per unit rate of joint ``i``.
+        velocity (rad/rad) in ``base`` per unit rate of joint ``i``. Eight ONNX nodes whatever
+        the joint count (the cross products by gathers of the flattened frames).
     """
-    axis = frames[..., :3, 2]
-    lever = tcp[..., None, :3, 3] - frames[..., :3, 3]
-    return torch.cat([cross(axis, lever), axis], -1)
+    n = frames.shape[-3]
+    mask = torch.tensor(_TCP_ORIGIN_MASK, dtype=tcp.dtype, device=tcp.device)
+    flat = frames.reshape(-1, n, 16) - tcp.reshape(-1, 1, 16) * mask
+    first = flat.index_select(-1, torch.tensor(_GATHER_A, device=tcp.device))
+    second = flat.index_select(-1, torch.tensor(_GATHER_B, device=tcp.device))
+    return (first * second) @ _jacobian_combination().to(tcp)
