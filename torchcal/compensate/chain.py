@@ -57,6 +57,10 @@ class ChainGraph(nn.Module):
     t_end: torch.Tensor
     link_rot_t: torch.Tensor
     link_trans: torch.Tensor
+    angle_map: torch.Tensor
+    angle_shift: torch.Tensor
+    link_map: torch.Tensor
+    link_one: torch.Tensor
 
     def __init__(
         self,
@@ -78,7 +82,21 @@ class ChainGraph(nn.Module):
         links = k[0] + k[2]  # C_i E_c + C_i E_0 = C_i
         self.register_buffer("link_rot_t", links[..., :3, :3].transpose(-1, -2).contiguous().to(device, dtype))
         self.register_buffer("link_trans", links[..., :3, 3].unsqueeze(-2).to(device, dtype))
-        self.n_joints = int(tables.shape[-2])
+        self.n_joints = n = int(tables.shape[-2])
+        # :meth:`single` (first chain): angles [q_i + pi/2, q_i] by one product, one Sin gives
+        # [cos q_i, sin q_i], and one more product assembles every link, (B, 2N) @ (2N, 16N)
+        angle_map = torch.zeros(n, 2 * n, dtype=torch.float64)
+        link_map = torch.zeros(2 * n, 16 * n, dtype=torch.float64)
+        for i in range(n):
+            angle_map[i, 2 * i] = angle_map[i, 2 * i + 1] = 1.0
+            link_map[2 * i, 16 * i : 16 * i + 16] = k[0, 0, i].reshape(16)
+            link_map[2 * i + 1, 16 * i : 16 * i + 16] = k[1, 0, i].reshape(16)
+        shift = torch.zeros(2 * n, dtype=torch.float64)
+        shift[0::2] = torch.pi / 2
+        self.register_buffer("angle_map", angle_map.to(device, dtype))
+        self.register_buffer("angle_shift", shift.to(device, dtype))
+        self.register_buffer("link_map", link_map.to(device, dtype))
+        self.register_buffer("link_one", k[2, 0].reshape(16 * n).to(device, dtype))
 
     def forward(self, q: torch.Tensor, with_frames: bool = False) -> tuple[torch.Tensor, torch.Tensor | None]:
         """TCP poses ``T_base_tool`` ``(B, C, 4, 4)`` for joints ``q`` ``(B, N)`` rad.
@@ -100,23 +118,29 @@ class ChainGraph(nn.Module):
         return tcp, torch.cat(frames, 2)
 
     def single(self, q: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """TCP pose ``(B, 4, 4)`` and joint frames ``(B, N, 4, 4)`` of a one-chain graph (``C = 1``).
+        """TCP pose ``(B, 1, 4, 4)`` and joint frames ``(B, N, 4, 4)`` of a one-chain graph (``C = 1``).
 
-        :meth:`forward` without the chain axis, so the compensator's iteration spends no node on
-        it: one Cos, one Sin, the link tensors in four elementwise nodes, ``N`` products down
-        the chain and one to the tool.
+        :meth:`forward` in fewer nodes, for the compensator's iteration: in float64 one Sin gives
+        cosines and sines (``cos q = sin(q + pi/2)``, within 1e-15 of ``cos``) and two products
+        assemble all links; then ``N`` products down the chain and one to the tool. (float32
+        keeps a Cos and a Sin: ``q + pi/2`` would round the angle by ~5e-7 rad there.)
         """
         if self.k_cos.shape[0] != 1:
             raise ValueError("single() is for a graph of one chain")
-        angle = q.reshape(-1, self.n_joints, 1, 1)
-        links = torch.cos(angle) * self.k_cos[0] + torch.sin(angle) * self.k_sin[0] + self.k_one[0]
+        n = self.n_joints
+        if self.link_map.dtype == torch.float64:
+            cos_sin = torch.sin(q @ self.angle_map + self.angle_shift)  # (B, 2N): cos q_i, sin q_i
+            links = (cos_sin @ self.link_map + self.link_one).reshape(-1, n, 4, 4)
+        else:
+            angle = q.reshape(-1, n, 1, 1)
+            links = torch.cos(angle) * self.k_cos[0] + torch.sin(angle) * self.k_sin[0] + self.k_one[0]
         parts = torch.split(links, 1, dim=1)  # N x (B, 1, 4, 4)
         pose = parts[0]
         frames = [pose]
         for link in parts[1:]:
             pose = pose @ link
             frames.append(pose)
-        return (pose @ self.t_end[0])[:, 0], torch.cat(frames, 1)
+        return pose @ self.t_end[0], torch.cat(frames, 1)
 
     def positions(self, q: torch.Tensor) -> torch.Tensor:
         """TCP positions ``(B, C, 3)`` in ``base``, m, for joints ``q`` ``(B, N)`` rad.

@@ -170,10 +170,11 @@ class _TwoModels(nn.Module):
         nominal = nominal[:, 0]
         dq, slope = self.joint_errors(q, nominal_frames[:, 0], nominal[:, :3, 3])
         pose, frames = self.calibrated.single(q + dq)
-        return nominal, pose, frames, slope
+        return nominal, pose.reshape(-1, 4, 4), frames, slope
 
     def calibrated_at(self, q: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
-        """Calibrated TCP pose and joint frames at ``q + dq(q)``, and the slope (or ``None``)."""
+        """Calibrated TCP pose ``(B, 4, 4)`` or ``(B, 1, 4, 4)`` (the Jacobian and the error read
+        it flattened: no node spent on the axis) and joint frames at ``q + dq(q)``, and the slope (or ``None``)."""
         if self.joint_errors is not None and self.joint_errors.needs_frames:
             return self.nominal_and_calibrated(q)[1:]
         slope = None
@@ -233,6 +234,7 @@ class CompensatorGraph(nn.Module):
     lower: torch.Tensor
     upper: torch.Tensor
     target_weights: torch.Tensor
+    one: torch.Tensor
     blocks: torch.Tensor
     is_position_row: torch.Tensor
     scores_both: torch.Tensor
@@ -292,6 +294,7 @@ class CompensatorGraph(nn.Module):
         # squared-error scores of the convergence test: position and orientation rows of e e
         blocks = torch.zeros(2, 6, **f64)
         blocks[0, :3] = blocks[1, 3:] = 1.0
+        self.register_buffer("one", torch.tensor(1.0, **f64))  # a float64 constant: no Cast node in the test
         self.register_buffer("blocks", blocks)  # sums of e e: |e_p|^2, |e_o|^2
         self.register_buffer("is_position_row", torch.tensor([[True], [False]], device=device))
         scores = blocks / torch.tensor([[CONVERGED_POSITION_M**2], [CONVERGED_ORIENTATION_RAD**2]], **f64)
@@ -332,7 +335,12 @@ class CompensatorGraph(nn.Module):
                 if not bool(self.pending(score)):
                     break
                 _, q, jac_t, error, score = self.iterate(q, jac_t, error, score, weights, wrench, orientation)
-        q_c, residual = self.finish(q_in, before, q, error)
+        return self.narrow(*self.finish(q_in, before, q, error))
+
+    def narrow(self, q_c: torch.Tensor, residual: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The outputs in the graph's dtype (a float32 graph's two Cast nodes)."""
+        if self.dtype == torch.float64:
+            return q_c, residual
         return q_c.to(self.dtype), residual.to(self.dtype)
 
     def widen(self, q_nominal: torch.Tensor, wrench: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor | None]:
@@ -354,10 +362,9 @@ class CompensatorGraph(nn.Module):
         weights = self.scores_both if orientation else self.scores_position
         return (weights @ (error * error)).amax(1)
 
-    @staticmethod
-    def pending(score: torch.Tensor) -> torch.Tensor:
+    def pending(self, score: torch.Tensor) -> torch.Tensor:
         """Whether any pose of the batch has not converged (a 0-d bool, the ``Loop``'s condition)."""
-        return score.amax() >= 1.0
+        return score.amax() >= self.one
 
     def iterate(self, q: torch.Tensor, jac_t: torch.Tensor, error: torch.Tensor, score: torch.Tensor, weights: torch.Tensor,
                 wrench: torch.Tensor | None, orientation: bool):
@@ -368,7 +375,7 @@ class CompensatorGraph(nn.Module):
         """
         dq = self.step(jac_t, error, orientation=orientation)
         stepped = torch.minimum(torch.maximum(q + dq, self.lower), self.upper)
-        q = torch.where(score < 1.0, q, stepped)
+        q = torch.where(score < self.one, q, stepped)
         pose, joint_frames, slope = self.models.calibrated_at(q)
         error = self.loaded_error(weights, pose, joint_frames, q, wrench)
         score = self.score(error, orientation)
@@ -514,6 +521,7 @@ class LoadedCompensatorGraph(CompensatorGraph):
         """The error measured at the loaded TCP (the Jacobian stays rigid)."""
         if wrench is None:
             raise ValueError("a loaded compensator needs the wrench")
+        pose = pose.reshape(-1, 4, 4)
         position, rotation = self.deflection.loaded_pose(pose, joint_frames, wrench)
         loaded = torch.cat([torch.cat([rotation, position.unsqueeze(-1)], -1), pose[:, 3:]], 1)
         return super().loaded_error(weights, loaded, joint_frames, q, wrench)

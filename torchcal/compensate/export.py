@@ -84,6 +84,11 @@ def onnx_bytes(
     onnxruntime's contrib domain is declared for the compensator's ``Inverse`` node; a graph
     without one does not list it.
     """
+    if isinstance(module, CompensatorWithResidual):  # its steps are Loops that stop at convergence
+        from torchcal.compensate.loop_graph import compensator_model
+
+        return compensator_model(module.graph, n_joints, input_name, (output_name, *extra_outputs), wrench_input=wrench_input,
+                                 opset=OPSET, contrib=uses_contrib_inverse(module)).SerializeToString()
     buffer = io.BytesIO()
     example = torch.zeros(2, n_joints, dtype=dtype)
     outputs = [output_name, *extra_outputs]
