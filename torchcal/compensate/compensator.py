@@ -51,9 +51,21 @@ first-order prediction from the last step would call an oscillating, unconverged
 A controller reads from it whether a command was solved (position below its tolerance) and how
 far the tool is turned from the nominal orientation.
 
-The iteration count is fixed (no data-dependent control flow in the graph). The manifest's
-``convergence`` (:func:`torchcal.compensate.export.convergence_report`) shows what it reaches
-over the joint range, with the singular neighbourhoods as separate strata.
+**Iterations.** Each pose steps until it has converged (:data:`CONVERGED_POSITION_M`, and
+:data:`CONVERGED_ORIENTATION_RAD` in the steps that move the orientation), at most
+``iterations`` steps; a converged pose keeps its command while the rest of its batch steps on, so
+its result does not depend on the batch. Regular poses take two or three steps, the wrist
+singular ones four. The exported graph runs each phase of steps (mixed, then position-only) as an
+ONNX ``Loop`` whose body is :meth:`CompensatorGraph.iterate` (:mod:`torchcal.compensate.loop_graph`).
+The manifest's ``convergence`` (:func:`torchcal.compensate.export.convergence_report`) shows what
+the steps reach over the joint range, with the singular neighbourhoods as separate strata.
+
+**Compact graph.** The graph computes in float64 whatever its interface, and each step is a few
+dozen onnxruntime nodes: the calibrated chain's links from one Sin and two products
+(:meth:`~torchcal.compensate.chain.ChainGraph.single`), the Jacobian in eight nodes from the
+flattened frames (:func:`~torchcal.compensate.chain.geometric_jacobian_t`), the pose error as one
+product of the TCP pose with weights fixed by the target once per call (:func:`_target_weights`),
+and the step's solves sharing one Gram matrix (:func:`~torchcal.compensate.steps.position_first_step`).
 """
 
 from __future__ import annotations

@@ -71,10 +71,15 @@ def _rename(graph, prefix: str, keep: dict[str, str]) -> None:
             return n  # an omitted optional input
         return keep.get(n, prefix + n)
 
+    import onnx
+
     for node in graph.node:
         node.input[:] = [name(n) for n in node.input]
         node.output[:] = [name(n) for n in node.output]
         node.name = prefix + node.name
+        for attribute in node.attribute:  # a subgraph reads the enclosing graph's names
+            if attribute.type == onnx.AttributeProto.GRAPH:
+                _rename(attribute.g, prefix, keep)
     for collection in (graph.input, graph.output, graph.value_info):
         for v in collection:
             v.name = name(v.name)
@@ -82,7 +87,7 @@ def _rename(graph, prefix: str, keep: dict[str, str]) -> None:
         t.name = name(t.name)
 
 
-def compensator_model(graph: CompensatorGraph, n_joints: int, input_name: str, output_names: tuple[str, str], *,
+def compensator_model(graph: CompensatorGraph, n_joints: int, input_name: str, output_names: tuple[str, ...], *,
                       wrench_input: str | None = None, opset: int = 17, contrib: bool = True):
     """The ONNX ``ModelProto`` of ``graph``: ``(input_name[, wrench_input]) -> output_names`` (command, residual)."""
     import onnx
@@ -103,7 +108,7 @@ def compensator_model(graph: CompensatorGraph, n_joints: int, input_name: str, o
         initializers.extend(part_graph.initializer)
 
     # start: the graph inputs in, the first iterate out (a float32 graph widens its inputs here)
-    start_in = [input_name] + ([wrench_input] if loaded else [])
+    start_in = [input_name] + ([wrench_input] if wrench_input is not None else [])
     start_out = ["weights", "q_0", "jac_t_0", "error_0"] + (["wrench_wide"] if loaded else [])
 
     def start_fn(q_in, w_in=None):
@@ -112,7 +117,7 @@ def compensator_model(graph: CompensatorGraph, n_joints: int, input_name: str, o
         return (w_b, q_0, j_0, e_0) + ((w_w,) if loaded else ())
 
     part = _export(_Part(graph, start_fn), (example,) + ((wrench,) if loaded else ()), start_in, start_out,
-                   start_in, start_out, opset, contrib)
+                   start_in, start_out, opset, False)
     _rename(part, "start/", {n: n for n in start_in + start_out})
     add(part)
     outer = ["weights"] + (["wrench_wide"] if loaded else [])
@@ -126,7 +131,7 @@ def compensator_model(graph: CompensatorGraph, n_joints: int, input_name: str, o
 
         names_in = [f"error_{index}"]
         names_out = [f"score_{index}", f"pending_{index}"]
-        part = _export(_Part(graph, score_fn), (error,), names_in, names_out, names_in, names_out[:1], opset, contrib)
+        part = _export(_Part(graph, score_fn), (error,), names_in, names_out, names_in, names_out[:1], opset, False)
         _rename(part, f"score{phase}/", {n: n for n in names_in + names_out})
         add(part)
         with torch.no_grad():
@@ -146,7 +151,7 @@ def compensator_model(graph: CompensatorGraph, n_joints: int, input_name: str, o
         carried = [v for v in body.input if v.name not in outer]
         del body.input[:]
         body.input.extend([helper.make_tensor_value_info("iteration", TensorProto.INT64, []),
-                           helper.make_tensor_value_info("pending_in", TensorProto.BOOL, [])] + carried)
+                           helper.make_tensor_value_info("pending_in", TensorProto.BOOL, []), *carried])
         body.name = f"phase{phase}"
         most = helper.make_tensor(f"most_steps_{phase}", TensorProto.INT64, [], [steps])
         initializers.append(most)
@@ -162,13 +167,13 @@ def compensator_model(graph: CompensatorGraph, n_joints: int, input_name: str, o
         return graph.narrow(*graph.finish(q_nom, bef, q_last, e_last))
 
     part = _export(_Part(graph, finish_fn), (q64, before, q, error), finish_in, list(output_names), finish_in,
-                   list(output_names), opset, contrib)
+                   list(output_names), opset, False)
     _rename(part, "finish/", {n: n for n in finish_in + list(output_names)})
     add(part)
 
     onnx_type = TensorProto.DOUBLE if dtype == torch.float64 else TensorProto.FLOAT
     inputs = [helper.make_tensor_value_info(input_name, onnx_type, ["batch", n_joints])]
-    if loaded:
+    if wrench_input is not None:
         inputs.append(helper.make_tensor_value_info(wrench_input, onnx_type, ["batch", 6]))
     outputs = [helper.make_tensor_value_info(output_names[0], onnx_type, ["batch", n_joints]),
                helper.make_tensor_value_info(output_names[1], onnx_type, ["batch", 2])]

@@ -96,7 +96,7 @@ class CompensatorRuntime:
             options.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
         self._compensator = self._load("compensator" + suffix, options, ort)
         self._monitor = self._load("monitor" + suffix, options, ort)
-        self._bound = None  # correct_one's buffers, made on its first call
+        self._bound: tuple | None = None  # correct_one's buffers, made on its first call
 
     def _bind_one(self):
         """Input and output buffers of one pose, bound to the compensator session once (IOBinding):

@@ -55,7 +55,7 @@ def pose_step(jac_t: torch.Tensor, error: torch.Tensor, damping_gain: torch.Tens
     """
     lam2 = damping_gain * (error * error).sum(-2, keepdim=True) + damping_floor_sq  # (B, 1, 1)
     normal = jac_t.transpose(-1, -2) @ jac_t + lam2 * eye6
-    return (jac_t @ solve(normal, error, eye6)).squeeze(-1)
+    return (jac_t @ solve(normal, error, eye6))[..., 0]  # indexing: squeeze of a dynamic shape exports as an If
 
 
 def position_first_step(jac_t: torch.Tensor, error: torch.Tensor, damping_gain: torch.Tensor, damping_floor_sq: torch.Tensor,
@@ -87,7 +87,7 @@ def position_first_step(jac_t: torch.Tensor, error: torch.Tensor, damping_gain: 
     lam_p = damping_gain * (ep * ep).sum(-2, keepdim=True) + damping_floor_sq
     if not orientation:
         dq_p = jp @ (inverse(jp.transpose(-1, -2) @ jp + lam_p * eye3) @ ep)  # (B, N, 1)
-        return bounded(dq_p.squeeze(-1), max_step)
+        return bounded(dq_p[..., 0], max_step)
     gram = jac_t.transpose(-1, -2) @ jac_t  # (B, 6, 6): [[Jp Jp^T, Jp Jo^T], [Jo Jp^T, Jo Jo^T]]
     gram_inv = inverse(gram[:, :3, :3] + lam_p * eye3)  # (B, 3, 3)
     solved = gram_inv @ torch.cat([ep, gram[:, :3, 3:]], -1)  # [G^-1 e_p | G^-1 Jp Jo^T], (B, 3, 4)
