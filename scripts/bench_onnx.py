@@ -247,6 +247,25 @@ def _cycling(session, name: str, poses: np.ndarray):
     return call
 
 
+def _block_latency(calls_by_name: dict, calls: int, rounds: int = 7) -> dict:
+    """Latency of each callable measured in blocks of ``calls`` consecutive calls (warm caches, as a
+    controller calling one graph per cycle), the callables in turn for ``rounds`` rounds so that all
+    share the machine's load; per callable the medians over the rounds of each block's median and p99."""
+    per: dict[str, list[tuple[float, float]]] = {name: [] for name in calls_by_name}
+    for _ in range(rounds):
+        for name, fn in calls_by_name.items():
+            for _ in range(50):
+                fn()
+            times = np.empty(calls)
+            for i in range(calls):
+                t0 = time.perf_counter_ns()
+                fn()
+                times[i] = time.perf_counter_ns() - t0
+            per[name].append((float(np.median(times)) / 1e3, float(np.percentile(times, 99)) / 1e3))
+    return {name: {"median_us": float(np.median([m for m, _ in v])), "p99_us": float(np.median([p for _, p in v])),
+                   "calls": calls, "rounds": rounds} for name, v in per.items()}
+
+
 def _export_tag(options: dict) -> str:
     """Folder name of one export's options (variants with the same options share the export)."""
     return "-".join(f"{k}{v}" for k, v in sorted(options.items())) or "default"
@@ -348,6 +367,11 @@ def main(argv: list[str] | None = None) -> int:
                 lambda s, x: lambda: s.run(None, {GRAPHS["compensator"][2]: x}))(session, np.ascontiguousarray(q_one))
         console.log("single-sample latency, all graphs round-robin, one thread")
         latency = _interleaved_latency(single_calls, calls)
+        console.log("single-sample latency in warm blocks, one thread")
+        blocks = _block_latency({k: single_calls[k] for k in (
+            "one-node graph (call floor)", "compensator", "compensator via CompensatorRuntime.correct",
+            "compensator via CompensatorRuntime.correct_one (bound buffers)", "compensator, 200 uniform poses",
+            "compensator, 200 wrist-singular poses (|q_(N-1)| < 1 deg)")}, max(100, calls // 10))
         del single_calls
         results = {}
         for key, (options, graph_key, description) in VARIANTS.items():
@@ -397,6 +421,7 @@ def main(argv: list[str] | None = None) -> int:
                     "monitor_f32_batch_poses_per_s": 1e6},
         "call_floor": latency["one-node graph (call floor)"],
         "call_floor_alone": floor_alone,
+        "blocks": blocks,
         "call_paths": {k: v for k, v in latency.items() if k.startswith(("compensator via", "compensator, "))},
         "parts": parts,
         "graphs": results,
@@ -423,6 +448,21 @@ def _targets_line(report: dict) -> str:
             f"{t['floor_multiple_p99']:.0f}x (p99) the one-node floor of the same round-robin ({floor['median_us']:.1f} / "
             f"{floor['p99_us']:.1f} us). This run, the benchmark pose: " + "; ".join(lines) + ". "
             f"Batch throughput of the float32 monitor, all threads: {f32:.3g} poses/s (target >= {t['monitor_f32_batch_poses_per_s']:.0e}).")
+
+
+def _blocks_lines(report: dict) -> list[str]:
+    """The warm-block latencies against the floor measured the same way."""
+    blocks = report.get("blocks")
+    if not blocks:
+        return []
+    floor = blocks["one-node graph (call floor)"]
+    lines = ["", "Measured in warm blocks instead (each call type many times in a row, in turn for several rounds, medians of "
+             "the rounds; no other graph runs between two calls of one, as on a controller):", "",
+             "| call | median / p99 (us) | x floor (median / p99) |", "| --- | --- | --- |"]
+    for name, v in blocks.items():
+        lines.append(f"| {name} | {v['median_us']:.1f} / {v['p99_us']:.1f} | {v['median_us'] / floor['median_us']:.1f} / "
+                     f"{v['p99_us'] / floor['p99_us']:.1f} |")
+    return lines
 
 
 def _parts_lines(report: dict) -> list[str]:
@@ -482,6 +522,7 @@ def markdown(report: dict) -> str:
     lines += [
         "",
         _targets_line(report),
+        *_blocks_lines(report),
         *_parts_lines(report),
         "",
         "## Compensator convergence (float64; positions over the solvable poses, position Jacobian sigma_min > 1 mm/rad)",
