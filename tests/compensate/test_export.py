@@ -126,3 +126,16 @@ def test_export_and_check_reports_parity(model_dir, twin, tmp_path):
     # the exported monitor predicts the held-out tracker points to the noise level of the twin
     assert result["held_out_monitor"]["position_rms_mm"] < 0.2
     assert (tmp_path / "out" / "manifest.json").is_file()
+
+
+def test_exported_loops_give_a_pose_the_same_command_alone_and_in_a_batch(exported, stored, graphs):
+    """The Loops step until every pose of the batch has converged; a converged pose keeps its
+    command meanwhile, so its result is the one it gets alone (and torch's)."""
+    folder, _ = exported
+    q = stored.robot.sample_joints(40, torch.Generator().manual_seed(25))
+    q[:5, -2] = 0.0  # wrist-singular poses take more steps than the rest
+    together = run(folder, "compensator", q)
+    alone = torch.cat([run(folder, "compensator", row[None]) for row in q])
+    assert (together - alone).abs().max() < 1e-12  # rad
+    with torch.no_grad():
+        assert (together - graphs["compensator"](q)).abs().max() < 1e-9
