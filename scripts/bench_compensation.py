@@ -18,12 +18,9 @@ from __future__ import annotations
 import argparse
 import os
 import platform
-import sys
 import tempfile
 import time
 from pathlib import Path
-
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 ROBOTS = {
     "twin-kr6": "6-R, spherical wrist (the default twin)",

@@ -98,7 +98,7 @@ def main() -> None:
         r["speedup_of_torchcal"] = r["time_s"] / ours
     result = {
         "poses": args.poses,
-        "parameters": int(len(free)),
+        "parameters": len(free),
         "repeats": args.repeats,
         "torch_threads": torch.get_num_threads(),
         "machine": platform.processor() or platform.machine(),

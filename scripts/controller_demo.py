@@ -11,13 +11,10 @@ from __future__ import annotations
 
 import argparse
 import sys
-from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-
-from torchcal.compensate.runtime import CompensatorRuntime  # noqa: E402
+from torchcal.compensate.runtime import CompensatorRuntime
 
 
 def main(argv: list[str] | None = None) -> int:

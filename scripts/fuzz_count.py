@@ -1,4 +1,4 @@
-"""Run the bad-input cases of ``tests/fuzz_cases.py`` as processes against a checkout and count outcomes.
+"""Run the bad-input cases of ``torchcal/testing/fuzz_cases.py`` as processes against a checkout and count outcomes.
 
     python scripts/fuzz_count.py --checkout /path/to/torchcal --work /tmp/fuzz_count
 
@@ -25,11 +25,9 @@ import sys
 from collections import Counter
 from pathlib import Path
 
-HERE = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(HERE / "tests"))
-sys.path.insert(0, str(HERE))
+from torchcal.testing.fuzz_cases import CASES, make_fixtures, out_state_problem, snapshot
 
-from fuzz_cases import CASES, make_fixtures, out_state_problem, snapshot
+HERE = Path(__file__).resolve().parents[1]
 
 
 def _nonblank(text: str) -> list[str]:

@@ -23,23 +23,21 @@ import argparse
 import json
 import math
 import os
-import sys
 import tempfile
 import time
 from dataclasses import replace
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+from torchcal.kinematics.error_model import ErrorModel
+from torchcal.kinematics.ik import solve_ik
+from torchcal.kinematics.robot import default_robot_path, load_robot
+from torchcal.motion import plots
+from torchcal.motion.clik import follow
+from torchcal.motion.config import MotionConfig
+from torchcal.motion.metrics import path_errors, summarize
+from torchcal.motion.scenario import perturbed_parameters, singular_line
 
-from torchcal.kinematics.error_model import ErrorModel  # noqa: E402
-from torchcal.kinematics.ik import solve_ik  # noqa: E402
-from torchcal.kinematics.robot import default_robot_path, load_robot  # noqa: E402
-from torchcal.motion import plots  # noqa: E402
-from torchcal.motion.clik import follow  # noqa: E402
-from torchcal.motion.config import MotionConfig  # noqa: E402
-from torchcal.motion.metrics import path_errors, summarize  # noqa: E402
-from torchcal.motion.scenario import perturbed_parameters, singular_line  # noqa: E402
+ROOT = Path(__file__).resolve().parents[1]
 
 ACCEPT_MM = 0.005
 

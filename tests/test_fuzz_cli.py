@@ -1,6 +1,6 @@
 """Bad inputs through the command line: one line and exit status 2 (or a warning), never a traceback.
 
-Each case of :mod:`fuzz_cases` runs through ``torchcal.cli.main`` in this process, so an
+Each case of :mod:`torchcal.testing.fuzz_cases` runs through ``torchcal.cli.main`` in this process, so an
 exception that escapes ``main`` (a traceback for a user) fails the test. Checked: the exit
 status, that stderr holds exactly one ``torchcal: error:`` line with the expected text (or the
 expected warning), and the state of the output path (absent, unchanged or a whole model folder).
@@ -18,9 +18,9 @@ import warnings
 from pathlib import Path
 
 import pytest
-from fuzz_cases import CASES, Fixtures, make_fixtures, out_state_problem, snapshot
 
 from torchcal.cli import main
+from torchcal.testing.fuzz_cases import CASES, Fixtures, make_fixtures, out_state_problem, snapshot
 
 pytestmark = pytest.mark.slow
 

@@ -16,9 +16,11 @@ from collections.abc import Callable
 from pathlib import Path
 
 
-def _split_instrument(overrides: list[str], default: str = "tracker") -> tuple[str, list[str]]:
-    """Take ``instrument=<name>`` out of a list of ``key=value`` overrides."""
-    instrument, rest = default, []
+def _split_instrument(overrides: list[str]) -> tuple[str, list[str]]:
+    """Take ``instrument=<name>`` out of a list of ``key=value`` overrides (default: the registry's)."""
+    from torchcal.instruments.registry import DEFAULT
+
+    instrument, rest = DEFAULT, []
     for item in overrides:
         key, _, value = item.partition("=")
         if key.strip() == "instrument":
@@ -103,10 +105,7 @@ def _cmd_evaluate(args) -> int:
         print(f"torchcal: {line}", file=sys.stderr)
     if outcome.report is not None:
         print(f"torchcal: report: {outcome.report} (and {outcome.report.with_suffix('.html').name})", file=sys.stderr)
-    shown = outcome.metrics
-    if instrument.name == "tracker":  # the point figures; leakage and compensator are in the lines above
-        shown = {k: v for k, v in shown.items() if k.startswith(("n_", "position_"))}
-    print(json.dumps(shown, indent=2, default=str))
+    print(json.dumps(instrument.shown_metrics(outcome.metrics), indent=2, default=str))
     return 0
 
 
@@ -165,12 +164,12 @@ def option_listing(command: str) -> str:
 
     blocks: list[str] = []
     if command in ("fit", "evaluate"):
-        from torchcal.config.schema import FitConfig
-        from torchcal.instruments.registry import get, names
+        from torchcal.instruments.registry import default, get, names
 
-        blocks.append(format_options("key=value options (tracker points, and every kind unless listed below):",
-                                     list_options(FitConfig)))
-        common = {o.key for o in list_options(FitConfig)}
+        first = default()
+        blocks.append(format_options(f"key=value options ({first.name} files, and every kind unless listed below):",
+                                     list_options(first.options())))
+        common = {o.key for o in list_options(first.options())}
         for name in names():
             own = [o for o in list_options(get(name).options()) if o.key not in common]
             blocks.append(format_options(f"options of {name} files ({get(name).description}):", own))
@@ -212,7 +211,9 @@ def build_parser(with_options: bool = False) -> argparse.ArgumentParser:
     p.add_argument("overrides", nargs="*", help="config groups and key=value, e.g. model=mlp twin.n_train=120 fit.method=lasso")
     p.set_defaults(func=_cmd_run)
 
-    p = add("simulate", help="write a twin case (instrument=tracker|tracer|stiffness|profile): robot.yaml, data files, truth.json")
+    from torchcal.instruments.registry import names
+
+    p = add("simulate", help=f"write a twin case (instrument={'|'.join(names())}): robot.yaml, data files, truth.json")
     p.add_argument("--out", required=True)
     p.add_argument("overrides", nargs="*", help="key=value of the twin, e.g. gravity=true n_train=200")
     p.set_defaults(func=_cmd_simulate)

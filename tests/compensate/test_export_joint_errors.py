@@ -125,7 +125,7 @@ def sagging(tmp_path_factory):
 
 
 def test_export_carries_the_joint_space_errors_with_onnxruntime_parity(sagging):
-    twin, folder, manifest, out = sagging
+    _twin, folder, manifest, out = sagging
     assert manifest["stages"]["gravity_compliance"] and manifest["stages"]["joint_harmonics"]
     stored = load_model(folder)
     q = stored.robot.sample_joints(2000, torch.Generator().manual_seed(8))

@@ -85,7 +85,7 @@ def test_ort_solve_is_one_contrib_node_and_matches_lapack_in_onnxruntime(dtype):
     mm = m.to(dtype).double()
     a = mm[:, :, :6] @ mm[:, :, :6].transpose(-1, -2) + 1e-3 * torch.eye(6, dtype=torch.float64)
     ref = torch.linalg.solve(a, mm[:, :, 6:]).numpy()
-    tol = dict(rtol=1e-8, atol=1e-10) if dtype == torch.float64 else dict(rtol=1e-2, atol=1e-3)
+    tol = {"rtol": 1e-8, "atol": 1e-10} if dtype == torch.float64 else {"rtol": 1e-2, "atol": 1e-3}
     np.testing.assert_allclose(got, ref, **tol)
     # eager torch agrees with LAPACK as well (the graphs are also run in torch)
     np.testing.assert_allclose(_OrtSolve()(m).numpy(), torch.linalg.solve(

@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 
 import torch
-from fd_jacobian import central_difference_jacobian, roundoff_atol
+from helpers import central_difference_jacobian, roundoff_atol
 
 from tests.conftest import perturbed_vector
 from torchcal.data.measurements import Measurements

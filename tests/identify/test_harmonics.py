@@ -6,7 +6,7 @@ import math
 
 import pytest
 import torch
-from fd_jacobian import central_difference_jacobian, roundoff_atol
+from helpers import central_difference_jacobian, roundoff_atol
 
 from torchcal.config.schema import FitConfig
 from torchcal.core.errors import DataError

@@ -5,20 +5,12 @@ from __future__ import annotations
 import math
 
 import torch
+from helpers import central_difference
 
 from tests.conftest import perturbed_vector
 from torchcal.kinematics.error_model import ErrorModel
 from torchcal.kinematics.ik import solve_ik
 from torchcal.kinematics.joint_jacobian import geometric_jacobian
-
-
-def _central_difference(f, x, eps=1e-6):
-    cols = []
-    for k in range(x.shape[0]):
-        e = torch.zeros_like(x)
-        e[k] = eps
-        cols.append((f(x + e) - f(x - e)) / (2 * eps))
-    return torch.stack(cols, -1)
 
 
 def test_nominal_vector_reproduces_nominal_fk(robot, generator):
@@ -34,7 +26,7 @@ def test_parameter_jacobian_matches_finite_differences(robot, generator):
     x[model.layout.index("beta3")] = 0.001
     q = robot.sample_joints(20, generator)
     _, jac = model.position_jacobian(q, x)
-    fd = _central_difference(lambda v: model.tcp_position(q, v), x)
+    fd = central_difference(lambda v: model.tcp_position(q, v), x)
     assert float((jac - fd).norm() / fd.norm()) <= 1e-6
 
 
@@ -49,7 +41,7 @@ def test_pose_jacobian_rotation_rows_match_finite_differences(robot, generator):
     def rot_vec(v):
         return tf.so3_log(model.tcp_pose(q, v)[..., :3, :3] @ pose[..., :3, :3].transpose(-1, -2))
 
-    fd = _central_difference(rot_vec, x)
+    fd = central_difference(rot_vec, x)
     assert float((jac[:, 3:] - fd).norm() / fd.norm()) <= 1e-6
 
 
@@ -60,7 +52,7 @@ def test_gradients_reach_link_parameters(robot, generator):
     q = robot.sample_joints(8, generator)
     model.tcp_position(q, x).sum().backward()
     grad = x.grad[model.layout.index("a3")]
-    fd = _central_difference(lambda v: model.tcp_position(q, v).sum().reshape(1), x.detach())[0, model.layout.index("a3")]
+    fd = central_difference(lambda v: model.tcp_position(q, v).sum().reshape(1), x.detach())[0, model.layout.index("a3")]
     assert abs(float(grad) - float(fd)) < 1e-6 * max(1.0, abs(float(fd)))
     assert abs(float(grad)) > 0.1
 

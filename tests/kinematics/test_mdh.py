@@ -64,7 +64,7 @@ def test_chain_kernels_broadcast_per_pose_tables_and_single_poses(twin):
     expected = (ref[..., :3, :3] @ point) + ref[..., :3, 3]
     assert (chain_point(q, tables, point) - expected).abs().max() < 1e-12
     # one pose, shared table
-    rot1, pos1 = chain_transforms(q[0, 0], twin.table)
+    rot1, _pos1 = chain_transforms(q[0, 0], twin.table)
     ref1 = _reference_frames(q[0, 0], twin.table)[-1]
     assert rot1.shape == (3, 3) and (rot1 - ref1[:3, :3]).abs().max() < 1e-12
     assert chain_point(q[0, 0], twin.table, point).shape == (3,)

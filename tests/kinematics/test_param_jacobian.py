@@ -7,6 +7,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from helpers import central_difference
 
 from torchcal.core.errors import ModelError
 from torchcal.kinematics import transforms as tf
@@ -16,14 +17,6 @@ from torchcal.kinematics.robot import RobotModel, default_robot_path, load_robot
 
 FIXTURES = Path(__file__).resolve().parent / "fixtures"
 
-
-def _central_difference(f, x: torch.Tensor, eps: float = 1e-6) -> torch.Tensor:
-    cols = []
-    for k in range(x.shape[0]):
-        e = torch.zeros_like(x)
-        e[k] = eps
-        cols.append((f(x + e) - f(x - e)) / (2 * eps))
-    return torch.stack(cols, -1)
 
 
 def _rel(a: torch.Tensor, b: torch.Tensor) -> float:
@@ -90,7 +83,7 @@ def test_analytic_jacobian_matches_autodiff_and_finite_differences(name):
         assert (robot.T_n_flange - torch.eye(4, dtype=torch.float64)).abs().max() > 0.1
     p_an, jac_an = model.position_jacobian_analytic(q, x)
     p_ad, jac_ad = model.position_jacobian(q, x)
-    fd = _central_difference(lambda v: model.tcp_position(q, v), x)
+    fd = central_difference(lambda v: model.tcp_position(q, v), x)
     assert jac_an.shape == (24, 3, model.layout.size) and jac_an.is_contiguous()
     assert (p_an - p_ad).abs().max() < 1e-12
     assert (p_an - model.tcp_pose(q, x)[:, :3, 3]).abs().max() < 1e-12
@@ -140,7 +133,7 @@ def test_so3_right_jacobian_against_finite_differences():
         r = r.to(torch.float64)
         jr = so3_right_jacobian(r)
         # exp(r + dr) = exp(r) exp(J_r dr): the rotation vector of exp(r)^T exp(r + dr) per dr
-        fd = _central_difference(lambda v: tf.so3_log(tf.so3_exp(r).T @ tf.so3_exp(v)), r, eps=1e-6)
+        fd = central_difference(lambda v: tf.so3_log(tf.so3_exp(r).T @ tf.so3_exp(v)), r, eps=1e-6)
         assert (jr - fd).abs().max() < 1e-8
 
 
@@ -157,6 +150,6 @@ def test_link_parameter_gradients_reach_every_table_entry():
     xg = x.clone().requires_grad_(True)
     loss(xg).backward()
     grad = xg.grad[model.layout.table_slice]
-    fd = _central_difference(loss, x)[0, model.layout.table_slice]
+    fd = central_difference(loss, x)[0, model.layout.table_slice]
     assert (grad - fd).abs().max() <= 1e-6 * fd.abs().max()
     assert bool((grad.abs() > 1e-6).all())  # no entry is silently cut off

@@ -49,10 +49,10 @@ def test_a_head_that_learns_measurement_drift_is_refused(tmp_path):
     gen = torch.Generator().manual_seed(0)
     series = drifting_series(twin, q, seed=0, generator=gen)
     stored, summary = _fit(tmp_path, twin, series)
-    assert summary["kept"] is None and stored.residual is None
+    assert summary.kept is None and stored.residual is None
     # the same fit judged on random rows keeps the head: near-twins leak the drift
     leaky, leaky_summary = _fit(tmp_path, twin, series, split="random", head_time_check=False)
-    assert leaky_summary["kept"] == "mlp"
+    assert leaky_summary.kept == "mlp"
     # and on a new series of the same grid (another drift) that head makes things worse
     other = drifting_series(twin, q, seed=1, generator=gen)
     with_head = _rms_mm(other.position - predict_positions(leaky, other.q))
@@ -65,7 +65,7 @@ def test_a_head_that_learns_a_robot_property_is_kept_and_helps_on_new_poses(tmp_
     twin = geometric_twin()
     gen = torch.Generator().manual_seed(3)
     stored, summary = _fit(tmp_path, twin, smooth_field_series(twin, 600, gen))
-    assert summary["kept"] == "mlp"
+    assert summary.kept == "mlp"
     q = twin.robot.sample_joints(300, gen)
     truth = twin.true_positions(q) + smooth_field_instrument(twin, q)
     with_head = _rms_mm(truth - predict_positions(stored, q))

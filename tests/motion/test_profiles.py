@@ -18,7 +18,7 @@ def _sample(profile):
 def test_trapezoid_velocity_continuous_acceleration_jumps(distance):
     v_max, a_max = 0.5, 2.0
     p = trapezoid(distance, v_max, a_max)
-    t, s, v, a = _sample(p)
+    _t, s, v, a = _sample(p)
     assert float(s[-1]) == pytest.approx(distance, abs=1e-12)
     assert float(v.max()) <= v_max * (1 + 1e-12) and float(a.abs().max()) <= a_max * (1 + 1e-12)
     # velocity is the derivative of position (trapezoid rule, exact up to a * DT where a jumps)
@@ -32,7 +32,7 @@ def test_trapezoid_velocity_continuous_acceleration_jumps(distance):
 def test_scurve_acceleration_continuous(distance):
     v_max, a_max, j_max = 0.5, 2.0, 20.0
     p = scurve(distance, v_max, a_max, j_max)
-    t, s, v, a = _sample(p)
+    _t, s, v, a = _sample(p)
     assert float(s[-1]) == pytest.approx(distance, abs=1e-12)
     assert float(v.max()) <= v_max * (1 + 1e-12) and float(a.abs().max()) <= a_max * (1 + 1e-12)
     torch.testing.assert_close(torch.diff(s) / DT, 0.5 * (v[1:] + v[:-1]), atol=1e-6, rtol=0)
@@ -52,7 +52,7 @@ def test_scurve_reaches_limits_on_long_moves_and_is_not_slower_than_needed():
 
 def test_quintic_continuous_and_within_limits():
     p = quintic(0.3, 0.5, 2.0)
-    t, s, v, a = _sample(p)
+    _t, s, v, a = _sample(p)
     assert float(s[-1]) == pytest.approx(0.3, abs=1e-12)
     assert float(v.max()) <= 0.5 * (1 + 1e-9) and float(a.abs().max()) <= 2.0 * (1 + 1e-9)
     torch.testing.assert_close(torch.diff(v) / DT, 0.5 * (a[1:] + a[:-1]), atol=1e-3, rtol=0)

@@ -71,14 +71,14 @@ def test_parameter_uncertainty_widens_the_region_where_the_jacobian_is_large():
 
 def test_evaluate_reports_coverage_on_the_twin(tmp_path):
     """Twin with gravity and gear errors, geometry with the joint-space terms the CV picks."""
+    from torchcal.compensate.export import _expected_accuracy
     from torchcal.config.schema import FitConfig
+    from torchcal.data.measurements import load_measurements
     from torchcal.instruments.tracker.evaluate import evaluate
+    from torchcal.kinematics.robot import load_robot
     from torchcal.sim.twin import TwinConfig, write_twin_case
     from torchcal.stages.geometry import fit_with_selection, save_fit
     from torchcal.stages.store import load_model
-    from torchcal.data.measurements import load_measurements
-    from torchcal.kinematics.robot import load_robot
-    from torchcal.compensate.export import _expected_accuracy
 
     case = write_twin_case(tmp_path / "case", TwinConfig(seed=3, n_train=300, n_test=600, gravity=True, gear=True))
     robot = load_robot(case["robot.yaml"])
@@ -97,7 +97,7 @@ def test_evaluate_reports_coverage_on_the_twin(tmp_path):
     text = json.loads(path.read_text())
     text["conformal_q"] = -1
     path.write_text(json.dumps(text))
-    with pytest.raises(ModelError, match="uncertainty.json: conformal_q"):
+    with pytest.raises(ModelError, match=r"uncertainty.json: conformal_q"):
         load_uncertainty(folder)
 
 

@@ -29,16 +29,16 @@ def _fit(tmp_path, twin, n_train, residual):
 
 def test_residual_rejected_on_the_geometric_twin(tmp_path):
     twin = Twin.create(TwinConfig(seed=4))
-    stored, test, summary = _fit(tmp_path, twin, 400, "elm+mma-elm")
-    assert summary["kept"] is None and stored.residual is None
-    assert "no residual head kept" in summary["decision"]
+    stored, _test, summary = _fit(tmp_path, twin, 400, "elm+mma-elm")
+    assert summary.kept is None and stored.residual is None
+    assert "no residual head kept" in summary.decision
 
 
 @pytest.mark.slow
 def test_residual_kept_and_compensation_moves_the_real_tcp(tmp_path):
     twin = Twin.create(TwinConfig(seed=4, gravity=True, gear=True))
     stored, test, summary = _fit(tmp_path, twin, 1000, "mlp")
-    assert summary["kept"] == "mlp"
+    assert summary.kept == "mlp"
     truth = twin.true_positions(test.q)
     geometric = (stored.model.tcp_position(test.q, stored.x) - truth).norm(dim=-1).pow(2).mean().sqrt()
     combined = (predict_positions(stored, test.q) - truth).norm(dim=-1).pow(2).mean().sqrt()

@@ -48,7 +48,7 @@ def test_with_the_true_springs_the_iteration_hits_the_target(rig):
 
 
 def test_position_only_and_batched(rig, estimate):
-    twin, _, test = rig
+    _twin, _, test = rig
     q = test.q[:6].reshape(2, 3, -1)
     w = test.wrench[:6].reshape(2, 3, 6)
     comp = DeflectionCompensator(estimate.model, estimate.x, estimate.compliance, position_only=True)

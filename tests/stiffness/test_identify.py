@@ -63,7 +63,7 @@ def test_instrument_frame_is_registered_from_unloaded_points(rig):
 
 
 def test_regressor_reproduces_the_vjm_deflection(rig, robot):
-    twin, train, _ = rig
+    _twin, train, _ = rig
     model, x = instrument_model(robot, train)
     gen = torch.Generator().manual_seed(4)
     stiffness = torch.exp(torch.rand(robot.dof, 6, generator=gen, dtype=torch.float64) * 3 + 11)
@@ -93,7 +93,7 @@ def test_full_diagonal_model_reports_structural_null_directions(rig):
 
 
 def test_bad_requests_raise(rig, robot):
-    twin, train, _ = rig
+    _twin, train, _ = rig
     with pytest.raises(ModelError, match="k_j9_rz"):
         identify_stiffness(robot, train, parameters=["k_j9_rz"])
     with pytest.raises(ModelError, match="k_j1_qq"):

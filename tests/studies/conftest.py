@@ -32,7 +32,7 @@ class PrivateServer:
 
     def control(self, action: str) -> None:
         """``restart``, ``stop`` or ``start`` this server (started again on its own port)."""
-        pg_ctl = sorted(glob.glob("/usr/lib/postgresql/*/bin/pg_ctl"))[-1]
+        pg_ctl = max(glob.glob("/usr/lib/postgresql/*/bin/pg_ctl"))
         options = ""
         if action == "start":
             options = (f"-l {self.data}/server.log -o "

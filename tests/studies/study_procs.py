@@ -93,7 +93,7 @@ def kill_during_second_trial(proc: subprocess.Popen, name: str, storage: str, ti
             pytest.fail("the study finished before it could be killed:\n" + proc.stdout.read())
         try:
             trials = load(name, storage).get_trials(deepcopy=False)
-        except Exception:  # not created yet
+        except Exception:  # noqa: BLE001 (the study is not created yet; optuna and the storage raise their own kinds)
             trials = []
         done = [t for t in trials if t.state.is_finished()]
         # mid-trial: its parameters are drawn and the fit is under way

@@ -16,8 +16,14 @@ import uuid
 import pytest
 from optuna.storages import RetryHeartbeatStaleTrialCallback
 from optuna.trial import TrialState
-
-from study_procs import assert_budget_kept, finish, kill_during_second_trial, load, start, study_command
+from study_procs import (
+    assert_budget_kept,
+    finish,
+    kill_during_second_trial,
+    load,
+    start,
+    study_command,
+)
 
 N_TRIALS = 6
 GRACE_S = 6  # study.grace_period_s in study_procs.SMALL
@@ -62,7 +68,7 @@ def _wait_finished(name: str, url: str, n: int, timeout: float = 300) -> None:
         try:
             if sum(t.state.is_finished() for t in load(name, url).get_trials(deepcopy=False)) >= n:
                 return
-        except Exception:  # not created yet
+        except Exception:  # noqa: BLE001 (the study is not created yet; optuna and the storage raise their own kinds)
             pass
         time.sleep(0.2)
     pytest.fail("no trial finished")

@@ -8,8 +8,14 @@ import uuid
 import pytest
 from optuna.storages import RetryHeartbeatStaleTrialCallback
 from optuna.trial import TrialState
-
-from study_procs import assert_budget_kept, finish, kill_during_second_trial, load, start, study_command
+from study_procs import (
+    assert_budget_kept,
+    finish,
+    kill_during_second_trial,
+    load,
+    start,
+    study_command,
+)
 
 N_TRIALS = 5
 pytestmark = pytest.mark.filterwarnings("ignore::optuna.exceptions.ExperimentalWarning")

@@ -6,7 +6,6 @@ import uuid
 
 import pytest
 from optuna.trial import TrialState
-
 from study_procs import assert_budget_kept, finish, load, start, study_command
 
 N_TRIALS = 8
@@ -62,7 +61,6 @@ def test_workers_starting_together_on_an_empty_database(postgres_url):
     import multiprocessing
 
     import psycopg
-
     from study_procs import open_storage_once
 
     name = f"torchcal_race_{uuid.uuid4().hex[:8]}"

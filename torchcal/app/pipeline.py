@@ -8,9 +8,12 @@ from __future__ import annotations
 import json
 import time
 from pathlib import Path
+from typing import Any
 
 import torch
 
+from torchcal.compensate.export import export_and_check
+from torchcal.config import save_resolved_config
 from torchcal.config.schema import RunConfig
 from torchcal.core.folder import write_member_json
 from torchcal.core.io import atomic_write_json
@@ -19,16 +22,20 @@ from torchcal.data.measurements import Measurements, load_measurements
 from torchcal.identify.calibrate import CalibrationResult
 from torchcal.identify.lm import LevenbergMarquardt
 from torchcal.identify.problem import CalibrationProblem
+from torchcal.instruments.base import EvaluateRequest
+from torchcal.instruments.registry import default
 from torchcal.kinematics.robot import load_robot
-from torchcal.report.calibration import model_name
-from torchcal.sim.twin import Twin, TwinConfig, write_twin_case
-from torchcal.stages.geometry import (
-    NOMINAL_PROTOCOL,
-    fit_with_selection,
-    held_out_errors,
-    nominal_errors,
-    save_fit,
+from torchcal.report.calibration import (
+    ReportInputs,
+    calibration_report,
+    cross_validated_stage,
+    model_name,
+    score_pose_set,
 )
+from torchcal.report.document import write_report
+from torchcal.sim.twin import Twin, TwinConfig, write_twin_case
+from torchcal.stages.geometry import NOMINAL_PROTOCOL, held_out_errors, nominal_errors
+from torchcal.stages.pipeline import fit_model
 from torchcal.stages.store import load_model
 
 
@@ -54,8 +61,6 @@ def run(config: RunConfig, console=None) -> dict:
     from rich.console import Console
 
     console = console or Console()
-    from torchcal.config import save_resolved_config
-
     folder = Path(config.out) / config.name
     started = time.perf_counter()
     save_resolved_config(folder / "config.yaml", config)
@@ -66,24 +71,25 @@ def run(config: RunConfig, console=None) -> dict:
         test = load_measurements(case["test.csv"], robot)
         console.log(f"twin: {len(train)} training and {len(test)} test poses, noise floor {config.twin.noise_floor_rms_mm:.4f} mm RMS")
         status.update("[bold]identifying geometry")
-        result, structure = fit_with_selection(robot, train, config.fit, progress=status.update)
-        console.log(
-            f"geometry: {len(result.free)} parameters identified by {result.method} in {result.solve.iterations} iterations; "
-            f"residual sigma {result.sigma_residual_m * 1e6:.1f} um"
-        )
         twin = Twin.create(config.twin)
-        truth_x, truth_residual = projected_truth(twin, result)
-        model_dir = folder / "model"
-        save_fit(model_dir, robot, train, result, {"twin_truth_projection_rms_mm": truth_residual * 1e3},
-                 structure=structure, uncertainty=config.fit.uncertainty)
-        residual_summary = None
-        if config.fit.residual != "none":
-            status.update("[bold]learning the residual")
-            from torchcal.stages.residual import fit_residual_stage
+        truth: dict = {}
 
-            residual_summary = fit_residual_stage(model_dir, train, config.fit, progress=console.log, structure=structure)
-            console.print(residual_summary["table"])
-            console.log(residual_summary["decision"])
+        def truth_projection(result: CalibrationResult) -> dict:
+            console.log(
+                f"geometry: {len(result.free)} parameters identified by {result.method} in {result.solve.iterations} "
+                f"iterations; residual sigma {result.sigma_residual_m * 1e6:.1f} um"
+            )
+            truth["x"], truth["residual"] = projected_truth(twin, result)
+            return {"twin_truth_projection_rms_mm": truth["residual"] * 1e3}
+
+        model_dir = folder / "model"
+        fitted = fit_model(model_dir, robot, train, config.fit, metadata=truth_projection, progress=status.update,
+                           residual_progress=console.log)
+        result, structure = fitted.result, fitted.structure
+        truth_x, truth_residual = truth["x"], truth["residual"]
+        if fitted.residual is not None:
+            console.print(fitted.residual.table)
+            console.log(fitted.residual.decision)
         status.update("[bold]evaluating on held-out poses")
         stored = load_model(model_dir)
         stages = {"nominal": nominal_errors(robot, test), "geometric": held_out_errors(stored, test, residual=False)}
@@ -93,7 +99,7 @@ def run(config: RunConfig, console=None) -> dict:
     sigma = result.parameter_sigma()
     z = ((result.x - truth_x)[result.free] / sigma).abs()
     within = float((z <= 3.0).double().mean())
-    summary = {
+    summary: dict[str, Any] = {
         "name": config.name,
         "noise_floor_rms_mm": config.twin.noise_floor_rms_mm,
         "test": metrics,
@@ -106,14 +112,12 @@ def run(config: RunConfig, console=None) -> dict:
             "z_scores": {n: float(v) for n, v in zip(result.free_names, z.tolist())},
         },
         "identifiability": result.identifiability.summary(),
-        "residual": residual_summary,
+        "residual": fitted.residual.to_dict() if fitted.residual is not None else None,
         "model": model_name(stored),
         "elapsed_s": None,
     }
     write_member_json(model_dir, "metrics.json", {"held_out_data": test.source, "stages": metrics, "final_stage": summary["final_stage"]})
     if config.export:
-        from torchcal.compensate.export import export_and_check
-
         export_dir = Path(config.export_dir) / config.name
         summary["export"] = export_and_check(model_dir, export_dir, test, true_positions=twin.true_positions)
         console.log(summary["export"]["summary"])
@@ -130,20 +134,12 @@ def run(config: RunConfig, console=None) -> dict:
 def _write_report(folder: Path, stored, train: Measurements, test: Measurements, structure, summary: dict,
                   truth_x: torch.Tensor) -> Path:
     """The run's report (the one report builder of ``fit`` and ``evaluate``): training and held-out file, truth."""
-    from torchcal.instruments.tracker.evaluate import score
-    from torchcal.report.calibration import (
-        ReportInputs,
-        calibration_report,
-        cross_validated_stage,
-        score_pose_set,
-    )
-    from torchcal.report.document import write_report
-
     cv = cross_validated_stage(stored, structure)
     extra = [cv] if cv is not None else []
     pose_sets = [score_pose_set(stored, train, held_out=False, extra=extra, focus_extra=bool(extra)),
                  score_pose_set(stored, test, held_out=True)]
-    scored = score(stored, test)
+    # the held-out file scored as `torchcal evaluate` scores it: leakage, uncertainty, compensator
+    scored = default().evaluate(EvaluateRequest(model=stored.folder, data=Path(test.source)))
     floor = summary["noise_floor_rms_mm"]
     final = summary["test"][summary["final_stage"]]["position_rms_mm"]
     ratio = final / floor

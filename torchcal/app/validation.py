@@ -5,8 +5,8 @@ regions (:mod:`torchcal.data.folds`); a seeded hold-out; fit on one measurement 
 and score others after re-registering the tracker frame (the transfer protocols, the honest
 ones: another day, another tracker placement); or the source's in-sample scoring. Every split
 goes through the same steps as ``torchcal fit`` / ``torchcal evaluate``
-(:func:`torchcal.app.pipeline.fit_with_selection`, :func:`~torchcal.app.pipeline.save_fit`, the residual
-stage, :func:`~torchcal.stages.store.load_model`, :func:`~torchcal.app.pipeline.held_out_errors`), with
+(the one fit pipeline :func:`torchcal.stages.pipeline.fit_model`, :func:`~torchcal.stages.store.load_model`,
+:func:`~torchcal.stages.geometry.held_out_errors`), with
 a model folder in a temporary directory. Stages, each scored on poses the fit did not see:
 
 * ``nominal (registered)``: the nominal model, instrument frame and tool fitted on the training
@@ -32,13 +32,19 @@ from typing import Any
 import numpy as np
 import torch
 
+from torchcal.config.schema import FitConfig
 from torchcal.core.errors import IdentifiabilityWarning
 from torchcal.core.metrics import position_metrics
+from torchcal.data.folds import make_folds
 from torchcal.data.measurements import Measurements, load_measurements
 from torchcal.identify.compliance import POINT_SETS
 from torchcal.identify.joint_fit import option_label
 from torchcal.kinematics.robot import load_robot
 from torchcal.kinematics.transforms import rigid_registration
+from torchcal.stages.geometry import held_out_errors, nominal_fit
+from torchcal.stages.pipeline import fit_model
+from torchcal.stages.prediction_uncertainty import LEVEL, METHODS, stored_prediction, subsample
+from torchcal.stages.store import load_model
 
 STAGES = ("nominal (registered)", "geometry only", "default fit")
 
@@ -112,8 +118,6 @@ class StageErrors:
 
 def _pairs(data: Measurements, protocol: Protocol, robot, folder: Path, seed: int) -> list[tuple[Measurements, list]]:
     """``(training poses, [scored poses, ...])`` of every split of ``protocol``."""
-    from torchcal.data.folds import make_folds
-
     n = len(data)
     if protocol.in_sample_first is not None:
         return [(data, [data.subset(np.arange(protocol.in_sample_first))])]
@@ -140,8 +144,6 @@ def _nominal_errors(robot, train: Measurements, test: Measurements, register_tes
     re-registers, as for the calibrated stages."""
     from dataclasses import replace
 
-    from torchcal.stages.geometry import nominal_fit
-
     _, t, tool = nominal_fit(robot, train)
     fitted = replace(robot, tool=tool)
     if register_test:
@@ -152,8 +154,6 @@ def _nominal_errors(robot, train: Measurements, test: Measurements, register_tes
 
 def _predictions(stored, test: Measurements, errors: torch.Tensor) -> dict[str, tuple[torch.Tensor, torch.Tensor]]:
     """Per method: whether each scored point is inside its predicted 95 % region, and the set's draws."""
-    from torchcal.stages.prediction_uncertainty import METHODS, stored_prediction
-
     out = {}
     observed = errors.norm(dim=-1) * 1e3
     for method in METHODS:
@@ -165,19 +165,15 @@ def _predictions(stored, test: Measurements, errors: torch.Tensor) -> dict[str, 
 
 def _fit_and_score(robot, train: Measurements, tests: list[Measurements], protocol: Protocol, config,
                    folder: Path) -> dict:
-    """One split through fit -> save -> residual stage -> load -> held-out errors of every scored set."""
-    from torchcal.stages.geometry import fit_with_selection, held_out_errors, save_fit
-    from torchcal.stages.residual import fit_residual_stage
-    from torchcal.stages.store import load_model
-
-    result, structure = fit_with_selection(robot, train, config)
-    save_fit(folder, robot, train, result, {}, structure=structure, uncertainty=config.uncertainty)
-    summary = fit_residual_stage(folder, train, config, structure=structure) if config.residual != "none" else None
+    """One split through the fit pipeline -> load -> held-out errors of every scored set."""
+    fitted = fit_model(folder, robot, train, config)
+    result = fitted.result
     stored = load_model(folder)
     errors = [held_out_errors(stored, test, register=protocol.register_test) for test in tests]
     inside = [_predictions(stored, test, e) for test, e in zip(tests, errors)]
     structure_note = next((n for n in result.notes if n.startswith("structure chosen")), "")
-    return {"result": result, "errors": errors, "inside": inside, "summary": summary, "structure_note": structure_note}
+    return {"result": result, "errors": errors, "inside": inside, "residual": fitted.residual,
+            "structure_note": structure_note}
 
 
 def _structure_name(result) -> str:
@@ -188,8 +184,6 @@ def _structure_name(result) -> str:
 
 def run_protocol(root: Path, protocol: Protocol, *, residual: bool = True, seed: int = 0) -> dict:
     """Score one protocol; returns metrics per stage and scored set, coverage, choices and per-pose errors."""
-    from torchcal.config.schema import FitConfig
-
     folder = root / protocol.dataset
     robot = load_robot(folder / "robot.yaml")
     data = load_measurements(folder / protocol.fit_file, robot)
@@ -215,11 +209,12 @@ def run_protocol(root: Path, protocol: Protocol, *, residual: bool = True, seed:
                         stages[(name, k)].inside.setdefault(method, []).append(inside)
                         stages[(name, k)].pooled.setdefault(method, []).append(pooled)
                 if name == "default fit":
-                    head = out["summary"]["kept"] if out["summary"] else None
+                    outcome = out["residual"]
+                    head = outcome.kept if outcome is not None else None
                     choices.append(_structure_name(out["result"]) + (f" + {head}" if head else ""))
                     stages[(name, 0)].notes.append(out["structure_note"])
-                    if out["summary"]:
-                        stages[(name, 0)].notes.append(out["summary"]["decision"])
+                    if outcome is not None:
+                        stages[(name, 0)].notes.append(outcome.decision)
     labels = list(protocol.test_files) if protocol.test_files else ["held out" if not in_sample else "in-sample"]
     out = {"dataset": protocol.dataset, "protocol": protocol.label, "slug": protocol.slug,
            "published": protocol.published, "in_sample": in_sample, "n_splits": len(pairs), "scored_sets": labels,
@@ -229,8 +224,6 @@ def run_protocol(root: Path, protocol: Protocol, *, residual: bool = True, seed:
         errors = torch.cat(stage.errors)
         metrics: dict[str, Any] = position_metrics(errors)
         if stage.inside:
-            from torchcal.stages.prediction_uncertainty import LEVEL, subsample
-
             metrics["uncertainty"] = {
                 method: {"coverage_95": float(torch.cat(stage.inside[method]).double().mean()),
                          "predicted_p95_mm": float(torch.quantile(subsample(torch.cat(stage.pooled[method])), LEVEL)),

@@ -31,6 +31,7 @@ from typing import Any
 
 import torch
 
+import torchcal
 from torchcal.compensate.compensator import (
     DEFAULT_TASK,
     RESIDUAL_OUTPUT,
@@ -44,8 +45,17 @@ from torchcal.compensate.compensator import (
 )
 from torchcal.compensate.linalg import CONTRIB_DOMAIN
 from torchcal.compensate.onnx_checks import ort_feeds, ort_session, unsolved_distance_m
+from torchcal.compensate.true_robot_check import compensation_on_true_robot
+from torchcal.core.errors import TorchcalError
+from torchcal.core.folder import check_output_folder, staged_folder
 from torchcal.core.hashing import sha256_bytes
 from torchcal.core.io import atomic_write_bytes, atomic_write_json, atomic_write_text
+from torchcal.core.metrics import position_metrics
+from torchcal.identify.joint_errors import METADATA_KEYS
+from torchcal.kinematics.error_model import ErrorModel
+from torchcal.kinematics.joint_jacobian import geometric_jacobian
+from torchcal.stages.prediction_uncertainty import load_uncertainty, stored_prediction
+from torchcal.stages.store import load_model
 
 OPSET = 17
 MANIFEST_FORMAT = "torchcal-compensator/1"
@@ -199,8 +209,6 @@ def _versions() -> dict:
     import onnx
     import onnxruntime
 
-    import torchcal
-
     return {
         "torchcal": torchcal.__version__,
         "torch": torch.__version__,
@@ -258,9 +266,6 @@ SOLVABLE_ABOVE_M = 0.001
 def singular_values(robot, q: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """``(sigma_position, sigma_wrist)`` ``(B,)`` of the nominal robot at ``q``: the smallest singular
     value of the TCP position Jacobian (m/rad) and of the last three joints' angular Jacobian (rad/rad)."""
-    from torchcal.kinematics.error_model import ErrorModel
-    from torchcal.kinematics.joint_jacobian import geometric_jacobian
-
     model = ErrorModel(robot)
     _, jac = geometric_jacobian(model, q, model.nominal_vector())
     return torch.linalg.svdvals(jac[:, :3, :])[:, -1], torch.linalg.svdvals(jac[:, 3:, -3:])[:, -1]
@@ -356,8 +361,6 @@ def _held_out_metrics(model_dir: Path, meta: dict) -> dict | None:
 
 def _expected_accuracy(stored) -> dict | None:
     """The model's predicted 95th percentile of the 3-D error over its training poses' workspace."""
-    from torchcal.stages.prediction_uncertainty import load_uncertainty, stored_prediction
-
     calibration = load_uncertainty(stored.folder)
     if calibration is None or stored.training_q is None:
         return None
@@ -387,15 +390,10 @@ def export_model(
     the manifest's ``convergence`` shows what they reach). ``portable``: standard ONNX operators
     only.
     """
-    from torchcal.core.errors import TorchcalError
-
     if iterations is not None and iterations < 1:
         raise TorchcalError(f"iterations must be >= 1, got {iterations}")
     if task not in TASKS:
         raise TorchcalError(f"task must be one of {list(TASKS)}, got {task!r}")
-    from torchcal.core.folder import check_output_folder, staged_folder
-    from torchcal.stages.store import load_model
-
     model_dir, out_dir = Path(model_dir), Path(out_dir)
     if out_dir.resolve() == model_dir.resolve():
         raise TorchcalError(f"{out_dir}: the export folder must lie outside the model folder {model_dir}")
@@ -500,8 +498,6 @@ def _solver_description(compensator: CompensatorGraph, portable: bool) -> dict:
 
 def _stages(stored) -> dict[str, bool]:
     """``stages`` of the manifest: every stage kind, present or not, from the model's own stage list."""
-    from torchcal.identify.joint_errors import METADATA_KEYS
-
     entries = {"geometry": False, "residual": False, "stiffness": False, **dict.fromkeys(METADATA_KEYS.values(), False)}
     for stage in stored.stages():
         entries.update(stage.describe())
@@ -590,8 +586,6 @@ def readme_text(manifest: dict) -> str:
     joints = ", ".join(manifest["joint_names"])
     residual = "yes" if manifest["stages"]["residual"] else "no"
     stiffness = "yes" if manifest["stages"]["stiffness"] else "no"
-    from torchcal.identify.joint_errors import METADATA_KEYS
-
     joint = ", ".join(k.replace("_", " ") for k in METADATA_KEYS.values() if manifest["stages"].get(k)) or "none"
     wrench = manifest.get("wrench")
     n = manifest["n_joints"]
@@ -658,9 +652,6 @@ def export_and_check(model_dir: str | Path, out_dir: str | Path, test, true_posi
     ``compensation_on_true_robot``: the commands of torch and of both exported files at the test
     poses, sent to that robot (:func:`~torchcal.compensate.true_robot_check.compensation_on_true_robot`).
     """
-    from torchcal.core.metrics import position_metrics
-    from torchcal.stages.store import load_model
-
     out_dir = Path(out_dir)
     manifest = export_model(model_dir, out_dir)
     stored = load_model(model_dir)
@@ -696,8 +687,6 @@ def export_and_check(model_dir: str | Path, out_dir: str | Path, test, true_posi
         "sha256_compensator": manifest["sha256"]["compensator"],
     }
     if true_positions is not None:
-        from torchcal.compensate.true_robot_check import compensation_on_true_robot
-
         result["compensation_on_true_robot"] = compensation_on_true_robot(
             stored, graphs, out_dir, manifest, q, true_positions, wrench)
     result["summary"] = (

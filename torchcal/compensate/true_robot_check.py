@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from torchcal.compensate.onnx_checks import ort_feeds, ort_session, unsolved_distance_m
 from torchcal.core.metrics import position_metrics
 
 
@@ -47,8 +48,6 @@ def compensation_on_true_robot(
         whose command puts the model's predicted TCP within 1 um of the target, and
         ``torch_on_solved`` / ``torch_on_unsolved``: the torch metrics on either part.
     """
-    from torchcal.compensate.onnx_checks import ort_feeds, ort_session, unsolved_distance_m
-
     out_dir = Path(out_dir)
     q = q_target.to(torch.float64)
     T = stored.model.instrument_from_base(stored.x).detach().cpu()

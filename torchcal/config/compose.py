@@ -14,7 +14,10 @@ import os
 from pathlib import Path
 from typing import Any, cast
 
+from torchcal.config.schema import FitConfig, RunConfig
 from torchcal.core.errors import TorchcalError
+from torchcal.core.folder import CHECKSUMS, write_member_text
+from torchcal.core.io import atomic_write_text
 
 GROUPS = ("robot", "measurement", "model", "experiment", "study")
 CONFIG_DIR_ENV = "TORCHCAL_CONFIG_DIR"
@@ -89,8 +92,6 @@ def compose_run_config(overrides: list[str], config_name: str = "config", extra_
     """
     from omegaconf import OmegaConf
 
-    from torchcal.config.schema import RunConfig
-
     group_overrides, field_overrides = split_overrides(overrides)
     composed = _compose_yaml(config_name, group_overrides)
     OmegaConf.set_struct(composed, False)
@@ -125,9 +126,6 @@ def save_resolved_config(path: str | Path, config: Any, **sections: Any) -> Path
     """Write the fully resolved configuration (dataclasses) as YAML, atomically."""
     from omegaconf import DictConfig, OmegaConf
 
-    from torchcal.core.folder import CHECKSUMS, write_member_text
-    from torchcal.core.io import atomic_write_text
-
     tree = OmegaConf.structured(config)
     if sections:
         tree = cast(DictConfig, OmegaConf.merge(OmegaConf.create({}), tree))  # merged onto a mapping
@@ -146,8 +144,6 @@ def compose_fit_config(overrides: list[str]):
     """A :class:`~torchcal.config.schema.FitConfig` for ``torchcal fit``: ``model=<name>`` picks a file
     of ``configs/model/``, other ``key=value`` set fields (``method=lasso``, ``seed=3``)."""
     from omegaconf import OmegaConf
-
-    from torchcal.config.schema import FitConfig
 
     group_overrides, field_overrides = split_overrides(overrides)
     other = [g for g in group_overrides if not g.startswith("model=")]

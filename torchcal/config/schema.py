@@ -8,6 +8,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from torchcal.core.errors import TorchcalError
+from torchcal.core.overrides import check_range
 from torchcal.sim.twin import TwinConfig
 
 
@@ -80,9 +82,6 @@ class FitConfig:
 
     def __post_init__(self) -> None:
         """Refuse out-of-range values where they are defined (before any file is read)."""
-        from torchcal.core.errors import TorchcalError
-        from torchcal.core.overrides import check_range
-
         check_range(self, "parallel_threshold_deg", low=0.0, high=90.0, high_open=True)
         check_range(self, "harmonic_min_range_deg", low=0.0)
         check_range(self, "residual_margin", low=0.0, high=1.0, high_open=True)

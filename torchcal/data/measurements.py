@@ -17,7 +17,9 @@ import torch
 
 from torchcal.core.errors import DataError
 from torchcal.core.hashing import sha256_file
+from torchcal.core.io import atomic_write_text
 from torchcal.data.csv_table import check_joint_limits, check_units, joint_columns, read_csv_table
+from torchcal.data.plausibility import check_joint_unit, check_point_spread
 from torchcal.kinematics.robot import RobotModel
 from torchcal.kinematics.transforms import euler_xyz_to_matrix
 
@@ -132,8 +134,6 @@ def load_measurements(
         check_joint_limits(q_deg, joint_unit, robot.joint_limits.numpy(), path=p, lines=table.line_numbers,
                            robot_name=robot.name, tolerance_deg=limit_tolerance_deg)
     if check_plausible:
-        from torchcal.data.plausibility import check_joint_unit, check_point_spread
-
         check_joint_unit(q_deg, joint_unit, robot.joint_limits.numpy(), path=p, lines=table.line_numbers)
         check_point_spread(robot, torch.from_numpy(q), torch.from_numpy(pos), length_unit, path=p,
                            lines=table.line_numbers)
@@ -178,8 +178,6 @@ def write_measurements_csv(
     extra: dict[str, torch.Tensor] | None = None,
 ) -> None:
     """Write a contract position file (deg, mm) atomically."""
-    from torchcal.core.io import atomic_write_text
-
     cols = [f"q{i}" for i in range(1, q.shape[1] + 1)] + list(POSITION)
     data = [q.detach().cpu().numpy() * (180.0 / math.pi), position.detach().cpu().numpy() * 1e3]
     for name, values in (extra or {}).items():

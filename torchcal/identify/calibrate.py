@@ -20,6 +20,7 @@ from torchcal.core.errors import DataError, IdentifiabilityWarning
 from torchcal.data.measurements import Measurements
 from torchcal.identify.base import Identifier, SolveResult
 from torchcal.identify.identifiability import IdentifiabilityReport, analyze
+from torchcal.identify.lm import LevenbergMarquardt
 from torchcal.identify.problem import CalibrationProblem
 from torchcal.identify.uncertainty import covariance
 from torchcal.kinematics.error_model import DEFAULT_PARALLEL_THRESHOLD_DEG, ErrorModel
@@ -105,8 +106,6 @@ def calibrate(
         units: ``(n,)`` configuration region of each pose: the covariance then also allows
             residuals correlated within a region (:func:`~torchcal.identify.uncertainty.covariance`).
     """
-    from torchcal.identify.lm import LevenbergMarquardt
-
     identifier = identifier or LevenbergMarquardt()
     use_orientation = data.rotation is not None if use_orientation is None else use_orientation
     if whitening is not None and use_orientation:

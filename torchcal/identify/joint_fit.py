@@ -31,6 +31,7 @@ from torchcal.identify.compliance import (
 from torchcal.identify.harmonics import HARMONIC_SETS, JointHarmonics, harmonic_basis
 from torchcal.identify.identifiability import analyze
 from torchcal.identify.joint_errors import JointSpaceErrors
+from torchcal.identify.lm import LevenbergMarquardt
 from torchcal.identify.uncertainty import covariance
 from torchcal.kinematics.error_model import ErrorModel
 from torchcal.kinematics.robot import RobotModel
@@ -125,8 +126,6 @@ def fit_joint_errors(robot: RobotModel, data: Measurements, geometric, points: t
     ``units`` (configuration region of each pose) widens it as in
     :func:`~torchcal.identify.uncertainty.covariance`.
     """
-    from torchcal.identify.lm import LevenbergMarquardt
-
     if not points and not harmonics:
         return geometric
     data = data.to("cpu")

@@ -18,6 +18,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from torchcal.data.folds import make_folds
 from torchcal.identify.base import Identifier, SolveResult
 from torchcal.identify.lm import LevenbergMarquardt
 from torchcal.identify.problem import CalibrationProblem
@@ -69,8 +70,6 @@ class LassoIdentifier(Identifier):
         y = y - y.mean()
         rows = problem.rows_per_pose
         n_poses = len(y) // rows
-        from torchcal.data.folds import make_folds
-
         robot = self.robot if self.robot is not None else problem.model.robot
         fold_of_pose = make_folds(self.split, robot, problem.data.q[:n_poses].cpu(), k=self.folds, seed=self.seed).fold
         fold_of_row = np.repeat(fold_of_pose, rows)

@@ -21,6 +21,11 @@ from typing import Literal
 
 import torch
 
+from torchcal.data.measurements import Measurements
+from torchcal.identify.identifiability import analyze
+from torchcal.identify.problem import CalibrationProblem
+from torchcal.kinematics.error_model import ErrorModel
+
 Criterion = Literal["D", "A", "worst"]
 CRITERIA = ("D", "A", "worst")
 
@@ -139,11 +144,6 @@ def select_poses_for_robot(robot, candidates_q: torch.Tensor, k: int, *, generat
     The information matrix is that of the identifiable parameter set at the nominal model; it
     does not depend on where the instrument stands (a rotation of the rows leaves ``J^T J`` alone).
     """
-    from torchcal.data.measurements import Measurements
-    from torchcal.identify.identifiability import analyze
-    from torchcal.identify.problem import CalibrationProblem
-    from torchcal.kinematics.error_model import ErrorModel
-
     model = ErrorModel(robot)
     x = model.nominal_vector()
     free = torch.nonzero(model.default_active()).squeeze(-1)

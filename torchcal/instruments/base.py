@@ -19,11 +19,15 @@ Commands get results back and print them; an instrument does not print (warnings
 
 from __future__ import annotations
 
+import shutil
 from abc import ABC, abstractmethod
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, ClassVar
+
+from torchcal.core.folder import FolderError, staged_folder
+from torchcal.report.document import FIGURES, write_report
 
 #: Model stages an instrument's fit can add to a model folder.
 STAGES = ("geometry", "stiffness", "sensor")
@@ -190,6 +194,11 @@ class Instrument(ABC):
         """The configuration dataclass of ``fit`` / ``evaluate`` on this instrument's files (their
         ``key=value`` options; ``--help`` lists its fields)."""
 
+    def shown_metrics(self, metrics: dict) -> dict:
+        """The part of ``evaluate``'s metrics the command prints as JSON (all of them unless the
+        instrument's lines already say the rest); ``--json`` writes all of them."""
+        return metrics
+
     @abstractmethod
     def twin(self) -> TwinSpec:
         """The twin writer of ``torchcal simulate instrument=<name>``."""
@@ -207,8 +216,6 @@ def fit_committed(instrument: Instrument, request: FitRequest) -> FitOutcome:
     folder or the new one, whole (:func:`torchcal.core.folder.staged_folder`); the files of an
     earlier result never mix with the new ones.
     """
-    from torchcal.core.folder import FolderError, staged_folder
-
     out = Path(request.out)
     for what, path in (("--data", request.data), ("--robot", request.robot)):
         if out.resolve() in Path(path).resolve().parents:
@@ -218,10 +225,6 @@ def fit_committed(instrument: Instrument, request: FitRequest) -> FitOutcome:
     with staged_folder(out) as staging:
         outcome = instrument.fit(replace(request, out=staging, previous=previous))
         if outcome.report is None:  # none of its own: the shared one, replacing any copied from an earlier model
-            import shutil
-
-            from torchcal.report.document import FIGURES
-
             shutil.rmtree(staging / FIGURES, ignore_errors=True)
             write_summary_report(staging, f"torchcal fit: {instrument.name} file {Path(request.data).name}", outcome.lines,
                                  folder=staging, kind=instrument.name, member=True)
@@ -235,7 +238,8 @@ REPORT = "report.md"
 def write_summary_report(target: Path, title: str, lines: list[str], *, metrics: dict | None = None,
                          folder: Path | None = None, kind: str = "", member: bool = False) -> Path:
     """The shared report (:mod:`torchcal.report.generic`) of an instrument that writes none of its own."""
-    from torchcal.report.document import write_report
+    # the shared report pulls in the stored-model and calibration-report code: loaded when a report is
+    # written, not whenever the registry (which --help and header recognition use) imports this module
     from torchcal.report.generic import summary_report
 
     write_report(target, summary_report(title, lines, metrics=metrics, folder=folder, kind=kind), member=member)
@@ -244,8 +248,6 @@ def write_summary_report(target: Path, title: str, lines: list[str], *, metrics:
 
 def check_report_folder(report: Path, model: Path) -> None:
     """Refuse, before any work, an ``evaluate --report`` folder that is a file or the model folder itself."""
-    from torchcal.core.folder import FolderError
-
     report = Path(report)
     if report.exists() and not report.is_dir():
         raise FolderError(f"{report}: --report names an existing file; give a folder")

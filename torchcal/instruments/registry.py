@@ -29,6 +29,15 @@ BUILTIN: dict[str, str] = {
 
 ENTRY_POINT_GROUP = "torchcal.instruments"
 
+#: The instrument of ``simulate`` without ``instrument=``, of ``torchcal run`` and of studies, and
+#: whose options ``--help`` lists first.
+DEFAULT = "tracker"
+
+
+def default() -> Instrument:
+    """The :data:`DEFAULT` instrument."""
+    return get(DEFAULT)
+
 
 @cache
 def _modules() -> dict[str, str]:

@@ -31,6 +31,7 @@ import torch
 from torchcal.core.errors import ModelError
 from torchcal.kinematics import transforms as tf
 from torchcal.kinematics.mdh import chain_point, chain_transforms
+from torchcal.kinematics.param_jacobian import tcp_position_jacobian
 from torchcal.kinematics.robot import RobotModel
 
 JOINT_FIELDS = ("alpha", "a", "beta", "theta", "d")
@@ -242,8 +243,6 @@ class ErrorModel:
         self, q: torch.Tensor, x: torch.Tensor, columns: torch.Tensor | None = None
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """As :meth:`position_jacobian` with ``method="analytic"``: ``(p (B, 3), J (B, 3, K))``, m."""
-        from torchcal.kinematics.param_jacobian import tcp_position_jacobian
-
         return tcp_position_jacobian(self, q, x, columns)
 
     def pose_jacobian(

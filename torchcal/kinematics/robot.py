@@ -19,6 +19,7 @@ import yaml
 
 from torchcal.core.errors import ModelError
 from torchcal.kinematics import transforms as tf
+from torchcal.kinematics.axes import mdh_from_axes
 from torchcal.kinematics.mdh import chain_transforms
 
 _LENGTH_UNITS = {"m": 1.0, "mm": 1e-3, "cm": 1e-2}
@@ -314,8 +315,6 @@ def robot_from_urdf(
         tool: nominal TCP in the ``flange`` frame, m (default: the flange origin).
     """
     import pytorch_kinematics as pk
-
-    from torchcal.kinematics.axes import mdh_from_axes
 
     path = Path(path)
     text = read_robot_text(path)

@@ -31,6 +31,7 @@ class Candidate:
         parent: the candidate this one adds a learned part to (``None``: a structural option).
         min_gain: relative CV RMS gain over ``parent`` it must show to be eligible.
         detail: free text for the table (hyperparameters, what was fitted).
+        head: the residual head this candidate adds to ``parent`` (``None``: no head).
     """
 
     name: str
@@ -38,6 +39,7 @@ class Candidate:
     parent: str | None = None
     min_gain: float = 0.0
     detail: str = ""
+    head: str | None = None
 
     @property
     def rms(self) -> float:
@@ -73,6 +75,13 @@ class Comparison:
     reason: str = ""
     #: out-of-fold 3-D errors (mm) of every candidate, by name (not serialised)
     errors_mm: dict[str, np.ndarray] = field(default_factory=dict, repr=False, compare=False)
+    #: the residual head of each row that adds one, by row name (not serialised)
+    heads: dict[str, str] = field(default_factory=dict, repr=False, compare=False)
+
+    @property
+    def chosen_head(self) -> str | None:
+        """The residual head of the chosen row (``None``: the chosen row adds none)."""
+        return self.heads.get(self.chosen)
 
     def to_dict(self) -> dict:
         return {"protocol": self.protocol, "chosen": self.chosen, "reason": self.reason, "candidates": self.rows}
@@ -116,7 +125,8 @@ def compare_candidates(candidates: list[Candidate], units: np.ndarray, protocol:
     pool = [c for c in candidates if eligible[c.name] == "eligible"]
     best = min(pool, key=lambda c: c.rms)
     floor = ((1.0 + tolerance) ** 2 - 1.0) * best.rms**2
-    comparison = Comparison(protocol, errors_mm={c.name: c.errors_mm for c in candidates})
+    comparison = Comparison(protocol, errors_mm={c.name: c.errors_mm for c in candidates},
+                            heads={c.name: c.head for c in candidates if c.head is not None})
     chosen = None
     for cand in candidates:
         mean, se = paired_difference(cand.errors_mm, best.errors_mm, units)

@@ -86,5 +86,6 @@ def cross_validate_heads(robot, data: Measurements, structure: StructureCV, pare
                                          f"vs {base:.4f} mm without it on those poses (gain below {100 * margin / 2:g} %)")
     for name in names:
         if name not in out.stopped:
-            out.candidates.append(Candidate(f"{parent}+{name}", errors[name], parent=parent, min_gain=margin))
+            out.candidates.append(Candidate(f"{parent}+{name}", errors[name], parent=parent, min_gain=margin,
+                                             head=name))
     return out

@@ -20,6 +20,7 @@ from torchcal.data.folds import Folds
 from torchcal.data.measurements import Measurements
 from torchcal.identify.compliance import POINT_SETS
 from torchcal.identify.harmonics import HARMONIC_SETS
+from torchcal.identify.joint_errors import JointSpaceErrors
 from torchcal.identify.joint_fit import fit_joint_errors, option_label, predicted_positions
 from torchcal.model_selection.compare import Candidate, Comparison, compare_candidates
 
@@ -88,8 +89,6 @@ def cross_validate_structures(robot, data: Measurements, fit_geometry, options: 
 
 def fold_targets(result, data: Measurements, index: np.ndarray) -> torch.Tensor:
     """Errors (base frame, mm ``(k, 3)``) that ``result`` leaves at poses ``index`` of ``data``."""
-    from torchcal.identify.joint_errors import JointSpaceErrors
-
     part = data.subset(index)
     joints = JointSpaceErrors.of(result).effective_joints(result.model.robot, part.q)
     error = part.position - result.model.tcp_position(joints, result.x)

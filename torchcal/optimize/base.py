@@ -36,8 +36,14 @@ class Metaheuristic(ABC):
         *,
         seed: int = 0,
         progress: bool = False,
+        on_iteration: Callable[[int, float], None] | None = None,
     ) -> OptimizeResult:
-        """Minimize ``fitness`` over the box ``[lower, upper]`` (``(dim,)`` each)."""
+        """Minimize ``fitness`` over the box ``[lower, upper]`` (``(dim,)`` each).
+
+        ``on_iteration(k, best_f)`` is called after iteration ``k`` (1-based: a generation, a
+        batch) with the best fitness so far; it may raise to stop the search (a study pruning a
+        poor trial does).
+        """
 
 
 def progress_bar(enabled: bool, total: int, description: str):

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import torch
 
 from torchcal.optimize.base import Fitness, Metaheuristic, OptimizeResult
@@ -16,7 +18,8 @@ class RandomSearch(Metaheuristic):
         self.evaluations = evaluations
         self.batch = batch
 
-    def minimize(self, fitness: Fitness, lower, upper, *, seed: int = 0, progress: bool = False) -> OptimizeResult:
+    def minimize(self, fitness: Fitness, lower, upper, *, seed: int = 0, progress: bool = False,
+                 on_iteration: Callable[[int, float], None] | None = None) -> OptimizeResult:
         gen = torch.Generator().manual_seed(seed)
         if self.evaluations < 1:
             raise ValueError(f"evaluations must be >= 1, got {self.evaluations}")
@@ -33,5 +36,7 @@ class RandomSearch(Metaheuristic):
             if best_x is None or float(f[k]) < best_f:
                 best_f, best_x = float(f[k]), x[k].clone()
             history.append(best_f)
+            if on_iteration is not None:
+                on_iteration(len(history), best_f)
         assert best_x is not None  # evaluations >= 1: the loop ran
         return OptimizeResult(best_x=best_x, best_f=best_f, history=history, n_evaluations=used)

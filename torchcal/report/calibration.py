@@ -23,9 +23,18 @@ import torch
 
 from torchcal.core.metrics import iso9283_repeated, position_metrics
 from torchcal.data.measurements import Measurements
+from torchcal.identify.compliance import POINT_SETS
+from torchcal.identify.joint_errors import JointSpaceErrors
+from torchcal.model_selection.leakage import LeakageReport
 from torchcal.report import plots
 from torchcal.report.document import Figure, Paragraph, Preformatted, Report, Section, Table
-from torchcal.stages.store import StoredModel
+from torchcal.stages.geometry import (
+    NOMINAL_PROTOCOL,
+    held_out_errors,
+    nominal_errors,
+    predict_positions,
+)
+from torchcal.stages.store import StoredModel, frame_entries
 
 #: Poses listed in the worst-poses table of each file.
 WORST = 10
@@ -113,13 +122,9 @@ class ReportInputs:
 
 def model_name(stored: StoredModel) -> str:
     """The stages of a model folder in words (``geometry + gravity compliance (elbow, tcp) + ...``)."""
-    from torchcal.identify.joint_errors import JointSpaceErrors
-
     terms = JointSpaceErrors.from_metadata(stored.metadata)
     parts = ["geometry"]
     if terms.compliance is not None:
-        from torchcal.identify.compliance import POINT_SETS
-
         points = tuple(terms.compliance.points)
         label = next((name for name, members in POINT_SETS.items() if members == points), "+".join(points))
         parts.append(f"gravity compliance ({label})")
@@ -148,13 +153,6 @@ def score_pose_set(stored: StoredModel, data: Measurements, *, held_out: bool, r
     model; ``focus_extra`` makes the first of them the one the per-pose figures show. ``protocol``
     replaces the default description of how the model's numbers on this file were obtained.
     """
-    from torchcal.stages.geometry import (
-        NOMINAL_PROTOCOL,
-        held_out_errors,
-        nominal_errors,
-        predict_positions,
-    )
-
     name = Path(data.source).name
     if protocol is not None:
         pass
@@ -412,8 +410,6 @@ def _uncertainty(pose_sets: list[PoseSet], inputs: ReportInputs) -> Section:
 
 def frames_table(stored: StoredModel) -> Table:
     """The instrument-to-base transform and the tool, mm and deg with 1-sigma."""
-    from torchcal.stages.store import frame_entries
-
     frames = frame_entries(stored.model, stored.x, stored.free, stored.covariance)
     rows = []
     for key, what in (("T_instrument_base", "robot base in the instrument frame"), ("T_flange_tool", "tool (TCP) in the flange frame")):
@@ -511,8 +507,6 @@ def parameter_sections(stored: StoredModel, truth_x: torch.Tensor | None = None,
 
 
 def _joint_terms(stored: StoredModel, pose_sets: list[PoseSet]) -> Section | None:
-    from torchcal.identify.joint_errors import JointSpaceErrors
-
     terms = JointSpaceErrors.from_metadata(stored.metadata)
     if terms.empty:
         return None
@@ -546,8 +540,6 @@ def _notes(stored: StoredModel, inputs: ReportInputs) -> Section:
                    Preformatted("\n".join(text))]
     notes = list(stored.metadata.get("notes") or [])
     if inputs.leakage:
-        from torchcal.model_selection.leakage import LeakageReport
-
         report = LeakageReport(**inputs.leakage)
         notes.append(f"{'warning: ' if report.warning else ''}{report.summary()}")
     if notes:

@@ -13,6 +13,7 @@ import html
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from torchcal.core.folder import write_member_text
 from torchcal.core.io import atomic_write_bytes, atomic_write_text
 
 #: Folder (next to ``report.md``) of the PNG figures the Markdown links.
@@ -152,8 +153,6 @@ def write_report(folder: str | Path, report: Report, *, member: bool = False) ->
     ``member``: ``folder`` is a model folder; ``report.md`` and ``report.html`` are then recorded in
     its ``checksums.json`` like every other file of it. Returns the paths by file name.
     """
-    from torchcal.core.folder import write_member_text
-
     folder = Path(folder)
     paths = {}
     for figure in report.figures():

@@ -11,7 +11,10 @@ import json
 import math
 from pathlib import Path
 
+from torchcal.core.errors import TorchcalError
+from torchcal.report.calibration import parameter_sections
 from torchcal.report.document import Paragraph, Preformatted, Report, Section, Table
+from torchcal.stages.store import load_model
 
 
 def _flatten(value, prefix: str = "") -> list[list[str]]:
@@ -35,8 +38,6 @@ def _flatten(value, prefix: str = "") -> list[list[str]]:
 def summary_report(title: str, lines: list[str], *, metrics: dict | None = None, folder: Path | None = None,
                    kind: str = "") -> Report:
     """A report of ``lines`` (what the command printed), ``metrics`` and the model ``folder``'s parameters."""
-    from torchcal.core.errors import TorchcalError
-
     sections = [Section("Results", [
         Paragraph(f"This report of a {kind or 'measurement'} file holds what the command printed, its metrics and the "
                   "parameters of the model folder; the per-pose, per-axis, per-joint and workspace analyses are made "
@@ -45,9 +46,6 @@ def summary_report(title: str, lines: list[str], *, metrics: dict | None = None,
     if metrics:
         sections.append(Section("Metrics", [Table("metrics", ["metric", "value"], _flatten(metrics))]))
     if folder is not None and (Path(folder) / "calibration.json").is_file():
-        from torchcal.report.calibration import parameter_sections
-        from torchcal.stages.store import load_model
-
         try:
             stored = load_model(folder)
         except TorchcalError as exc:

@@ -9,6 +9,7 @@ state as tensors (for safetensors) plus JSON-able settings.
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
+from typing import Any
 
 import torch
 
@@ -31,6 +32,17 @@ class ResidualHead(ABC):
     @abstractmethod
     def settings(self) -> dict:
         """JSON-able hyperparameters needed to rebuild the module."""
+
+    @classmethod
+    def from_options(cls, options: Any) -> ResidualHead:
+        """The candidate a fit's options configure (``options``: a ``FitConfig``; ``seed``, and the
+        ``residual_*`` fields a head reads). The residual stage builds every head through this hook."""
+        return cls()
+
+    def refit_output(self, x: torch.Tensor, y: torch.Tensor) -> ResidualHead | None:
+        """Refit only what needs no model selection on ``(x, y)``, keeping what the head's own search
+        chose; ``None`` (the default): the head has no such part and is refitted whole."""
+        return None
 
     @classmethod
     def from_state(cls, settings: dict, state: dict[str, torch.Tensor]) -> ResidualHead:

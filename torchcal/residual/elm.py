@@ -12,6 +12,8 @@ stable one where it is not.
 
 from __future__ import annotations
 
+from typing import Any
+
 import torch
 
 from torchcal.residual.base import ResidualHead
@@ -55,6 +57,10 @@ class ELM(ResidualHead):
 
     name = "elm"
     tunes_on_validation = False
+
+    @classmethod
+    def from_options(cls, options: Any) -> ELM:
+        return cls(hidden=options.residual_hidden, seed=options.seed)
 
     def __init__(self, hidden: int = 80, ridge: float | None = 1e-6, seed: int = 0) -> None:
         self.hidden, self.ridge, self.seed = hidden, ridge, seed

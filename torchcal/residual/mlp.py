@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import tempfile
 from pathlib import Path
+from typing import Any
 
 import torch
 
@@ -51,6 +52,10 @@ class MLPHead(ResidualHead):
     """
 
     name = "mlp"
+
+    @classmethod
+    def from_options(cls, options: Any) -> MLPHead:
+        return cls(seed=options.seed, progress=False)
 
     def __init__(self, width: int = 64, depth: int = 3, max_epochs: int = 600, patience: int = 60,
                  learning_rate: float = 3e-3, batch_size: int = 128, weight_decay: float = 0.0, seed: int = 0,

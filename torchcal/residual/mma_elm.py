@@ -9,10 +9,11 @@ solve.
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import Any
 
 import torch
 
-from torchcal.optimize.base import OptimizeResult
+from torchcal.optimize.base import Metaheuristic, OptimizeResult
 from torchcal.optimize.mayfly import Mayfly
 from torchcal.residual.base import ResidualHead
 from torchcal.residual.elm import ELM, solve_output_weights
@@ -27,12 +28,21 @@ class MayflyELM(ResidualHead):
         ridge: as :class:`~torchcal.residual.elm.ELM`.
         seed: optimizer seed.
         progress: show a progress bar.
+        optimizer: the metaheuristic that searches the hidden layer (default: Mayfly with
+            ``population`` and ``iterations``); its ``on_iteration`` hook receives this head's.
     """
 
     name = "mma-elm"
 
+    @classmethod
+    def from_options(cls, options: Any) -> MayflyELM:
+        return cls(hidden=options.residual_hidden, population=options.mayfly_population,
+                   iterations=options.mayfly_iterations, seed=options.seed, progress=False)
+
     def __init__(self, hidden: int = 80, population: int = 20, iterations: int = 50, ridge: float | None = 1e-6,
-                 seed: int = 0, progress: bool = False) -> None:
+                 seed: int = 0, progress: bool = False, optimizer: Metaheuristic | None = None) -> None:
+        # the search over hidden layers: any metaheuristic (``optimize.OPTIMIZERS``); Mayfly by default
+        self.optimizer = optimizer if optimizer is not None else Mayfly(population=population, iterations=iterations)
         self.hidden, self.population, self.iterations = hidden, population, iterations
         self.ridge, self.seed, self.progress = ridge, seed, progress
         # Optional observer of the search, (iteration, best validation RMS mm); a study prunes with it.
@@ -57,8 +67,7 @@ class MayflyELM(ResidualHead):
             err = h_val @ out - y_val
             return err.norm(dim=-1).pow(2).mean(-1).sqrt()
 
-        optimizer = Mayfly(population=self.population, iterations=self.iterations)
-        search = optimizer.minimize(fitness, lower, upper, seed=self.seed, progress=self.progress,
+        search = self.optimizer.minimize(fitness, lower, upper, seed=self.seed, progress=self.progress,
                                     on_iteration=self.on_iteration)
         self.search = search
         w, b = unpack(search.best_x.unsqueeze(0))

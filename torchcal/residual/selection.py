@@ -93,10 +93,11 @@ def refit_on_all(head: ResidualHead, x_train, y_train, x_val, y_val, *, seed: in
     training poses still steers the head's own model selection, exactly as in :func:`select_head`.
     """
     fit_idx, tune_idx = tuning_split(len(x_train), seed=seed)
-    if hasattr(head, "refit_output"):
-        # A searched hidden layer is the head's model selection: keep it, re-solve only the
-        # closed-form output weights on every pose (a new search would be a new, ungated model).
-        return head.refit_output(torch.cat([x_train, x_val]), torch.cat([y_train, y_val]))
+    # A searched hidden layer is the head's model selection: keep it, re-solve only the
+    # closed-form output weights on every pose (a new search would be a new, ungated model).
+    refitted = head.refit_output(torch.cat([x_train, x_val]), torch.cat([y_train, y_val]))
+    if refitted is not None:
+        return refitted
     if head.tunes_on_validation:
         x_fit, y_fit = torch.cat([x_train[fit_idx], x_val]), torch.cat([y_train[fit_idx], y_val])
     else:

@@ -21,6 +21,7 @@ from pathlib import Path
 import torch
 
 from torchcal.core.io import atomic_write_json, atomic_write_text
+from torchcal.core.overrides import check_range
 from torchcal.data.measurements import Measurements, write_measurements_csv
 from torchcal.kinematics.error_model import ErrorModel
 from torchcal.kinematics.joint_jacobian import joint_frames
@@ -67,8 +68,6 @@ class TwinConfig:
 
     def __post_init__(self) -> None:
         """Refuse counts below one and non-finite or negative sizes before anything is written."""
-        from torchcal.core.overrides import check_range
-
         for name in ("n_train", "n_test"):
             check_range(self, name, low=1)
         for name in ("length_error_mm", "angle_error_deg", "tool_error_mm", "tracker_sigma_mm", "repeatability_mm",

@@ -17,6 +17,9 @@ from typing import TYPE_CHECKING, ClassVar
 
 import torch
 
+from torchcal.identify.joint_errors import METADATA_KEYS
+from torchcal.stiffness.vjm import deflection
+
 if TYPE_CHECKING:
     from torchcal.identify.joint_errors import JointSpaceErrors
     from torchcal.kinematics.error_model import ErrorModel
@@ -65,8 +68,6 @@ class JointErrorStage(ModelStage):
         return self.errors.effective_joints(robot, q)
 
     def describe(self) -> dict[str, bool]:
-        from torchcal.identify.joint_errors import METADATA_KEYS
-
         present = self.errors.to_metadata()
         return {key: key in present for key in METADATA_KEYS.values()}
 
@@ -121,8 +122,6 @@ class StiffnessStage(ModelStage):
     ) -> torch.Tensor | None:
         if wrench is None:
             return None
-        from torchcal.stiffness.vjm import deflection
-
         compliance = self.stiffness.compliance.to(q)
         return deflection(self.model, q, self.x, compliance, wrench.to(q), wrench_frame="tool")[..., :3]
 

@@ -16,12 +16,27 @@ import torch
 
 from torchcal.config.schema import FitConfig
 from torchcal.core.errors import DataError
+from torchcal.data.folds import make_folds
 from torchcal.data.measurements import Measurements
 from torchcal.identify import IDENTIFIERS
-from torchcal.identify.calibrate import CalibrationResult, calibrate
+from torchcal.identify.calibrate import CalibrationResult, calibrate, register_instrument
+from torchcal.identify.compliance import POINT_SETS
+from torchcal.identify.harmonics import HARMONIC_SETS
 from torchcal.identify.joint_errors import JointSpaceErrors
+from torchcal.identify.joint_fit import fit_joint_errors, joint_error_options
+from torchcal.identify.lm import LevenbergMarquardt
+from torchcal.identify.problem import CalibrationProblem
+from torchcal.kinematics.error_model import ErrorModel
 from torchcal.kinematics.robot import RobotModel
 from torchcal.kinematics.transforms import rigid_registration
+from torchcal.model_selection.structure import cross_validate_structures, structure_label
+from torchcal.residual import head_names
+from torchcal.stages.base import GeometryStage
+from torchcal.stages.prediction_uncertainty import (
+    calibrate_errors,
+    point_jacobian,
+    write_uncertainty,
+)
 from torchcal.stages.store import StoredModel, save_model
 
 
@@ -44,11 +59,6 @@ def nominal_fit(robot: RobotModel, data: Measurements) -> tuple[torch.Tensor, to
     The frame starts from the closed-form registration; frame and tool are then refined together
     by Levenberg-Marquardt.
     """
-    from torchcal.identify.calibrate import register_instrument
-    from torchcal.identify.lm import LevenbergMarquardt
-    from torchcal.identify.problem import CalibrationProblem
-    from torchcal.kinematics.error_model import ErrorModel
-
     data = data.to("cpu")
     model = ErrorModel(robot, T_instrument_base=register_instrument(robot, data))
     layout = model.layout
@@ -88,8 +98,6 @@ def describe_structure(result: CalibrationResult) -> str:
 
 def make_config_folds(robot: RobotModel, data: Measurements, config: FitConfig):
     """The folds every data-driven choice of this fit is judged on (``config.split``)."""
-    from torchcal.data.folds import make_folds
-
     order = np.asarray(data.line_numbers) if data.line_numbers else None
     return make_folds(config.split, robot, data.q, k=config.cv_folds, seed=config.seed, order=order,
                       groups=config.cv_groups)
@@ -112,10 +120,6 @@ def _identifier_options(robot: RobotModel, config: FitConfig) -> dict:
 
 
 def _structure_options(config: FitConfig) -> list[tuple[str, str]]:
-    from torchcal.identify.compliance import POINT_SETS
-    from torchcal.identify.harmonics import HARMONIC_SETS
-    from torchcal.identify.joint_fit import joint_error_options
-
     sets = {"gravity_compliance": POINT_SETS, "joint_harmonics": HARMONIC_SETS}
     for key, allowed in sets.items():
         value = getattr(config, key)
@@ -133,20 +137,11 @@ def fit_with_selection(robot: RobotModel, data: Measurements, config: FitConfig,
     to judge later (``structure_cv`` carries the per-fold fits they learn on); otherwise
     ``structure_cv`` is ``None``. ``progress(text)`` is called before long steps.
     """
-    from torchcal.identify.compliance import POINT_SETS
-    from torchcal.identify.harmonics import HARMONIC_SETS
-    from torchcal.identify.joint_fit import fit_joint_errors
-    from torchcal.model_selection.structure import cross_validate_structures, structure_label
-
     if config.method not in IDENTIFIERS:
         raise DataError(f"unknown method '{config.method}'; choose one of {sorted(IDENTIFIERS)}")
     if config.residual != "none":
-        from torchcal.residual import head_names
-
         head_names(config.residual)  # an unknown head is refused before anything is fitted
     options = _structure_options(config)
-    from torchcal.kinematics.error_model import ErrorModel
-
     few = pose_count_warning(len(data), int(ErrorModel(robot, parallel_threshold_deg=config.parallel_threshold_deg)
                                              .default_active().sum()))
     if few is not None:
@@ -185,9 +180,6 @@ def fit(robot: RobotModel, data: Measurements, config: FitConfig, *, progress=No
 
 def cross_validate_stored_structure(stored: StoredModel, data: Measurements, config: FitConfig):
     """The structure of a model folder alone, cross-validated on ``config``'s folds (for its heads)."""
-    from torchcal.identify.compliance import POINT_SETS
-    from torchcal.model_selection.structure import cross_validate_structures
-
     terms = JointSpaceErrors.from_metadata(stored.metadata)
     points = tuple(terms.compliance.points) if terms.compliance is not None else ()
     gravity = next(name for name, members in POINT_SETS.items() if members == points)
@@ -263,12 +255,6 @@ def save_fit(folder: Path, robot: RobotModel, data: Measurements, result: Calibr
         remove_member(folder, stale)
     folder = save_model(folder, robot, result.model, result.x, result.free, result.covariance, meta, training_q=data.q)
     if structure is not None and uncertainty != "none":
-        from torchcal.stages.prediction_uncertainty import (
-            calibrate_errors,
-            point_jacobian,
-            write_uncertainty,
-        )
-
         label = structure.comparison.chosen
         joints = JointSpaceErrors.of(result).effective_joints(robot, data.q)
         jac = point_jacobian(result.model, result.x, result.free, joints)
@@ -290,8 +276,6 @@ def predict_positions(
     With a ``wrench`` ``(n, 6)`` (N, N m at the TCP, tool frame) and a stiffness stage in the
     model, the deflection it predicts is added (the loaded TCP).
     """
-    from torchcal.stages.base import GeometryStage
-
     stages = stored.stages()
     q_effective = q
     for stage in stages:

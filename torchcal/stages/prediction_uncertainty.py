@@ -34,11 +34,14 @@ import numpy as np
 import torch
 
 from torchcal.core.errors import ModelError
+from torchcal.core.folder import write_member_json
+from torchcal.identify.joint_errors import JointSpaceErrors
 from torchcal.identify.uncertainty import (
     conformal_factor,
     gaussian_radius_samples,
     point_covariance,
 )
+from torchcal.stages.files import read_json_member
 
 UNCERTAINTY_FILE = "uncertainty.json"
 FORMAT = "torchcal-uncertainty/1"
@@ -195,15 +198,11 @@ def score(prediction: PosePrediction, errors_m: torch.Tensor, protocol: str) -> 
 
 
 def write_uncertainty(folder: Path, calibration: ErrorCalibration) -> None:
-    from torchcal.core.folder import write_member_json
-
     write_member_json(Path(folder), UNCERTAINTY_FILE, calibration.to_dict())
 
 
 def load_uncertainty(folder: Path) -> ErrorCalibration | None:
     """The folder's calibration, or ``None`` for a model folder written without one."""
-    from torchcal.stages.files import read_json_member
-
     path = Path(folder) / UNCERTAINTY_FILE
     if not path.is_file():
         return None
@@ -212,8 +211,6 @@ def load_uncertainty(folder: Path) -> ErrorCalibration | None:
 
 def stored_prediction(stored, q: torch.Tensor, method: str | None = None) -> PosePrediction | None:
     """The prediction of a loaded model folder at joints ``q`` (rad), or ``None`` without a calibration."""
-    from torchcal.identify.joint_errors import JointSpaceErrors
-
     calibration = load_uncertainty(stored.folder)
     if calibration is None:
         return None

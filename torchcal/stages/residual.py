@@ -13,31 +13,57 @@ comparison table (structures and heads) is written to ``model_selection.json``.
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
 
 import torch
 
+from torchcal.core.folder import write_member_json
+from torchcal.data.folds import make_folds
 from torchcal.data.measurements import Measurements
+from torchcal.identify.joint_fit import CV_TOLERANCE
 from torchcal.model_selection.compare import Comparison, compare_candidates
 from torchcal.model_selection.heads import cross_validate_heads, make_features
-from torchcal.model_selection.structure import StructureCV
+from torchcal.model_selection.structure import StructureCV, cross_validate_structures
 from torchcal.residual import HEADS, ResidualHead, head_names
 from torchcal.residual.selection import fit_before_gate
+from torchcal.stages.geometry import cross_validate_stored_structure, geometry_fitter, model_joints
+from torchcal.stages.prediction_uncertainty import (
+    calibrate_errors,
+    point_jacobian,
+    write_uncertainty,
+)
+from torchcal.stages.residual_store import StoredResidual, save_residual
+from torchcal.stages.store import load_model
 
 SELECTION_FILE = "model_selection.json"
 
 
+@dataclass
+class ResidualOutcome:
+    """What the residual stage decided.
+
+    ``comparison``: the final table (structures and heads, the chosen row and why); ``kept``: the
+    head fitted and written into the model folder (``None``: none passed); ``decision``: one line.
+    """
+
+    decision: str
+    kept: str | None
+    comparison: Comparison
+
+    @property
+    def table(self) -> str:
+        """The comparison as a printable table."""
+        return self.comparison.format_table()
+
+    def to_dict(self) -> dict:
+        """``decision``, ``kept``, ``comparison`` (its dict) and ``table``: what ``metrics.json`` records."""
+        return {"decision": self.decision, "kept": self.kept, "comparison": self.comparison.to_dict(), "table": self.table}
+
+
 def _candidates(config) -> list[ResidualHead]:
-    heads: list[ResidualHead] = []
-    for name in head_names(config.residual):
-        make: Callable[..., ResidualHead] = HEADS[name]  # each head's constructor takes its own options
-        if name == "mma-elm":
-            heads.append(make(hidden=config.residual_hidden, population=config.mayfly_population,
-                              iterations=config.mayfly_iterations, seed=config.seed, progress=False))
-        elif name == "elm":
-            heads.append(make(hidden=config.residual_hidden, seed=config.seed))
-        else:
-            heads.append(make(seed=config.seed, progress=False))
-    return heads
+    """The heads of ``config.residual``, each built by its own :meth:`ResidualHead.from_options`."""
+    return [HEADS[name].from_options(config) for name in head_names(config.residual)]
 
 
 def residual_targets_mm(model, x, data: Measurements, joints: torch.Tensor | None = None) -> torch.Tensor:
@@ -71,8 +97,10 @@ def select_with_heads(robot, data: Measurements, structure: StructureCV, config,
         comparison.chosen, comparison.reason = parent, structure.comparison.reason
     for name, why in heads.stopped.items():
         comparison.rows.append(_stopped_row(f"{parent}+{name}", why))
-    if comparison.chosen in head_rows and config.head_time_check and structure.folds.kind != "blocks":
-        _check_on_time_blocks(robot, data, structure, comparison, config, progress)
+        comparison.heads[f"{parent}+{name}"] = name
+    head = comparison.chosen_head
+    if head is not None and config.head_time_check and structure.folds.kind != "blocks":
+        _check_on_time_blocks(robot, data, structure, comparison, head, config, progress)
     return comparison
 
 
@@ -81,15 +109,11 @@ def _stopped_row(name: str, why: str) -> dict:
     return {"name": name, "cv_rms_mm": nan, "vs_best_pct": nan, "se_pct": nan, "verdict": why, "detail": ""}
 
 
-def _check_on_time_blocks(robot, data: Measurements, structure: StructureCV, comparison: Comparison, config,
-                          progress) -> None:
+def _check_on_time_blocks(robot, data: Measurements, structure: StructureCV, comparison: Comparison, head_name: str,
+                          config, progress) -> None:
     """Repeat the chosen head's CV on blocks of row order; revert to the structure if it fails there."""
-    from torchcal.data.folds import make_folds
-    from torchcal.model_selection.structure import cross_validate_structures
-    from torchcal.stages.geometry import geometry_fitter
-
+    assert structure.comparison is not None
     parent = structure.comparison.chosen
-    head_name = comparison.chosen.split("+")[-1]
     order = torch.as_tensor(data.line_numbers).numpy() if data.line_numbers else None
     blocks = make_folds("blocks", robot, data.q, k=config.cv_folds, order=order)
     timed = cross_validate_structures(robot, data, geometry_fitter(robot, config), [structure.chosen], blocks,
@@ -101,8 +125,11 @@ def _check_on_time_blocks(robot, data: Measurements, structure: StructureCV, com
     check = compare_candidates(timed.candidates + heads.candidates, blocks.units(), blocks.description)
     for row in check.rows:
         comparison.rows.append({**row, "name": f"{row['name']} [time blocks]"})
+        if row["name"] in check.heads:
+            comparison.heads[f"{row['name']} [time blocks]"] = check.heads[row["name"]]
     for name, why in heads.stopped.items():
         comparison.rows.append(_stopped_row(f"{parent}+{name} [time blocks]", why))
+        comparison.heads[f"{parent}+{name} [time blocks]"] = name
     comparison.protocol += f"; a kept head also checked by {blocks.description}"
     if check.chosen != comparison.chosen:
         comparison.chosen = parent
@@ -112,35 +139,25 @@ def _check_on_time_blocks(robot, data: Measurements, structure: StructureCV, com
 
 
 def structure_tolerance() -> float:
-    from torchcal.identify.joint_fit import CV_TOLERANCE
-
     return CV_TOLERANCE
 
 
 def fit_residual_stage(
     model_dir, data: Measurements, config, progress: Callable[[str], None] | None = None, structure: StructureCV | None = None
-) -> dict:
+) -> ResidualOutcome:
     """Cross-validate the heads on top of a saved model's structure; fit and write the kept one.
 
     ``structure``: the structure CV of the fit that wrote ``model_dir`` (its folds and fold
     fits); without it the stored structure is cross-validated alone on ``config``'s folds.
-    ``progress`` is called with a line per step (when ``config.progress``). Returns ``decision``,
-    ``kept`` (head name or ``None``), ``comparison`` (its dict) and ``table`` (printable); nothing
-    is printed here.
+    ``progress`` is called with a line per step (when ``config.progress``). Nothing is printed here.
     """
-    from torchcal.stages.geometry import cross_validate_stored_structure, model_joints
-    from torchcal.stages.residual_store import StoredResidual, save_residual
-    from torchcal.stages.store import load_model
-
     stored = load_model(model_dir)
     if structure is None:
         structure = cross_validate_stored_structure(stored, data, config)
     progress = progress if config.progress else None
     comparison = select_with_heads(stored.robot, data, structure, config, progress=progress)
-    kept = None
-    parent = structure.comparison.chosen if structure.comparison else ""
-    if comparison.chosen != parent:
-        kept = comparison.chosen.split("+")[-1]
+    kept = comparison.chosen_head
+    if kept is not None:
         head = next(h for h in _candidates(config) if h.name == kept)
         features = make_features(stored.robot, data)
         targets = residual_targets_mm(stored.model, stored.x, data, model_joints(stored, data.q))
@@ -151,30 +168,18 @@ def fit_residual_stage(
         save_residual(model_dir, StoredResidual(head, features, {"decision": decision, "cv_rms_mm": row["cv_rms_mm"],
                                                                  "protocol": comparison.protocol}))
         if config.uncertainty != "none":  # the head's out-of-fold errors replace the structure's
-            from torchcal.stages.prediction_uncertainty import (
-                calibrate_errors,
-                point_jacobian,
-                write_uncertainty,
-            )
-
             jac = point_jacobian(stored.model, stored.x, stored.free, model_joints(stored, data.q))
             write_uncertainty(model_dir, calibrate_errors(jac, stored.covariance, comparison.errors_mm[comparison.chosen],
                                                           comparison.protocol, config.uncertainty))
     else:
-        heads = set(head_names(config.residual))
-        rejected = [r for r in comparison.rows
-                    if r["name"].startswith(parent + "+") and r["name"][len(parent) + 1:].split(" [")[0] in heads]
+        rejected = [r for r in comparison.rows if r["name"] in comparison.heads]
         why = "; ".join(f"{r['name']}: {r['verdict']}" for r in rejected) or "no head candidates"
         decision = f"no residual head kept ({why})"
     write_selection(model_dir, comparison, decision)
-    return {"decision": decision, "kept": kept, "comparison": comparison.to_dict(), "table": comparison.format_table()}
+    return ResidualOutcome(decision, kept, comparison)
 
 
 def write_selection(model_dir, comparison: Comparison, decision: str) -> None:
     """``model_selection.json``: the comparison table and the residual decision."""
-    from pathlib import Path
-
-    from torchcal.core.folder import write_member_json
-
     write_member_json(Path(model_dir), SELECTION_FILE, {**comparison.to_dict(), "residual_decision": decision,
                                                         "table": comparison.format_table()})

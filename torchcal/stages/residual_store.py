@@ -9,6 +9,7 @@ import torch
 from torchcal.core.folder import write_member, write_member_json
 from torchcal.residual import HEADS, ResidualHead
 from torchcal.residual.features import JointFeatures
+from torchcal.stages.files import read_json_member, read_tensors
 
 
 class ResidualModule(torch.nn.Module):
@@ -57,8 +58,6 @@ def save_residual(folder: str | Path, residual: StoredResidual) -> None:
 
 def load_residual(folder: str | Path) -> StoredResidual:
     folder = Path(folder)
-    from torchcal.stages.files import read_json_member, read_tensors
-
     info = read_json_member(folder / "residual.json")
     tensors = read_tensors(folder / "residual.safetensors", {})
     head_state = {k.removeprefix("head."): v for k, v in tensors.items() if k.startswith("head.")}

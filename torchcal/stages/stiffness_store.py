@@ -21,6 +21,7 @@ import torch
 
 from torchcal.core.errors import ModelError
 from torchcal.core.folder import write_member, write_member_json
+from torchcal.stages.files import read_json_member, read_tensors
 
 FORMAT = "torchcal-stiffness/1"
 TENSORS = "stiffness.safetensors"
@@ -112,8 +113,6 @@ def load_stiffness_stage(folder: str | Path, device: str | torch.device = "cpu")
     folder = Path(folder)
     if not (folder / META).is_file():
         return None
-    from torchcal.stages.files import read_json_member, read_tensors
-
     meta = read_json_member(folder / META)
     if meta.get("format") != FORMAT:
         raise ModelError(f"{folder / META}: format {meta.get('format')!r}, expected {FORMAT!r}")

@@ -29,10 +29,21 @@ from typing import TYPE_CHECKING
 import torch
 
 from torchcal.core.errors import ModelError
-from torchcal.core.folder import write_member, write_member_json, write_member_text
+from torchcal.core.folder import verify_folder, write_member, write_member_json, write_member_text
+from torchcal.identify.joint_errors import JointSpaceErrors
+from torchcal.kinematics import transforms as tf
 from torchcal.kinematics.error_model import ErrorModel
 from torchcal.kinematics.robot import RobotModel, load_robot, robot_to_yaml
+from torchcal.kinematics.transforms import matrix_to_euler_xyz
+from torchcal.stages.base import (
+    GeometryStage,
+    JointErrorStage,
+    ResidualStage,
+    StiffnessStage,
+)
 from torchcal.stages.files import read_json_member, read_tensors
+from torchcal.stages.residual_store import load_residual
+from torchcal.stages.stiffness_store import load_stiffness_stage
 
 if TYPE_CHECKING:  # loaded on demand: a geometry-only folder needs neither (nor their imports)
     from torchcal.stages.base import ModelStage
@@ -62,14 +73,6 @@ class StoredModel:
 
     def stages(self) -> list[ModelStage]:
         """The model's stages in the order a prediction applies them (absent ones left out)."""
-        from torchcal.identify.joint_errors import JointSpaceErrors
-        from torchcal.stages.base import (
-            GeometryStage,
-            JointErrorStage,
-            ResidualStage,
-            StiffnessStage,
-        )
-
         out: list[ModelStage] = []
         errors = JointSpaceErrors.from_metadata(self.metadata)
         if not errors.empty:
@@ -158,8 +161,6 @@ FRAME_CONVENTION = ("T_a_b is the pose of frame b in frame a: x, y, z its transl
 
 def _transform_readout(transform_of, b: torch.Tensor, cov: torch.Tensor) -> dict:
     """``x..rz`` (mm, deg) of ``transform_of(b)`` and their 1-sigma, ``cov`` the covariance of ``b`` (SI)."""
-    from torchcal.kinematics.transforms import matrix_to_euler_xyz
-
     def readout(v: torch.Tensor) -> torch.Tensor:
         t = transform_of(v)
         return torch.cat([t[:3, 3] * 1e3, torch.rad2deg(matrix_to_euler_xyz(t[:3, :3]))])
@@ -183,8 +184,6 @@ def frame_entries(model: ErrorModel, x: torch.Tensor, free: torch.Tensor, cov: t
     entries are near zero); the transform written here is the whole one, the sigmas propagated
     from the covariance ``cov`` ``(K, K)`` of the parameters ``free`` ``(K,)``.
     """
-    from torchcal.kinematics import transforms as tf
-
     layout = model.layout
     full = torch.zeros(layout.size, layout.size, dtype=torch.float64)
     index = free.detach().cpu().long()
@@ -247,8 +246,6 @@ def load_model(folder: str | Path, device: str | torch.device = "cpu") -> Stored
     ``checksums.json`` with its SHA-256, no file of another result); malformed content is a
     :class:`ModelError` naming the file.
     """
-    from torchcal.core.folder import verify_folder
-
     folder = Path(folder)
     meta_path = folder / "calibration.json"
     if not meta_path.is_file():
@@ -288,14 +285,10 @@ def load_model(folder: str | Path, device: str | torch.device = "cpu") -> Stored
         training_q=tensors.get("training_q"),
     )
     if (folder / "residual.json").is_file():
-        from torchcal.stages.residual_store import load_residual
-
         try:
             stored.residual = load_residual(folder)
         except (KeyError, TypeError, ValueError, AssertionError) as exc:
             raise ModelError(f"{folder / 'residual.json'}: the residual head cannot be read ({exc})") from None
-    from torchcal.stages.stiffness_store import load_stiffness_stage
-
     stored.stiffness = load_stiffness_stage(folder, device=device)
     return stored
 

@@ -23,7 +23,15 @@ from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
+from torchcal.config import save_resolved_config
 from torchcal.core.errors import TorchcalError
+from torchcal.core.metrics import position_metrics
+from torchcal.data.measurements import Measurements, load_measurements
+from torchcal.kinematics.robot import load_robot
+from torchcal.sim.twin import write_twin_case
+from torchcal.stages.geometry import fit_with_selection, held_out_errors, with_tool
+from torchcal.stages.pipeline import fit_model
+from torchcal.stages.store import load_model
 from torchcal.studies.spec import StudyConfig, search_space
 
 # Fit settings that only change the residual heads; every other one changes the geometric part.
@@ -84,8 +92,6 @@ class StudyObjective:
 
     # -------------------------------------------------------------------- data
     def _case(self, twin_config) -> dict[str, Path]:
-        from torchcal.sim.twin import write_twin_case
-
         folder = self.study_dir / "cases" / _digest(asdict(twin_config))
         paths = {n: folder / n for n in ("robot.yaml", "train.csv", "test.csv", "truth.json")}
         if not all(p.is_file() for p in paths.values()):
@@ -95,10 +101,6 @@ class StudyObjective:
 
     def prepare(self, config) -> PreparedData:
         """Data, structure cross-validation and fit on all poses for ``config``, once per distinct setting."""
-        from torchcal.data.measurements import Measurements, load_measurements
-        from torchcal.kinematics.robot import load_robot
-        from torchcal.stages.geometry import fit_with_selection, with_tool
-
         study = self.study
         source = asdict(config.twin) if study.train is None else [study.robot, study.train, study.test, study.holdout]
         key = _digest([source, geometric_settings(config.fit)])
@@ -152,23 +154,15 @@ class StudyObjective:
 
     def score(self, trial, config) -> float | tuple[float, ...]:
         """Fit ``config`` as ``fit`` does and record the numbers; the objective value(s)."""
-        from torchcal.config import save_resolved_config
-        from torchcal.core.metrics import position_metrics
-        from torchcal.residual import head_names
-        from torchcal.stages.geometry import held_out_errors, save_fit
-        from torchcal.stages.residual import fit_residual_stage
-        from torchcal.stages.store import load_model
-
         trial_dir = self.study_dir / "trials" / f"{trial.number:04d}"
         save_resolved_config(trial_dir / "config.yaml", config)
         started = time.perf_counter()
         data = self.prepare(config)
-        folder = save_fit(trial_dir / "model", data.robot, data.train, data.result, {})
-        if head_names(config.fit.residual):
-            selection = fit_residual_stage(folder, data.train, config.fit, structure=data.structure)
-            comparison, kept = selection["comparison"], selection["kept"]
-        else:
-            comparison, kept = data.structure.comparison.to_dict(), None
+        fitted = fit_model(trial_dir / "model", data.robot, data.train, config.fit,
+                           fitted=(data.result, data.structure))
+        folder, kept = fitted.folder, fitted.head
+        assert fitted.comparison is not None  # the prepared fit always cross-validates its structure
+        comparison = fitted.comparison.to_dict()
         seconds = time.perf_counter() - started
         chosen = next(r for r in comparison["candidates"] if r["name"] == comparison["chosen"])
         stored = load_model(folder)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from torchcal.core.io import atomic_write_text
+from torchcal.core.io import atomic_write_bytes, atomic_write_text
 from torchcal.studies.spec import StudyConfig
 
 
@@ -75,8 +75,6 @@ def _save(fig, path: Path) -> None:
     import io
 
     import matplotlib.pyplot as plt
-
-    from torchcal.core.io import atomic_write_bytes
 
     buffer = io.BytesIO()
     fig.savefig(buffer, format="png", dpi=110)

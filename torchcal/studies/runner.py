@@ -15,8 +15,21 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
+from torchcal.app.pipeline import run
+from torchcal.compensate.export import export_model
+from torchcal.config import save_resolved_config
 from torchcal.core.errors import TorchcalError
-from torchcal.studies.spec import StudyConfig
+from torchcal.data.measurements import load_measurements
+from torchcal.instruments.base import EvaluateRequest
+from torchcal.instruments.registry import default
+from torchcal.kinematics.robot import load_robot
+from torchcal.stages.geometry import with_tool
+from torchcal.stages.pipeline import fit_model
+from torchcal.studies.lock import StudyLock
+from torchcal.studies.objective import apply_values
+from torchcal.studies.report import write_study_report
+from torchcal.studies.spec import StudyConfig, search_space
+from torchcal.studies.storage import open_study, shown_url, storage_url
 from torchcal.studies.worker import counts as _counts
 from torchcal.studies.worker import finished, work
 
@@ -28,8 +41,6 @@ def study_folder(base, study: StudyConfig) -> Path:
 def _enqueue_default(study, base, config: StudyConfig) -> None:
     """Queue the run configuration's own values as the first trial, so the study compares with it
     (only when they lie inside the search space, and only in a new study)."""
-    from torchcal.studies.spec import search_space
-
     if study.get_trials(deepcopy=False):
         return
     params = {}
@@ -83,11 +94,6 @@ class StudyOutcome:
 
 def run_study(base, config: StudyConfig, *, workers: int = 1, console=None) -> StudyOutcome:
     """Create or resume the study, run ``workers`` local processes, refit the best, report."""
-    from torchcal.config import save_resolved_config
-    from torchcal.studies.lock import StudyLock
-    from torchcal.studies.report import write_study_report
-    from torchcal.studies.storage import open_study, shown_url, storage_url
-
     config.validate()
     study_dir = study_folder(base, config)
     study_dir.mkdir(parents=True, exist_ok=True)
@@ -139,9 +145,6 @@ def _best_number(study) -> int | None:
 
 def refit_best(base, config: StudyConfig, study, study_dir: Path, console=None) -> dict:
     """Refit the best trial as a full run (report, held-out test, export) under the study folder."""
-    from torchcal.app.pipeline import run
-    from torchcal.studies.objective import apply_values
-
     best = study.best_trial
     run_config = apply_values(base, dict(best.params))
     if config.train is not None:
@@ -156,30 +159,27 @@ def refit_best(base, config: StudyConfig, study, study_dir: Path, console=None) 
 
 def _refit_best_on_files(run_config, config: StudyConfig, best, study_dir: Path, console=None) -> dict:
     """The best trial on measured data: ``fit`` (geometry, gated residual), model folder, export."""
-    from torchcal.compensate.export import export_model
-    from torchcal.config import save_resolved_config
-    from torchcal.data.measurements import load_measurements
-    from torchcal.instruments.tracker.evaluate import evaluate
-    from torchcal.kinematics.robot import load_robot
-    from torchcal.stages.geometry import fit_with_selection, save_fit, with_tool
-    from torchcal.stages.residual import fit_residual_stage
-
     fit_config = run_config.fit
     units = {"joint_unit": fit_config.joint_unit, "length_unit": fit_config.length_unit}
     robot_file, train_file = config.measured()
     robot = with_tool(load_robot(robot_file), fit_config)
     train = load_measurements(train_file, robot, **units)
-    result, structure = fit_with_selection(robot, train, fit_config)
-    folder = save_fit(study_dir / "best" / "model", robot, train, result, {}, structure=structure,
-                      uncertainty=fit_config.uncertainty)
-    save_resolved_config(folder / "config.yaml", fit_config)
-    residual = fit_residual_stage(folder, train, fit_config, progress=console.log if console is not None else None, structure=structure) if fit_config.residual != "none" else None
+    fitted = fit_model(study_dir / "best" / "model", robot, train, fit_config,
+                       residual_progress=console.log if console is not None else None)
+    folder = fitted.folder
+    residual = fitted.residual.to_dict() if fitted.residual is not None else None
     out = {"trial": best.number, "params": dict(best.params), "run_folder": str(folder), "residual": residual}
+    units_overrides = [f"{k}={v}" for k, v in units.items()]
+
+    def evaluate(data: str, register: bool = False) -> dict:
+        # the file scored as `torchcal evaluate` scores it, through the instrument's protocol
+        return default().evaluate(EvaluateRequest(model=folder, data=Path(data), overrides=units_overrides,
+                                                  register=register)).metrics
+
     if config.test:
-        metrics = evaluate(folder, config.test, config=fit_config)
-        out.update({"test": {"model": metrics}, "final_stage": "model"})
+        out.update({"test": {"model": evaluate(config.test)}, "final_stage": "model"})
     if config.holdout:
-        out["holdout"] = evaluate(folder, config.holdout, register=config.holdout_register, config=fit_config)
+        out["holdout"] = evaluate(config.holdout, register=config.holdout_register)
     if run_config.export:
         manifest = export_model(folder, Path(run_config.export_dir) / "studies" / config.name / "best")
         out["export"] = manifest["files"]

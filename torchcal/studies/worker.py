@@ -25,7 +25,10 @@ import time
 from pathlib import Path
 
 from torchcal.core.errors import TorchcalError
+from torchcal.studies.lock import StudyLock
+from torchcal.studies.objective import StudyObjective
 from torchcal.studies.spec import StudyConfig
+from torchcal.studies.storage import make_sampler, open_study, shown_url, storage_url
 
 MAX_CONSECUTIVE_FAILURES = 3
 
@@ -131,10 +134,6 @@ class Worker:
     """The loop of one worker process over the shared study (see the module docstring)."""
 
     def __init__(self, base, config: StudyConfig, study_dir: Path) -> None:
-        from torchcal.studies.lock import StudyLock
-        from torchcal.studies.objective import StudyObjective
-        from torchcal.studies.storage import open_study, storage_url
-
         self.config, self.study_dir = config, Path(study_dir)
         self.url = storage_url(config, self.study_dir)
         self.study = open_study(config, self.study_dir)
@@ -149,8 +148,6 @@ class Worker:
     def _step(self) -> str:
         """Decide under the lock, and run one trial when there is one to run."""
         import optuna
-
-        from torchcal.studies.storage import make_sampler
 
         self.lock.acquire()
         try:
@@ -186,8 +183,6 @@ class Worker:
 
     def run(self) -> int:
         """Trials this worker ran before the budget was met."""
-        from torchcal.studies.storage import shown_url
-
         _quiet_heartbeat_errors()
         _one_line_trial_failures()
         ran, failures, lost_since = 0, 0, None

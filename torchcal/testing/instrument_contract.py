@@ -32,6 +32,7 @@ from torchcal.instruments.base import (
     fit_committed,
 )
 from torchcal.instruments.registry import get, recognise
+from torchcal.kinematics.robot import load_robot
 
 
 class InstrumentContract:
@@ -61,8 +62,6 @@ class InstrumentContract:
         assert recognise(twin_files[case.fit_file]).name == instrument.name
 
     def test_loads_every_row_of_its_twin(self, instrument: Instrument, twin_files: dict[str, Path]) -> None:
-        from torchcal.kinematics.robot import load_robot
-
         case = instrument.contract_case()
         robot = load_robot(twin_files["robot.yaml"], end_link=case.end_link)
         path = twin_files[case.fit_file]

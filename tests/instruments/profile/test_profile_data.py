@@ -6,6 +6,7 @@ import math
 
 import pytest
 import torch
+from helpers import write_file
 
 from torchcal.core.errors import DataError
 from torchcal.instruments.profile.data import load_profile, write_profile_csv
@@ -16,9 +17,7 @@ Q = "10,-60,80,0,45,90"
 
 
 def _write(tmp_path, text, name="p.csv"):
-    path = tmp_path / name
-    path.write_text(text)
-    return path
+    return write_file(tmp_path, text, name)
 
 
 def test_round_trip_with_the_twin_writer(tmp_path, robot):

@@ -60,7 +60,7 @@ def test_fit_plane_recovers_a_plane_and_flags_collinear_points(generator):
     assert float((b @ n).abs().max()) < 1e-15 and abs(float(b[0] @ b[1])) < 1e-15
     coeff = torch.randn(50, 2, generator=generator, dtype=torch.float64)
     points = coeff @ b + 0.7 * n
-    normal, c, s = fit_plane(points)
+    normal, c, _s = fit_plane(points)
     assert abs(abs(float(normal @ n)) - 1) < 1e-14 and math.isclose(abs(float(c)), 0.7, rel_tol=1e-12)
     line = torch.linspace(0, 1, 20, dtype=torch.float64).unsqueeze(-1) * b[0] + 0.7 * n
     assert float(fit_plane(line)[2][1]) < 1e-12

@@ -68,7 +68,7 @@ def test_translations_only_leave_t_undetermined(small):
     twin, data = small
     sub = data.select_scans(torch.tensor([k != "rotation" for k in twin.plan.kinds]))
     T = twin.robot.flange_pose(sub.q)
-    with pytest.raises(DataError, match="do not determine .*t_"):
+    with pytest.raises(DataError, match=r"do not determine .*t_"):
         refine(sub, T, twin.R_true, twin.t_true, twin.normals, twin.offsets)
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import pytest
+from helpers import write_file
 
 from torchcal.core.errors import DataError
 from torchcal.instruments.registry import recognise
@@ -14,9 +15,7 @@ ROW = "front,{s},10,-20,30,5,40,6\n"
 
 
 def _write(tmp_path, text):
-    path = tmp_path / "s.csv"
-    path.write_text(text)
-    return path
+    return write_file(tmp_path, text, "s.csv")
 
 
 def test_header_with_placement_and_socket_is_the_sockets_kind(tmp_path):
@@ -42,5 +41,5 @@ def test_a_missing_column_and_a_lonely_socket_are_errors(tmp_path):
     robot = load_robot(default_robot_path())
     with pytest.raises(DataError, match="missing column 'socket'"):
         load_socket_data(_write(tmp_path, "placement,q1,q2,q3,q4,q5,q6\nA,1,2,3,4,5,6\n"), robot)
-    with pytest.raises(DataError, match="row 4, column 'socket'.*1 row"):
+    with pytest.raises(DataError, match=r"row 4, column 'socket'.*1 row"):
         load_socket_data(_write(tmp_path, HEADER + ROW.format(s=0) * 2 + ROW.format(s=1)), robot)

@@ -6,6 +6,7 @@ import math
 
 import pytest
 import torch
+from helpers import write_file
 
 from torchcal.core.errors import DataError
 from torchcal.instruments.stiffness.data import load_stiffness
@@ -20,9 +21,7 @@ ROW = "10,-20,30,0,45,90,100,0,-50,1,2,3,0.1,-0.2,0.3"
 
 
 def _write(tmp_path, text, name="s.csv"):
-    path = tmp_path / name
-    path.write_text(text)
-    return path
+    return write_file(tmp_path, text, name)
 
 
 def test_round_trip_with_the_twin_writer(tmp_path):

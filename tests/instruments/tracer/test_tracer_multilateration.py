@@ -200,7 +200,7 @@ def test_gross_error_with_four_stations_names_the_point_and_rejects_it():
 
 
 def test_gross_error_with_six_stations_names_point_and_station():
-    plan, dead, lengths = _session(seed=4, n_points=30, n_stations=6)
+    plan, _dead, lengths = _session(seed=4, n_points=30, n_stations=6)
     bad = lengths.clone()
     bad[11, 4] -= 0.3e-3
     with pytest.raises(DataError, match=r"point 11, station 5 \(column 'l5'\)") as info:
@@ -217,7 +217,7 @@ def test_inconsistent_lengths_are_reported():
     _, _, lengths = _session()
     bad = lengths.clone()
     bad[:, 1] = bad[:, 1] * 1.02  # a station with a wrong scale: fits no geometry
-    with pytest.raises(TorchcalError, match="station|geometry|gross"):
+    with pytest.raises(TorchcalError, match=r"station|geometry|gross"):
         multilaterate(bad, sigma=SIGMA)
 
 

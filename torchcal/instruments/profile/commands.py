@@ -15,9 +15,11 @@ from pathlib import Path
 
 import torch
 
+from torchcal.config.schema import FitConfig
 from torchcal.core.errors import ModelError, TorchcalError
-from torchcal.core.folder import write_member_json, write_member_text
+from torchcal.core.folder import verify_folder, write_member_json, write_member_text
 from torchcal.core.metrics import distance_summary
+from torchcal.core.overrides import apply_overrides, split_foreign_keys
 from torchcal.instruments.base import FitOutcome
 from torchcal.instruments.profile.closed_form import (
     ClosedFormResult,
@@ -33,8 +35,10 @@ from torchcal.instruments.profile.model import (
     rotation_angle_deg,
 )
 from torchcal.instruments.profile.refine import RefineResult, refine
+from torchcal.instruments.profile.search import search_start
 from torchcal.kinematics import transforms as tf
 from torchcal.kinematics.robot import RobotModel, load_robot, robot_to_yaml
+from torchcal.stages.store import copy_model, load_model
 
 SENSOR_FILE = "sensor.json"
 
@@ -67,9 +71,6 @@ class ProfileFitConfig:
 
 def profile_config(overrides: list[str]) -> ProfileFitConfig:
     """Merge ``key=value`` overrides; robot-fit keys (``residual=``, ``method=``...) are ignored with a warning."""
-    from torchcal.config.schema import FitConfig
-    from torchcal.core.overrides import apply_overrides, split_foreign_keys
-
     kept = split_foreign_keys(overrides, ProfileFitConfig, FitConfig, what="a profile file")
     config = apply_overrides(ProfileFitConfig(), kept)
     if config.start not in ("auto", "closed_form", "search"):
@@ -81,8 +82,6 @@ def flange_poses(q: torch.Tensor, robot: RobotModel, model_dir: str | Path | Non
     """``T_base_flange`` ``(S, 4, 4)`` of joints ``q`` (rad) and a description of its source."""
     if model_dir is None:
         return robot.flange_pose(q), "nominal"
-    from torchcal.stages.store import load_model
-
     stored = load_model(model_dir)
     if stored.robot.dof != q.shape[1]:
         raise ModelError(f"{model_dir}: the calibrated robot has {stored.robot.dof} joints, the scans {q.shape[1]}")
@@ -117,8 +116,6 @@ def estimate(data: ProfileData, T_base_flange: torch.Tensor, config: ProfileFitC
         seed = closed_form(data, T_base_flange, orientation_tol_deg=config.orientation_tol_deg)
         R0, t0, normals0, offsets0 = seed.R, seed.t, seed.normals, seed.offsets
     else:
-        from torchcal.instruments.profile.search import search_start
-
         R0, t0, normals0, offsets0 = search_start(data, T_base_flange)
         check_plane_coverage(data, base_points(T_base_flange.to(data.uw), data.point_scan, data.uw, R0, t0))
     return seed, refine(data, T_base_flange, R0, t0, normals0, offsets0, max_iterations=config.max_iterations)
@@ -234,9 +231,6 @@ def fit_profile(robot_path, data_path, out_dir, overrides: list[str], *, base_li
     folder = Path(out_dir)
     folder.mkdir(parents=True, exist_ok=True)
     if previous is not None and Path(previous).resolve() != folder.resolve() and (Path(previous) / "calibration.json").is_file():
-        from torchcal.core.folder import verify_folder
-        from torchcal.stages.store import copy_model
-
         verify_folder(previous)
         copy_model(previous, folder)
     robot_file = _write_robot(folder, robot)
@@ -255,8 +249,6 @@ def load_sensor(folder: str | Path) -> dict:
     if not path.is_file():
         raise ModelError(f"{folder}: no {SENSOR_FILE} (fit a profile file into this folder first)")
     import json
-
-    from torchcal.core.folder import verify_folder
 
     verify_folder(folder)
     try:
@@ -288,8 +280,6 @@ def evaluate_profile(model_dir, data_path, overrides: list[str], *, register: bo
         if recorded and Path(recorded).is_dir():
             model = recorded
     if model is not None:
-        from torchcal.stages.store import load_model
-
         robot = load_model(model).robot
     else:
         robot_file = (doc.get("flange_poses") or {}).get("robot_file")

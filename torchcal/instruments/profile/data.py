@@ -26,6 +26,7 @@ import torch
 
 from torchcal.core.errors import DataError
 from torchcal.core.hashing import sha256_file
+from torchcal.core.io import atomic_write_text
 from torchcal.data.csv_table import (
     CsvTable,
     check_joint_limits,
@@ -265,8 +266,6 @@ def profile_csv_text(data: ProfileData, *, with_plane: bool = True) -> str:
 
 def write_profile_csv(path: str | Path, data: ProfileData, *, with_plane: bool = True) -> Path:
     """Write ``data`` as a contract profile CSV, atomically."""
-    from torchcal.core.io import atomic_write_text
-
     path = Path(path)
     atomic_write_text(path, profile_csv_text(data, with_plane=with_plane))
     return path

@@ -15,7 +15,15 @@ from pathlib import Path
 import torch
 
 from torchcal.core.errors import TorchcalError
+from torchcal.core.overrides import apply_overrides as _apply_overrides
+from torchcal.identify.joint_errors import JointSpaceErrors
 from torchcal.instruments.base import FitOutcome
+from torchcal.instruments.sockets.data import load_socket_data
+from torchcal.instruments.sockets.fit import fit_sockets_data
+from torchcal.instruments.sockets.metrics import socket_metrics
+from torchcal.kinematics.robot import load_robot
+from torchcal.stages.geometry import model_joints
+from torchcal.stages.store import load_model, save_model
 
 GRAVITY_SETS = {"none": (), "wrist": ("tcp",), "elbow+wrist": ("elbow", "tcp")}
 
@@ -59,8 +67,6 @@ class SocketsFitConfig:
 
 
 def sockets_config(overrides: list[str]) -> SocketsFitConfig:
-    from torchcal.core.overrides import apply_overrides as _apply_overrides
-
     config = _apply_overrides(SocketsFitConfig(), list(overrides))
     config.gravity_points  # noqa: B018 - validates the option before anything is fitted
     if config.distance_mm <= 0:
@@ -70,13 +76,6 @@ def sockets_config(overrides: list[str]) -> SocketsFitConfig:
 
 def fit_sockets(robot_path, data_path, out_dir, overrides, *, base_link=None, end_link=None, progress=None) -> FitOutcome:
     """Fit a robot from socket constraints and write the model folder; returns it and the result lines."""
-    from torchcal.identify.joint_errors import JointSpaceErrors
-    from torchcal.instruments.sockets.data import load_socket_data
-    from torchcal.instruments.sockets.fit import fit_sockets_data
-    from torchcal.instruments.sockets.metrics import socket_metrics
-    from torchcal.kinematics.robot import load_robot
-    from torchcal.stages.store import save_model
-
     config = sockets_config(overrides)
     robot = load_robot(robot_path, base_link=base_link, end_link=end_link)
     data = load_socket_data(data_path, robot, joint_unit=config.joint_unit, check_limits=config.check_limits)
@@ -122,11 +121,6 @@ def fit_sockets(robot_path, data_path, out_dir, overrides, *, base_link=None, en
 
 def evaluate_sockets(model_dir, data_path, overrides, *, register: bool = False) -> dict:
     """Consistency and distortion of a model folder on a socket file (``register`` is implied)."""
-    from torchcal.instruments.sockets.data import load_socket_data
-    from torchcal.instruments.sockets.metrics import socket_metrics
-    from torchcal.stages.geometry import model_joints
-    from torchcal.stages.store import load_model
-
     config = sockets_config(overrides)
     stored = load_model(model_dir)
     data = load_socket_data(data_path, stored.robot, joint_unit=config.joint_unit, check_limits=config.check_limits)

@@ -20,6 +20,7 @@ import torch
 
 from torchcal.core.errors import DataError, IdentifiabilityWarning
 from torchcal.identify.base import SolveResult
+from torchcal.identify.compliance import GravityCompliance, gravity_torque_basis
 from torchcal.identify.identifiability import IdentifiabilityReport, analyze
 from torchcal.identify.lm import LevenbergMarquardt
 from torchcal.identify.uncertainty import covariance
@@ -89,8 +90,6 @@ def make_problem(robot: RobotModel, data: SocketData, *, distance_mm: float = 50
     basis = None
     terms = torch.zeros(0, dtype=torch.long)
     if gravity_points:
-        from torchcal.identify.compliance import gravity_torque_basis
-
         basis = gravity_torque_basis(robot, q, tuple(gravity_points))
         start = size + 3 * len(data.groups)
         flat = basis.norm(dim=0).reshape(-1)  # a joint whose axis is along gravity has no column
@@ -141,8 +140,6 @@ def fit_sockets_data(robot: RobotModel, data: SocketData, *, distance_mm: float 
     notes = [f"socket distance {distance_mm:g} mm (weight {distance_weight:g}) on {problem.pairs.shape[0]} placement(s)"]
     compliance = None
     if gravity_points:
-        from torchcal.identify.compliance import GravityCompliance
-
         compliance = GravityCompliance(tuple(gravity_points), problem.coefficients(solve.x).detach().cpu().clone())
         notes.append(f"gravity compliance at {', '.join(gravity_points)} identified with the geometry")
     return SocketsFit(

@@ -35,16 +35,21 @@ from typing import Any
 import numpy as np
 import torch
 
+from torchcal.config.schema import FitConfig
 from torchcal.core.errors import DataError, IdentifiabilityWarning, TorchcalError
 from torchcal.core.folder import remove_member, write_member_json
 from torchcal.core.hashing import sha256_file
 from torchcal.core.metrics import distance_summary
+from torchcal.core.overrides import apply_overrides, split_foreign_keys
 from torchcal.data.folds import SPLITS, Folds, make_folds
 from torchcal.instruments.base import FitOutcome
 from torchcal.instruments.stiffness.data import StiffnessData, load_stiffness
 from torchcal.kinematics.error_model import ErrorModel
-from torchcal.kinematics.robot import RobotModel
+from torchcal.kinematics.robot import RobotModel, load_robot
 from torchcal.model_selection.compare import Candidate, Comparison, compare_candidates
+from torchcal.stages.geometry import with_tool
+from torchcal.stages.stiffness_store import save_stiffness
+from torchcal.stages.store import copy_model, load_model, save_model
 from torchcal.stiffness.identify import (
     DEFAULT_SIGMA_POSITION_M,
     DEFAULT_SIGMA_ROTATION_RAD,
@@ -108,9 +113,6 @@ class StiffnessFitConfig:
 
 def stiffness_config(overrides: list[str]) -> StiffnessFitConfig:
     """Merge ``key=value`` overrides; tracker-fit keys that mean nothing here are ignored with a warning."""
-    from torchcal.config.schema import FitConfig
-    from torchcal.core.overrides import apply_overrides, split_foreign_keys
-
     kept = split_foreign_keys(overrides, StiffnessFitConfig, FitConfig, what="a stiffness file")
     config = apply_overrides(StiffnessFitConfig(), kept)
     if config.wrench_frame not in ("tool", "instrument"):
@@ -226,11 +228,6 @@ def fit_stiffness(
     """``torchcal fit`` on a stiffness file: choose the parameterization, identify, write ``out_dir``.
 
     Returns the folder and the result lines (the parameter comparison, the stiffnesses)."""
-    from torchcal.kinematics.robot import load_robot
-    from torchcal.stages.geometry import with_tool
-    from torchcal.stages.stiffness_store import save_stiffness
-    from torchcal.stages.store import copy_model, load_model, save_model
-
     config = stiffness_config(overrides)
     out = Path(out_dir)
     robot = with_tool(load_robot(robot_path, base_link=base_link, end_link=end_link), config)  # type: ignore[arg-type]  # reads only tool_mm
@@ -326,8 +323,6 @@ def predicted_deflection(stored, data: StiffnessData) -> torch.Tensor:
 
 def evaluate_stiffness(model_dir: str | Path, data_path: str | Path, overrides: list[str], *, register: bool = False) -> dict:
     """``torchcal evaluate`` on a stiffness file: deflection metrics, mm (and deg when it has rotations)."""
-    from torchcal.stages.store import load_model
-
     config = stiffness_config(overrides)
     stored = load_model(model_dir, device=config.device)
     data = load_stiffness_file(data_path, stored.robot.dof, config)

@@ -18,8 +18,21 @@ import torch
 from torchcal.config.schema import FitConfig
 from torchcal.core.errors import DataError, TorchcalError
 from torchcal.core.metrics import distance_summary
+from torchcal.core.overrides import apply_overrides
+from torchcal.identify import IDENTIFIERS
+from torchcal.identify.lm import LevenbergMarquardt
 from torchcal.instruments.base import FitOutcome
-from torchcal.instruments.tracer.lengths import LengthSigma
+from torchcal.instruments.tracer.data import load_tracer_data
+from torchcal.instruments.tracer.joint_fit import (
+    TracerJointProblem,
+    calibrate_joint,
+    start_stations,
+)
+from torchcal.instruments.tracer.lengths import LengthSigma, station_distances
+from torchcal.instruments.tracer.two_step import calibrate_two_step
+from torchcal.kinematics.robot import load_robot
+from torchcal.stages.geometry import with_tool
+from torchcal.stages.store import load_model, save_model
 
 
 @dataclass
@@ -58,8 +71,6 @@ class TracerFitConfig(FitConfig):
 
 
 def tracer_config(overrides: list[str]) -> TracerFitConfig:
-    from torchcal.core.overrides import apply_overrides
-
     config = apply_overrides(TracerFitConfig(), overrides)
     if config.tracer_method not in ("joint", "two_step"):
         raise TorchcalError(f"tracer_method must be 'joint' or 'two_step', got {config.tracer_method!r}")
@@ -77,12 +88,6 @@ def _station_meta(stations, station_sigmas, dead, dead_sigmas) -> dict:
 
 def fit_tracer(robot_path, data_path, out_dir, overrides, *, base_link=None, end_link=None, progress=None) -> FitOutcome:
     """Fit a robot from a tracer length file and write the model folder; returns it and the result lines."""
-    from torchcal.identify import IDENTIFIERS
-    from torchcal.instruments.tracer.data import load_tracer_data
-    from torchcal.kinematics.robot import load_robot
-    from torchcal.stages.geometry import with_tool
-    from torchcal.stages.store import save_model
-
     config = tracer_config(overrides)
     robot = with_tool(load_robot(robot_path, base_link=base_link, end_link=end_link), config)
     data = load_tracer_data(data_path, robot, joint_unit=config.joint_unit, length_unit=config.length_unit,
@@ -97,8 +102,6 @@ def fit_tracer(robot_path, data_path, out_dir, overrides, *, base_link=None, end
         progress(f"identifying {robot.name} from {int(data.seen.sum())} lengths of {len(data)} poses ({config.tracer_method})")
     if True:
         if config.tracer_method == "joint":
-            from torchcal.instruments.tracer.joint_fit import calibrate_joint
-
             if config.method != "lm":
                 notes.append(f"method={config.method} ignored: the joint method is solved by Levenberg-Marquardt")
             res = calibrate_joint(robot, data, sigma=sigma, parallel_threshold_deg=config.parallel_threshold_deg,
@@ -117,8 +120,6 @@ def fit_tracer(robot_path, data_path, out_dir, overrides, *, base_link=None, end
             }
             residual_sigma_mm = res.length_rms_m * 1e3
         else:
-            from torchcal.instruments.tracer.two_step import calibrate_two_step
-
             if config.method not in IDENTIFIERS:
                 raise DataError(f"unknown method '{config.method}'; choose one of {sorted(IDENTIFIERS)}")
             res2 = calibrate_two_step(robot, data, sigma=sigma, identifier=IDENTIFIERS[config.method](),
@@ -168,12 +169,6 @@ def _rejected(data, rejected: torch.Tensor, rows: torch.Tensor | None = None) ->
 
 def evaluate_tracer(model_dir, data_path, overrides, *, register: bool = False) -> dict:
     """Length residuals of a model on a tracer file, stations and dead paths re-fitted."""
-    from torchcal.identify.lm import LevenbergMarquardt
-    from torchcal.instruments.tracer.data import load_tracer_data
-    from torchcal.instruments.tracer.joint_fit import TracerJointProblem, start_stations
-    from torchcal.instruments.tracer.lengths import station_distances
-    from torchcal.stages.store import load_model
-
     config = tracer_config(overrides)
     stored = load_model(model_dir)
     data = load_tracer_data(data_path, stored.robot, joint_unit=config.joint_unit, length_unit=config.length_unit,

@@ -9,10 +9,12 @@ from typing import Any
 
 import torch
 
+from torchcal.compensate.compensator import CompensatorGraph
 from torchcal.config.schema import FitConfig
 from torchcal.core.errors import DataError
 from torchcal.core.metrics import iso9283_repeated, position_metrics
 from torchcal.data.measurements import Measurements, load_measurements
+from torchcal.model_selection.leakage import leakage_report
 from torchcal.stages.geometry import held_out_errors
 from torchcal.stages.prediction_uncertainty import score as score_uncertainty
 from torchcal.stages.prediction_uncertainty import stored_prediction
@@ -71,8 +73,6 @@ def score(stored: StoredModel, data: Measurements, *, register: bool = False, le
         metrics["warnings"] = [warning]
     metrics["iso9283"] = iso9283_repeated(errors, data.q, rows=data.line_numbers)
     if leakage and stored.training_q is not None:
-        from torchcal.model_selection.leakage import leakage_report
-
         metrics["leakage"] = leakage_report(stored.robot, stored.training_q, data.q).to_dict()
     metrics["compensator"] = compensator_summary(stored, data.q, errors)
     return Scored(stored, data, errors, metrics)
@@ -87,8 +87,6 @@ def compensator_summary(stored: StoredModel, q: torch.Tensor, model_errors: torc
     values below). With the model's errors ``(n, 3)`` (m) on these poses, ``delivered_*_mm`` bound
     what a compensated command leaves: per pose the model's error plus the unsolved part.
     """
-    from torchcal.compensate.compensator import CompensatorGraph
-
     graph = CompensatorGraph.from_stored(stored)
     with torch.no_grad():
         _, residual = graph.solve(q.to(torch.float64))

@@ -37,43 +37,29 @@ class TrackerInstrument(Instrument):
         return load_measurements(path, robot, joint_unit=config.joint_unit, length_unit=config.length_unit)
 
     def fit(self, request: FitRequest) -> FitOutcome:
-        from torchcal.config import save_resolved_config
         from torchcal.config.compose import compose_fit_config
         from torchcal.core.metrics import position_metrics
         from torchcal.identify.joint_fit import predicted_positions
         from torchcal.kinematics.robot import load_robot
-        from torchcal.stages.geometry import (
-            NOMINAL_PROTOCOL,
-            fit_with_selection,
-            nominal_errors,
-            save_fit,
-            with_tool,
-        )
-        from torchcal.stages.residual import fit_residual_stage, write_selection
+        from torchcal.stages.geometry import NOMINAL_PROTOCOL, nominal_errors, with_tool
+        from torchcal.stages.pipeline import fit_model
 
         config = compose_fit_config(request.overrides)
         robot = with_tool(load_robot(request.robot, base_link=request.base_link, end_link=request.end_link), config)
         data = self.load(request.data, robot, request.overrides)
         request.progress(f"identifying {robot.name} from {len(data)} poses")
-        result, structure = fit_with_selection(robot, data, config, progress=request.progress)
-        before = position_metrics(nominal_errors(robot, data))
-        after = position_metrics(data.position - predicted_positions(result, data.q))
-        folder = save_fit(request.out, robot, data, result, {"fit_metrics": {
-            "protocol": f"training poses, optimistic; nominal: {NOMINAL_PROTOCOL}", "nominal": before, "geometry_stage": after}},
-            structure=structure, uncertainty=config.uncertainty)
-        save_resolved_config(folder / "config.yaml", config)
-        lines = [result.identifiability.summary()]
-        residual = None
-        if config.residual != "none":
-            request.progress("cross-validating residual heads")
-            residual = fit_residual_stage(folder, data, config, progress=request.progress, structure=structure)
-            lines += [residual["table"], residual["decision"]]
-        elif structure is not None:
-            write_selection(folder, structure.comparison, "residual=none: no head considered")
-            lines.append(structure.comparison.format_table())
+
+        def fit_metrics(result: Any) -> dict:
+            before = position_metrics(nominal_errors(robot, data))
+            after = position_metrics(data.position - predicted_positions(result, data.q))
+            return {"fit_metrics": {"protocol": f"training poses, optimistic; nominal: {NOMINAL_PROTOCOL}",
+                                    "nominal": before, "geometry_stage": after}}
+
+        run = fit_model(request.out, robot, data, config, metadata=fit_metrics, progress=request.progress)
+        lines = run.lines()
         request.progress("writing the report")
-        lines.append(_write_fit_report(folder, data, structure, lines, config))
-        return FitOutcome(folder=folder, lines=lines, report=folder / "report.md")
+        lines.append(_write_fit_report(run.folder, data, run.structure, lines, config))
+        return FitOutcome(folder=run.folder, lines=lines, report=run.folder / "report.md")
 
     def evaluate(self, request: EvaluateRequest) -> EvaluateOutcome:
         from torchcal.config.schema import FitConfig
@@ -107,6 +93,10 @@ class TrackerInstrument(Instrument):
         if request.report is not None:
             report = _write_evaluate_report(Path(request.report), scored, request.register, lines)
         return EvaluateOutcome(metrics=metrics, lines=lines, report=report)
+
+    def shown_metrics(self, metrics: dict) -> dict:
+        # the point figures; leakage, uncertainty and the compensator are in the lines printed above
+        return {k: v for k, v in metrics.items() if k.startswith(("n_", "position_"))}
 
     def options(self) -> type:
         from torchcal.config.schema import FitConfig

@@ -15,14 +15,19 @@ from pathlib import Path
 import torch
 
 from torchcal.core.errors import TorchcalError
+from torchcal.identify.lm import LevenbergMarquardt
 from torchcal.instruments.base import FitOutcome
-from torchcal.instruments.tracer.commands import TracerFitConfig
+from torchcal.instruments.tracer.commands import TracerFitConfig, tracer_config
+from torchcal.instruments.tracer.joint_fit import TracerJointProblem
+from torchcal.instruments.tracer.lengths import station_distances
+from torchcal.instruments.tracer.one_station.cv import compare_structures
+from torchcal.instruments.tracer.one_station.data import load_length_data
+from torchcal.instruments.tracer.one_station.fit import STRUCTURES, fit_station
+from torchcal.kinematics.robot import load_robot
+from torchcal.stages.store import load_model, save_model
 
 
 def _config(overrides: list[str]) -> TracerFitConfig:
-    from torchcal.instruments.tracer.commands import tracer_config
-    from torchcal.instruments.tracer.one_station.fit import STRUCTURES
-
     config = tracer_config(list(overrides))
     if config.structure != "auto" and config.structure not in STRUCTURES:
         raise TorchcalError(f"structure must be auto or one of {', '.join(STRUCTURES)}, got {config.structure!r}")
@@ -31,12 +36,6 @@ def _config(overrides: list[str]) -> TracerFitConfig:
 
 def fit_length_station(robot_path, data_path, out_dir, overrides, *, base_link=None, end_link=None, progress=None) -> FitOutcome:
     """Fit a single length station (and what the data support of the robot); returns the folder and result lines."""
-    from torchcal.instruments.tracer.one_station.cv import compare_structures
-    from torchcal.instruments.tracer.one_station.data import load_length_data
-    from torchcal.instruments.tracer.one_station.fit import fit_station
-    from torchcal.kinematics.robot import load_robot
-    from torchcal.stages.store import save_model
-
     config = _config(overrides)
     robot = load_robot(robot_path, base_link=base_link, end_link=end_link)
     data = load_length_data(data_path, robot, joint_unit=config.joint_unit, length_unit=config.length_unit,
@@ -83,12 +82,6 @@ def fit_length_station(robot_path, data_path, out_dir, overrides, *, base_link=N
 
 def evaluate_length_station(model_dir, data_path, overrides, *, register: bool = False) -> dict:
     """Length residuals of a model folder on a one-station file (anchor and offset re-fitted by default)."""
-    from torchcal.identify.lm import LevenbergMarquardt
-    from torchcal.instruments.tracer.joint_fit import TracerJointProblem
-    from torchcal.instruments.tracer.lengths import station_distances
-    from torchcal.instruments.tracer.one_station.data import load_length_data
-    from torchcal.stages.store import load_model
-
     config = _config(overrides)
     stored = load_model(model_dir)
     data = load_length_data(data_path, stored.robot, joint_unit=config.joint_unit, length_unit=config.length_unit,

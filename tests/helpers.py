@@ -1,8 +1,13 @@
-"""Central finite differences of a residual function: the independent check of analytic Jacobians."""
+"""Helpers shared by the tests (one place; ``tests/`` is on the path of every test module).
+
+Central finite differences, the independent check of analytic Jacobians, and small files written
+for a test.
+"""
 
 from __future__ import annotations
 
-from typing import Callable, Iterable
+from collections.abc import Callable, Iterable
+from pathlib import Path
 
 import torch
 
@@ -28,3 +33,15 @@ def roundoff_atol(magnitude: float, step: float = 1e-7) -> float:
     chain of products before the subtraction.
     """
     return 10 * torch.finfo(torch.float64).eps * magnitude / step
+
+
+def central_difference(f: Callable[[torch.Tensor], torch.Tensor], x: torch.Tensor, eps: float = 1e-6) -> torch.Tensor:
+    """``d f / d x`` ``(..., len(x))`` by central differences of ``eps`` over every entry of ``x``."""
+    return central_difference_jacobian(f, x, range(x.shape[0]), step=eps)
+
+
+def write_file(folder: Path, text: str, name: str = "m.csv") -> Path:
+    """``text`` written to ``folder / name``; returns the path."""
+    path = Path(folder) / name
+    path.write_text(text)
+    return path

@@ -1,6 +1,7 @@
 """Bad inputs a user can give the command line, each with the answer it must get.
 
-Shared by ``tests/test_fuzz_cli.py`` (which runs them through ``torchcal.cli.main``) and
+Shipped with the package (like the contract suites) so that ``scripts/fuzz_count.py`` imports it
+without path edits. Shared by ``tests/test_fuzz_cli.py`` (which runs them through ``torchcal.cli.main``) and
 ``scripts/fuzz_count.py`` (which runs them as processes against any checkout and counts the
 outcomes). A case builds its inputs under a fresh folder from a small twin case and a fitted model
 (:class:`Fixtures`) and says:
@@ -20,6 +21,10 @@ import shutil
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+
+from torchcal.core.errors import TorchcalError
+from torchcal.core.folder import seal, verify_folder
+from torchcal.kinematics.robot import load_robot, mdh_to_urdf
 
 
 @dataclass
@@ -93,8 +98,6 @@ def _copy_model(fx: Fixtures, work: Path) -> Path:
 
 def _reseal(folder: Path) -> None:
     """Record the folder's current files as its own (a damaged file that its checksums vouch for)."""
-    from torchcal.core.folder import seal
-
     seal(folder)
 
 
@@ -193,8 +196,7 @@ def yaml_binary(fx: Fixtures, w: Path) -> Case:
 
 def yaml_alias_bomb(fx: Fixtures, w: Path) -> Case:
     lines = ['a0: &a0 ["lol", "lol", "lol", "lol", "lol", "lol", "lol", "lol", "lol"]']
-    for i in range(1, 10):
-        lines.append(f"a{i}: &a{i} [{', '.join([f'*a{i - 1}'] * 9)}]")
+    lines += [f"a{i}: &a{i} [{', '.join([f'*a{i - 1}'] * 9)}]" for i in range(1, 10)]
     robot = w / "robot.yaml"
     robot.write_text("\n".join(lines) + "\nname: *a9\n" + fx.robot.read_text().split("\n", 1)[1])
     return Case(_fit(fx, fx.train, w / "out", robot=robot), 2, "aliases", w / "out")
@@ -213,8 +215,6 @@ def yaml_wrong_sign(fx: Fixtures, w: Path) -> Case:
 
 
 def _urdf(fx: Fixtures) -> str:
-    from torchcal.kinematics.robot import load_robot, mdh_to_urdf
-
     return mdh_to_urdf(load_robot(fx.robot))
 
 
@@ -443,9 +443,6 @@ def out_state_problem(case: Case, before: object) -> str:
         return "" if not case.out.exists() else f"{case.out} was written"
     if case.out_state == "unchanged":
         return "" if snapshot(case.out) == before else f"{case.out} was changed"
-    from torchcal.core.errors import TorchcalError
-    from torchcal.core.folder import verify_folder
-
     try:
         verify_folder(case.out)
     except TorchcalError as exc:
