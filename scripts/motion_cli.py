@@ -245,7 +245,7 @@ def damping_sweep(model: ErrorModel, cases: dict) -> dict:
             pose = kin.pose(torch.from_numpy(planned.q)).numpy()
             rot = np.degrees(np.arccos(np.clip((np.trace(planned.targets[:, :3, :3] @ np.swapaxes(pose[:, :3, :3], -1, -2),
                                                          axis1=-2, axis2=-1) - 1) / 2, -1, 1)))
-            speed, accel = rates(planned.q, 0.004)
+            speed, _accel = rates(planned.q, 0.004)
             rows.append([float(np.linalg.norm(pose[:, :3, 3] - planned.targets[:, :3, 3], axis=-1).max() * 1e3),
                          float(rot.max()), float(speed.max()), float(planned.t[-1])])
         arr = np.array(rows)

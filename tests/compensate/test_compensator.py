@@ -6,7 +6,12 @@ import pytest
 import torch
 from known_cases import KnownResidual, nominal_tcp_pose, residual_value
 
-from torchcal.compensate.compensator import CONVERGED_ORIENTATION_RAD, CONVERGED_POSITION_M, CompensatorGraph, MonitorGraph
+from torchcal.compensate.compensator import (
+    CONVERGED_ORIENTATION_RAD,
+    CONVERGED_POSITION_M,
+    CompensatorGraph,
+    MonitorGraph,
+)
 from torchcal.compensate.export import wrist_singular_samples
 from torchcal.kinematics.error_model import ErrorModel
 from torchcal.kinematics.ik import pose_error
