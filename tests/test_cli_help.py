@@ -42,6 +42,10 @@ def _expected(command: str) -> list[tuple[object, str]]:
         return [(get(n).twin().config_factory, "") for n in names()]
     if command == "run":
         return [(compose_run_config([])[0], "")]
+    if command == "motion":
+        from torchcal.motion.planner import PlanOptions
+
+        return [(PlanOptions, "")]
     from torchcal.config.compose import merge_section
     from torchcal.studies.spec import StudyConfig
 
@@ -49,7 +53,7 @@ def _expected(command: str) -> list[tuple[object, str]]:
     return [(merge_section(StudyConfig(), sections["study"]), "study."), (base, "")]
 
 
-@pytest.mark.parametrize("command", ["fit", "evaluate", "simulate", "run", "study"])
+@pytest.mark.parametrize("command", ["fit", "evaluate", "simulate", "run", "study", "motion"])
 def test_help_lists_every_option_with_its_default_and_a_description(command):
     text = _help(command)
     listed = {line.split()[0] for line in text.splitlines() if line.startswith("  ") and "=" in line.split()[0]}

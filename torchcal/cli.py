@@ -1,4 +1,4 @@
-"""Command line: ``torchcal run | simulate | fit | evaluate | export | study``.
+"""Command line: ``torchcal run | simulate | fit | evaluate | export | study | motion``.
 
 Options follow the command-line contract of the design; ``key=value`` overrides set fields of
 the command's configuration (dotted for nested ones, e.g. ``twin.n_train=120``). Heavy imports
@@ -136,6 +136,17 @@ def _cmd_export(args) -> int:
     return 0
 
 
+def _cmd_motion(args) -> int:
+    from torchcal.app.motion import run_motion
+
+    outcome = run_motion(Path(args.robot), Path(args.path), Path(args.out), list(args.overrides),
+                         model_dir=Path(args.model) if args.model else None,
+                         report_dir=Path(args.report) if args.report else None)
+    for line in outcome.lines:
+        print(line)
+    return 0
+
+
 def _cmd_run(args) -> int:
     from torchcal.app.pipeline import run
     from torchcal.config import compose_run_config
@@ -183,6 +194,10 @@ def option_listing(command: str) -> str:
         for name in names():
             own = [o for o in list_options(get(name).options()) if o.key not in common]
             blocks.append(format_options(f"options of {name} files ({get(name).description}):", own))
+    elif command == "motion":
+        from torchcal.motion.planner import PlanOptions
+
+        blocks.append(format_options("key=value options (mm, deg, s):", list_options(PlanOptions)))
     elif command == "simulate":
         from torchcal.instruments.registry import get, names
 
@@ -272,6 +287,15 @@ def build_parser(with_options: bool = False) -> argparse.ArgumentParser:
     p.add_argument("--allow-large-corrections", action="store_true",
                    help="export even when a joint correction or the tool's orientation deviation exceeds the limits")
     p.set_defaults(func=_cmd_export)
+
+    p = add("motion", help="joint trajectory of a TCP path through singularities (position first, within joint limits)")
+    p.add_argument("--robot", required=True, help="robot YAML (MDH) or URDF; its velocity/acceleration limits apply")
+    p.add_argument("--model", default=None, help="model folder: plan with the calibrated kinematics (the real robot)")
+    p.add_argument("--path", required=True, help="waypoint CSV: x,y,z (mm), rx,ry,rz (deg, R = Rz Ry Rx), base frame")
+    p.add_argument("--out", required=True, help="trajectory CSV to write: t (s), q1..qN (deg) every dt")
+    p.add_argument("--report", default=None, metavar="DIR", help="report folder (default: <out stem>_report next to --out)")
+    p.add_argument("overrides", nargs="*", help="key=value, e.g. start=[10,-80,10,0,30,20] speed=250 dt=0.004")
+    p.set_defaults(func=_cmd_motion)
     return parser
 
 

@@ -6,7 +6,12 @@ import pytest
 import torch
 from known_cases import KnownResidual, nominal_tcp_pose, residual_value
 
-from torchcal.compensate.compensator import CompensatorGraph, MonitorGraph
+from torchcal.compensate.compensator import (
+    CONVERGED_ORIENTATION_RAD,
+    CONVERGED_POSITION_M,
+    CompensatorGraph,
+    MonitorGraph,
+)
 from torchcal.compensate.export import wrist_singular_samples
 from torchcal.kinematics.error_model import ErrorModel
 from torchcal.kinematics.ik import pose_error
@@ -150,3 +155,37 @@ def test_a_command_the_steps_cannot_improve_is_returned_unchanged(stored):
     kept = (q_c == q).all(-1)
     assert kept.any() and (~kept).any()  # some commands cannot be improved there, most can
     assert (residual[kept, 0] - before[kept]).abs().max() < 1e-12  # and the graph says so
+
+
+def _steps_taken(graph, q):
+    """Steps each pose takes, over both phases (the torch reference of the exported Loops)."""
+    with torch.no_grad():
+        weights, _, q_it, jac_t, error = graph.start(q, None)
+        count = torch.zeros(len(q), dtype=torch.long)
+        for orientation, most in graph.phases:
+            score = graph.score(error, orientation)
+            for _ in range(most):
+                count += (score[:, 0] >= 1.0).long()
+                _, q_it, jac_t, error, score = graph.iterate(q_it, jac_t, error, score, weights, None, orientation)
+    return count
+
+
+def test_each_pose_steps_until_it_converges_whatever_its_batch(stored):
+    """A converged pose keeps its command while its batch steps on: a pose alone and in a batch
+    (here with a wrist-singular pose and one pinned at a joint limit, which take more steps) get
+    the same command; regular poses stop after two or three steps, the pinned one takes all six."""
+    graph = CompensatorGraph(stored.model, stored.x)
+    pinned = stored.robot.sample_joints(200, torch.Generator().manual_seed(11))
+    pinned[:, 1] = stored.robot.joint_limits[1, 1]  # joint 2 at its limit: some corrections point beyond it
+    with torch.no_grad():
+        unsolved = graph.solve(pinned)[1][:, 0] > 1e-6
+    q = torch.cat([regular_poses(stored, 30, seed=9), near_wrist_singularity(stored, 5, seed=10), pinned[unsolved][:1]])
+    with torch.no_grad():
+        together, residual = graph.solve(q)
+        alone = torch.cat([graph.solve(row[None])[0] for row in q])
+    assert (together - alone).abs().max() < 1e-12  # rad
+    steps = _steps_taken(graph, q)
+    assert steps[:30].max() <= 3 and steps[:30].min() >= 2
+    assert int(steps[-1]) == graph.iterations
+    # and they have converged where they stopped
+    assert residual[:30, 0].max() < CONVERGED_POSITION_M and residual[:30, 1].max() < 10 * CONVERGED_ORIENTATION_RAD

@@ -50,7 +50,9 @@ def test_manifest_describes_the_files(exported, model_dir, stored):
         onnx.checker.check_model(model)
         assert model.opset_import[0].version == OPSET
         assert not any(t.data_location == onnx.TensorProto.EXTERNAL for t in model.graph.initializer)
-        assert not {n.op_type for n in model.graph.node} & {"Loop", "Scan"}
+        loops = [n for n in model.graph.node if n.op_type in ("Loop", "Scan", "If")]
+        # the compensator's two phases of steps (mixed, then position-only) are Loops; the monitor has none
+        assert [n.op_type for n in loops] == (["Loop", "Loop"] if key.startswith("compensator") else [])
     assert (folder / "README.md").read_text().count("rad") >= 2
     for v in ("torchcal", "torch", "onnx", "onnxruntime"):
         assert manifest["versions"][v]
@@ -124,3 +126,16 @@ def test_export_and_check_reports_parity(model_dir, twin, tmp_path):
     # the exported monitor predicts the held-out tracker points to the noise level of the twin
     assert result["held_out_monitor"]["position_rms_mm"] < 0.2
     assert (tmp_path / "out" / "manifest.json").is_file()
+
+
+def test_exported_loops_give_a_pose_the_same_command_alone_and_in_a_batch(exported, stored, graphs):
+    """The Loops step until every pose of the batch has converged; a converged pose keeps its
+    command meanwhile, so its result is the one it gets alone (and torch's)."""
+    folder, _ = exported
+    q = stored.robot.sample_joints(40, torch.Generator().manual_seed(25))
+    q[:5, -2] = 0.0  # wrist-singular poses take more steps than the rest
+    together = run(folder, "compensator", q)
+    alone = torch.cat([run(folder, "compensator", row[None]) for row in q])
+    assert (together - alone).abs().max() < 1e-12  # rad
+    with torch.no_grad():
+        assert (together - graphs["compensator"](q)).abs().max() < 1e-9

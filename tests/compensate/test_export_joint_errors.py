@@ -11,7 +11,13 @@ import pytest
 import torch
 
 from torchcal.compensate import compensator as compensator_module
-from torchcal.compensate.compensator import CompensatorGraph, MonitorGraph, _TwoModels
+from torchcal.compensate.compensator import (
+    CONVERGED_ORIENTATION_RAD,
+    CONVERGED_POSITION_M,
+    CompensatorGraph,
+    MonitorGraph,
+    _TwoModels,
+)
 from torchcal.compensate.export import build_graphs, export_model
 from torchcal.config.schema import FitConfig
 from torchcal.identify.compliance import GravityCompliance
@@ -97,13 +103,14 @@ def test_compensator_solves_the_deflected_chain_and_needs_the_harmonic_slope(cal
     regular = torch.linalg.svdvals(jac)[:, -1] > 0.05
     assert regular.double().mean() > 0.5
     solved = _solve_residual(model, x, errors, q, 5)[regular].norm(dim=-1)
-    assert float(solved.max()) < 1e-11
+    # each pose steps until its position and rotation errors are below the graph's tolerance
+    assert float(solved.max()) < math.hypot(CONVERGED_POSITION_M, CONVERGED_ORIENTATION_RAD)
     position_first = _solve_residual(model, x, errors, q, None, task="position")[regular]
-    assert float(position_first[:, :3].norm(dim=-1).max()) < 1e-11  # the default task: position to rounding
+    assert float(position_first[:, :3].norm(dim=-1).max()) < CONVERGED_POSITION_M  # the default task
     monkeypatch.setattr(compensator_module, "command_jacobian_t",
                         lambda pose, frames, slope: compensator_module.geometric_jacobian_t(pose, frames))
     without_slope = _solve_residual(model, x, errors, q, 5)[regular].norm(dim=-1)
-    assert float(without_slope.median()) > 1e-9  # the same five steps, no slope: far from solved
+    assert float(without_slope.median()) > 1e-9  # at most the same five steps, no slope: far from solved
 
 
 @pytest.fixture(scope="module")

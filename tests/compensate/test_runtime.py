@@ -38,6 +38,21 @@ def test_runtime_matches_torch(exported, model_dir):
     assert rt32.correct(q.numpy()).dtype == np.float32
 
 
+def test_correct_one_is_correct_with_residual_on_bound_buffers(exported, model_dir):
+    """The per-cycle path returns what the checked batch path does, call after call (its buffers
+    are reused: each result must be a copy), and checks its input the same way."""
+    rt = CompensatorRuntime(exported[0])
+    q = load_model(model_dir).robot.sample_joints(20, torch.Generator().manual_seed(32)).numpy()
+    expected_q, expected_residual = rt.correct_with_residual(q)
+    got = [rt.correct_one(row) for row in q]
+    np.testing.assert_array_equal(np.stack([g[0] for g in got]), expected_q)
+    np.testing.assert_array_equal(np.stack([g[1] for g in got]), expected_residual)
+    with pytest.raises(CompensatorError, match="expected \\(6,\\)"):
+        rt.correct_one(q[:2])
+    with pytest.raises(CompensatorError, match="NaN"):
+        rt.correct_one(np.full(6, np.nan))
+
+
 def test_tampered_file_is_refused(folder):
     path = folder / "compensator.onnx"
     data = bytearray(path.read_bytes())

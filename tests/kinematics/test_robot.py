@@ -39,6 +39,22 @@ def test_yaml_round_trip(robot, tmp_path):
     assert torch.allclose(again.tool, robot.tool)
 
 
+def test_speed_and_acceleration_limits_read_and_round_trip(robot, tmp_path):
+    text = robot_to_yaml(robot).replace("max: 170}", "max: 170, velocity: 360, acceleration: 1500}")
+    rows = [f"max: {m}" for m in ("45", "156", "185", "120", "350")]
+    for row, (v, a) in zip(rows, ((300, 1400), (360, 2000), (381, 3000), (388, 3000), (615, 4000))):
+        text = text.replace(f"{row}}}", f"{row}, velocity: {v}, acceleration: {a}}}")
+    path = tmp_path / "limits.yaml"
+    path.write_text(text)
+    loaded = load_robot(path)
+    expected = torch.tensor([1500, 1400, 2000, 3000, 3000, 4000], dtype=torch.float64) * math.pi / 180
+    torch.testing.assert_close(loaded.acceleration_limits, expected)
+    assert loaded.velocity_limits is not None and float(loaded.velocity_limits[0]) == pytest.approx(2 * math.pi)
+    path.write_text(robot_to_yaml(loaded))
+    torch.testing.assert_close(load_robot(path).acceleration_limits, expected)
+    assert robot.acceleration_limits is None  # the embedded twin gives none: the motion defaults apply
+
+
 def test_urdf_with_non_z_axes_and_offsets_matches_its_own_fk(tmp_path, generator):
     """A UR-like URDF with axes along y and rotated origins: the derived MDH model reproduces the URDF FK."""
     urdf = """<?xml version="1.0"?><robot name="toy">

@@ -18,7 +18,6 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from torchcal.compensate.linalg import cross
 from torchcal.kinematics import transforms as tf
 from torchcal.kinematics.mdh import link_transform
 
@@ -58,6 +57,10 @@ class ChainGraph(nn.Module):
     t_end: torch.Tensor
     link_rot_t: torch.Tensor
     link_trans: torch.Tensor
+    angle_map: torch.Tensor
+    angle_shift: torch.Tensor
+    link_map: torch.Tensor
+    link_one: torch.Tensor
 
     def __init__(
         self,
@@ -79,7 +82,21 @@ class ChainGraph(nn.Module):
         links = k[0] + k[2]  # C_i E_c + C_i E_0 = C_i
         self.register_buffer("link_rot_t", links[..., :3, :3].transpose(-1, -2).contiguous().to(device, dtype))
         self.register_buffer("link_trans", links[..., :3, 3].unsqueeze(-2).to(device, dtype))
-        self.n_joints = int(tables.shape[-2])
+        self.n_joints = n = int(tables.shape[-2])
+        # :meth:`single` (first chain): angles [q_i + pi/2, q_i] by one product, one Sin gives
+        # [cos q_i, sin q_i], and one more product assembles every link, (B, 2N) @ (2N, 16N)
+        angle_map = torch.zeros(n, 2 * n, dtype=torch.float64)
+        link_map = torch.zeros(2 * n, 16 * n, dtype=torch.float64)
+        for i in range(n):
+            angle_map[i, 2 * i] = angle_map[i, 2 * i + 1] = 1.0
+            link_map[2 * i, 16 * i : 16 * i + 16] = k[0, 0, i].reshape(16)
+            link_map[2 * i + 1, 16 * i : 16 * i + 16] = k[1, 0, i].reshape(16)
+        shift = torch.zeros(2 * n, dtype=torch.float64)
+        shift[0::2] = torch.pi / 2
+        self.register_buffer("angle_map", angle_map.to(device, dtype))
+        self.register_buffer("angle_shift", shift.to(device, dtype))
+        self.register_buffer("link_map", link_map.to(device, dtype))
+        self.register_buffer("link_one", k[2, 0].reshape(16 * n).to(device, dtype))
 
     def forward(self, q: torch.Tensor, with_frames: bool = False) -> tuple[torch.Tensor, torch.Tensor | None]:
         """TCP poses ``T_base_tool`` ``(B, C, 4, 4)`` for joints ``q`` ``(B, N)`` rad.
@@ -87,7 +104,7 @@ class ChainGraph(nn.Module):
         With ``with_frames``, also ``T_base_i`` ``(B, C, N, 4, 4)`` of every joint frame (joint
         ``i`` turns about the z axis of frame ``i``, through its origin); else ``None``.
         """
-        angle = q.unsqueeze(1).unsqueeze(-1).unsqueeze(-1)  # (B, 1, N, 1, 1)
+        angle = q.reshape(-1, 1, self.n_joints, 1, 1)  # one node (unsqueezes would be three)
         links = torch.cos(angle) * self.k_cos + torch.sin(angle) * self.k_sin + self.k_one
         parts = torch.split(links, 1, dim=2)  # N x (B, C, 1, 4, 4)
         pose = parts[0]
@@ -99,6 +116,31 @@ class ChainGraph(nn.Module):
         if not with_frames:
             return tcp, None
         return tcp, torch.cat(frames, 2)
+
+    def single(self, q: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """TCP pose ``(B, 1, 4, 4)`` and joint frames ``(B, N, 4, 4)`` of a one-chain graph (``C = 1``).
+
+        :meth:`forward` in fewer nodes, for the compensator's iteration: in float64 one Sin gives
+        cosines and sines (``cos q = sin(q + pi/2)``, within 1e-15 of ``cos``) and two products
+        assemble all links; then ``N`` products down the chain and one to the tool. (float32
+        keeps a Cos and a Sin: ``q + pi/2`` would round the angle by ~5e-7 rad there.)
+        """
+        if self.k_cos.shape[0] != 1:
+            raise ValueError("single() is for a graph of one chain")
+        n = self.n_joints
+        if self.link_map.dtype == torch.float64:
+            cos_sin = torch.sin(q @ self.angle_map + self.angle_shift)  # (B, 2N): cos q_i, sin q_i
+            links = (cos_sin @ self.link_map + self.link_one).reshape(-1, n, 4, 4)
+        else:
+            angle = q.reshape(-1, n, 1, 1)
+            links = torch.cos(angle) * self.k_cos[0] + torch.sin(angle) * self.k_sin[0] + self.k_one[0]
+        parts = torch.split(links, 1, dim=1)  # N x (B, 1, 4, 4)
+        pose = parts[0]
+        frames = [pose]
+        for link in parts[1:]:
+            pose = pose @ link
+            frames.append(pose)
+        return pose @ self.t_end[0], torch.cat(frames, 1)
 
     def positions(self, q: torch.Tensor) -> torch.Tensor:
         """TCP positions ``(B, C, 3)`` in ``base``, m, for joints ``q`` ``(B, N)`` rad.
@@ -121,17 +163,37 @@ class ChainGraph(nn.Module):
             point = turned @ self.link_rot_t[:, i] + self.link_trans[:, i]
         return point.transpose(0, 1)
 
+# The Jacobian from the flattened frames (row-major 4x4 -> 16): z_i at 4r+2, o_i at 4r+3, and 1 at
+# 15. With w = o_i - p (the TCP's origin subtracted at the slots 3, 7, 11), the position column
+# z x (p - o) = w x z has the components w_(r+1) z_(r+2) - w_(r+2) z_(r+1): two gathers, one
+# product, one constant matrix that takes the differences and passes z through.
+_TCP_ORIGIN_MASK = [1.0 if k in (3, 7, 11) else 0.0 for k in range(16)]
+_GATHER_A = [7, 11, 3, 11, 3, 7, 2, 6, 10]  # w1 w2 w0 | w2 w0 w1 | z0 z1 z2
+_GATHER_B = [10, 2, 6, 6, 10, 2, 15, 15, 15]  # z2 z0 z1 | z1 z2 z0 | 1 1 1
+
+
+def _jacobian_combination() -> torch.Tensor:
+    a = torch.zeros(9, 6, dtype=torch.float64)
+    for r in range(3):
+        a[r, r], a[3 + r, r], a[6 + r, 3 + r] = 1.0, -1.0, 1.0
+    return a
+
+
 def geometric_jacobian_t(tcp: torch.Tensor, frames: torch.Tensor) -> torch.Tensor:
-    """Transposed geometric Jacobian ``(..., N, 6)`` from :meth:`ChainGraph.forward` outputs.
+    """Transposed geometric Jacobian ``(B, N, 6)`` from :meth:`ChainGraph.single` outputs.
 
     Args:
-        tcp: ``(..., 4, 4)`` TCP pose in ``base``.
-        frames: ``(..., N, 4, 4)`` joint frames in ``base``.
+        tcp: ``(B, 4, 4)`` TCP pose in ``base``.
+        frames: ``(B, N, 4, 4)`` joint frames in ``base``.
 
     Returns:
         Row ``i`` = ``[z_i x (p - o_i), z_i]``: TCP linear velocity (m/rad) and tool angular
-        velocity (rad/rad) in ``base`` per unit rate of joint ``i``.
+        velocity (rad/rad) in ``base`` per unit rate of joint ``i``. Eight ONNX nodes whatever
+        the joint count (the cross products by gathers of the flattened frames).
     """
-    axis = frames[..., :3, 2]
-    lever = tcp[..., None, :3, 3] - frames[..., :3, 3]
-    return torch.cat([cross(axis, lever), axis], -1)
+    n = frames.shape[-3]
+    mask = torch.tensor(_TCP_ORIGIN_MASK, dtype=tcp.dtype, device=tcp.device)
+    flat = frames.reshape(-1, n, 16) - tcp.reshape(-1, 1, 16) * mask
+    first = flat.index_select(-1, torch.tensor(_GATHER_A, device=tcp.device))
+    second = flat.index_select(-1, torch.tensor(_GATHER_B, device=tcp.device))
+    return (first * second) @ _jacobian_combination().to(tcp)

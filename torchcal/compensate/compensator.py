@@ -51,9 +51,21 @@ first-order prediction from the last step would call an oscillating, unconverged
 A controller reads from it whether a command was solved (position below its tolerance) and how
 far the tool is turned from the nominal orientation.
 
-The iteration count is fixed (no data-dependent control flow in the graph). The manifest's
-``convergence`` (:func:`torchcal.compensate.export.convergence_report`) shows what it reaches
-over the joint range, with the singular neighbourhoods as separate strata.
+**Iterations.** Each pose steps until it has converged (:data:`CONVERGED_POSITION_M`, and
+:data:`CONVERGED_ORIENTATION_RAD` in the steps that move the orientation), at most
+``iterations`` steps; a converged pose keeps its command while the rest of its batch steps on, so
+its result does not depend on the batch. Regular poses take two or three steps, the wrist
+singular ones four. The exported graph runs each phase of steps (mixed, then position-only) as an
+ONNX ``Loop`` whose body is :meth:`CompensatorGraph.iterate` (:mod:`torchcal.compensate.loop_graph`).
+The manifest's ``convergence`` (:func:`torchcal.compensate.export.convergence_report`) shows what
+the steps reach over the joint range, with the singular neighbourhoods as separate strata.
+
+**Compact graph.** The graph computes in float64 whatever its interface, and each step is a few
+dozen onnxruntime nodes: the calibrated chain's links from one Sin and two products
+(:meth:`~torchcal.compensate.chain.ChainGraph.single`), the Jacobian in eight nodes from the
+flattened frames (:func:`~torchcal.compensate.chain.geometric_jacobian_t`), the pose error as one
+product of the TCP pose with weights fixed by the target once per call (:func:`_target_weights`),
+and the step's solves sharing one Gram matrix (:func:`~torchcal.compensate.steps.position_first_step`).
 """
 
 from __future__ import annotations
@@ -87,6 +99,11 @@ DEFAULT_MAX_STEP = 0.1
 """Largest joint move of one step (of the position part of a position-first step), rad."""
 DEFAULT_MAX_ORIENTATION_STEP = 0.02
 """Largest joint move of the orientation part of a position-first step, rad."""
+CONVERGED_POSITION_M = 1e-10
+"""A pose stops stepping once its TCP position error is below this (m; 1e-4 of the 1 um that the
+guarantees speak of) and, in the steps that move the orientation, its rotation error below
+:data:`CONVERGED_ORIENTATION_RAD`."""
+CONVERGED_ORIENTATION_RAD = 1e-10
 RESIDUAL_OUTPUT = "residual"
 """Second output of the compensator: ``(B, 2)`` remaining TCP position error (m) and orientation deviation (rad)."""
 SOLVERS = {"inverse": ort_solve, "gauss_jordan": gauss_jordan}
@@ -164,19 +181,20 @@ class _TwoModels(nn.Module):
         nominal, nominal_frames = self.nominal(q, with_frames=True)
         nominal = nominal[:, 0]
         dq, slope = self.joint_errors(q, nominal_frames[:, 0], nominal[:, :3, 3])
-        pose, frames = self.calibrated(q + dq, with_frames=True)
-        return nominal, pose[:, 0], frames[:, 0], slope
+        pose, frames = self.calibrated.single(q + dq)
+        return nominal, pose.reshape(-1, 4, 4), frames, slope
 
     def calibrated_at(self, q: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
-        """Calibrated TCP pose and joint frames at ``q + dq(q)``, and the slope (or ``None``)."""
+        """Calibrated TCP pose ``(B, 4, 4)`` or ``(B, 1, 4, 4)`` (the Jacobian and the error read
+        it flattened: no node spent on the axis) and joint frames at ``q + dq(q)``, and the slope (or ``None``)."""
         if self.joint_errors is not None and self.joint_errors.needs_frames:
             return self.nominal_and_calibrated(q)[1:]
         slope = None
         if self.joint_errors is not None:
             dq, slope = self.joint_errors(q)
             q = q + dq
-        pose, frames = self.calibrated(q, with_frames=True)
-        return pose[:, 0], frames[:, 0], slope
+        pose, frames = self.calibrated.single(q)
+        return pose, frames, slope
 
     def add_residual(self, p: torch.Tensor, q: torch.Tensor, sign: float = 1.0) -> torch.Tensor:
         """``p + sign * r(q)`` ``(B, 3)`` (m, ``base``); ``p`` itself without a residual head."""
@@ -193,10 +211,14 @@ class CompensatorGraph(nn.Module):
         x: calibrated parameter vector (SI).
         residual: optional module ``q (B, N) rad -> TCP position error (B, 3)`` in ``base``, m,
             predicted by a learned head (``StoredModel.residual.to_torch_module()``).
-        dtype: float64 or float32 (inputs and outputs use it too).
+        dtype: float64 or float32, of the inputs and outputs. The graph computes in float64 in
+            either case (a float32 graph casts its inputs up and its outputs down): the compact
+            graph costs the same in float64, and float32 kinematics would leave ~1e-7 m of rounding.
         task: ``"position"`` (position first, orientation secondary; default) or ``"pose"``
             (full 6-D damped least squares).
-        iterations: Newton steps, each with a fresh Jacobian (default: :data:`DEFAULT_ITERATIONS`).
+        iterations: the most Newton steps, each with a fresh Jacobian (default:
+            :data:`DEFAULT_ITERATIONS`); a pose stops stepping once it has converged
+            (:data:`CONVERGED_POSITION_M`, :data:`CONVERGED_ORIENTATION_RAD`).
         damping_gain: ``c`` of the error-dependent damping ``lambda^2 = c |e|^2 + lambda_0^2``
             (default: :data:`DEFAULT_DAMPING_GAIN` of the task).
         damping_floor: ``lambda_0`` (m per rad, rad per rad).
@@ -223,6 +245,12 @@ class CompensatorGraph(nn.Module):
     max_orientation_step: torch.Tensor
     lower: torch.Tensor
     upper: torch.Tensor
+    target_weights: torch.Tensor
+    one: torch.Tensor
+    blocks: torch.Tensor
+    is_position_row: torch.Tensor
+    scores_both: torch.Tensor
+    scores_position: torch.Tensor
 
     def __init__(
         self,
@@ -253,7 +281,8 @@ class CompensatorGraph(nn.Module):
             raise ValueError(f"solver must be one of {sorted(SOLVERS)}, got {solver!r}")
         if not (max_step > 0 and max_orientation_step > 0):
             raise ValueError(f"max_step and max_orientation_step must be > 0 rad, got {max_step}, {max_orientation_step}")
-        self.models = _TwoModels(model, x, residual, dtype, device, joint_errors)
+        # float64 inside whatever the interface (see ``dtype`` above)
+        self.models = _TwoModels(model, x, residual, torch.float64, device, joint_errors)
         self.task = task
         self.iterations = iterations
         # position task: orientation on the first steps, position alone on the last ones (at least one mixed step)
@@ -271,8 +300,18 @@ class CompensatorGraph(nn.Module):
         self.register_buffer("max_step", torch.tensor(max_step, **f64))
         self.register_buffer("max_orientation_step", torch.tensor(max_orientation_step, **f64))
         limits = model.robot.joint_limits.to(torch.float64)
-        self.register_buffer("lower", limits[:, 0].to(device=device, dtype=dtype))
-        self.register_buffer("upper", limits[:, 1].to(device=device, dtype=dtype))
+        self.register_buffer("lower", limits[:, 0].to(device=device))
+        self.register_buffer("upper", limits[:, 1].to(device=device))
+        self.register_buffer("target_weights", _target_weights().to(device))
+        # squared-error scores of the convergence test: position and orientation rows of e e
+        blocks = torch.zeros(2, 6, **f64)
+        blocks[0, :3] = blocks[1, 3:] = 1.0
+        self.register_buffer("one", torch.tensor(1.0, **f64))  # a float64 constant: no Cast node in the test
+        self.register_buffer("blocks", blocks)  # sums of e e: |e_p|^2, |e_o|^2
+        self.register_buffer("is_position_row", torch.tensor([[True], [False]], device=device))
+        scores = blocks / torch.tensor([[CONVERGED_POSITION_M**2], [CONVERGED_ORIENTATION_RAD**2]], **f64)
+        self.register_buffer("scores_both", scores)
+        self.register_buffer("scores_position", scores[:1].clone())
 
     @classmethod
     def from_stored(cls, stored, **options) -> CompensatorGraph:
@@ -282,64 +321,129 @@ class CompensatorGraph(nn.Module):
     def forward(self, q_nominal: torch.Tensor) -> torch.Tensor:
         return self.solve(q_nominal)[0]
 
+    @property
+    def phases(self) -> list[tuple[bool, int]]:
+        """``(orientation, most steps)`` of each phase: the mixed steps, then the position-only ones."""
+        if self.task == "pose":
+            return [(True, self.iterations)]
+        phases = [(True, self.orientation_steps)]
+        if self.iterations > self.orientation_steps:
+            phases.append((False, self.iterations - self.orientation_steps))
+        return phases
+
     def solve(self, q_nominal: torch.Tensor, wrench: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-        """The fixed number of steps from ``q_nominal`` (``wrench``: loaded graphs).
+        """Steps from ``q_nominal`` until each pose has converged, at most :attr:`iterations` (``wrench``: loaded graphs).
 
         Returns ``q_corrected`` ``(B, N)`` rad and the ``residual`` ``(B, 2)``: the remaining
         position error (m) and orientation deviation (rad) of the model at ``q_corrected``.
+        The exported graph runs the same parts (:meth:`start`, :meth:`iterate`, :meth:`pending`,
+        :meth:`finish`), each phase's steps as one ONNX ``Loop`` (:mod:`torchcal.compensate.loop_graph`).
         """
-        target, pose, joint_frames, slope = self.models.nominal_and_calibrated(q_nominal)
-        q = q_nominal
-        error = self.loaded_error(target, pose, joint_frames, q, wrench)  # (B, 6, 1)
-        before = self.remaining(error.squeeze(-1))
-        for step in range(self.iterations):
-            if step > 0:
-                pose, joint_frames, slope = self.models.calibrated_at(q)
-                error = self.loaded_error(target, pose, joint_frames, q, wrench)
-            jac_t = command_jacobian_t(pose, joint_frames, slope)
-            dq = self.step(jac_t, error, orientation=step < self.orientation_steps)
-            q = torch.minimum(torch.maximum(q + dq, self.lower), self.upper)
-        # what the command leaves, through the kinematics once more: where the iteration did not
-        # converge (near a singularity) a prediction from the last step would say it did
-        pose, joint_frames, _ = self.models.calibrated_at(q)
-        after = self.remaining(self.loaded_error(target, pose, joint_frames, q, wrench).squeeze(-1))
-        # never worse than no compensation: where a joint limit or the arm's reach stopped the
-        # steps further from the target than the nominal command, the nominal command is returned
-        better = after[:, :1] <= before[:, :1]
-        return torch.where(better, q, q_nominal), torch.where(better, after, before)
+        q_in, wrench = self.widen(q_nominal, wrench)
+        weights, before, q, jac_t, error = self.start(q_in, wrench)
+        for orientation, steps in self.phases:
+            score = self.score(error, orientation)
+            for _ in range(steps):
+                if not bool(self.pending(score)):
+                    break
+                _, q, jac_t, error, score = self.iterate(q, jac_t, error, score, weights, wrench, orientation)
+        return self.narrow(*self.finish(q_in, before, q, error))
 
-    def loaded_error(self, target: torch.Tensor, pose: torch.Tensor, joint_frames: torch.Tensor, q: torch.Tensor,
-                     wrench: torch.Tensor | None) -> torch.Tensor:
-        """``[p_t - p - r(q), vee(R_t R^T)]`` ``(B, 6, 1)`` of the (unloaded) calibrated TCP ``pose``."""
-        return self.pose_error(target, pose[:, :3, 3], pose[:, :3, :3], q).unsqueeze(-1)
+    def narrow(self, q_c: torch.Tensor, residual: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The outputs in the graph's dtype (a float32 graph's two Cast nodes)."""
+        if self.dtype == torch.float64:
+            return q_c, residual
+        return q_c.to(self.dtype), residual.to(self.dtype)
+
+    def widen(self, q_nominal: torch.Tensor, wrench: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """The inputs in float64 (a float32 graph's two Cast nodes)."""
+        if self.dtype == torch.float64:
+            return q_nominal, wrench
+        return q_nominal.to(torch.float64), None if wrench is None else wrench.to(torch.float64)
+
+    def start(self, q_nominal: torch.Tensor, wrench: torch.Tensor | None):
+        """Before the first step: the target's error weights ``(B, 6, 16)``, the error of the
+        nominal command ``(B, 6, 1)`` (``before``), and the iterate: ``q``, ``J^T`` ``(B, N, 6)``, error."""
+        target, pose, joint_frames, slope = self.models.nominal_and_calibrated(q_nominal)
+        weights = (target.reshape(-1, 16) @ self.target_weights).reshape(-1, 6, 16)
+        error = self.loaded_error(weights, pose, joint_frames, q_nominal, wrench)
+        return weights, error, q_nominal, command_jacobian_t(pose, joint_frames, slope), error
+
+    def score(self, error: torch.Tensor, orientation: bool) -> torch.Tensor:
+        """``(B, 1)``: the largest of ``|e_p|^2 / tol_p^2`` and (``orientation``) ``|e_o|^2 / tol_o^2``; below 1: converged."""
+        weights = self.scores_both if orientation else self.scores_position
+        return (weights @ (error * error)).amax(1)
+
+    def pending(self, score: torch.Tensor) -> torch.Tensor:
+        """Whether any pose of the batch has not converged (a 0-d bool, the ``Loop``'s condition)."""
+        return score.amax() >= self.one
+
+    def iterate(self, q: torch.Tensor, jac_t: torch.Tensor, error: torch.Tensor, score: torch.Tensor, weights: torch.Tensor,
+                wrench: torch.Tensor | None, orientation: bool):
+        """One step of every pose not yet converged (the converged ones keep their command, so a
+        pose's result does not depend on its batch), then the kinematics at the new commands.
+
+        Returns ``(pending, q, J^T, error, score)`` at the new commands.
+        """
+        dq = self.step(jac_t, error, orientation=orientation)
+        stepped = torch.minimum(torch.maximum(q + dq, self.lower), self.upper)
+        q = torch.where(score < self.one, q, stepped)
+        pose, joint_frames, slope = self.models.calibrated_at(q)
+        error = self.loaded_error(weights, pose, joint_frames, q, wrench)
+        score = self.score(error, orientation)
+        return self.pending(score), q, command_jacobian_t(pose, joint_frames, slope), error, score
+
+    def finish(self, q_nominal: torch.Tensor, before: torch.Tensor, q: torch.Tensor, error: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The command and ``residual`` ``(B, 2)``: ``q``, or the nominal command where the steps
+        ended further from the target than it (a joint limit, the arm's reach)."""
+        # the error at q came through the kinematics after the last step: where the iteration did
+        # not converge (near a singularity) a prediction from the last step would say it did
+        both = self.remaining(torch.cat([before, error], -1))  # (B, 2, 2): [position, turn] x [before, after]
+        better = both[:, :1, 1] <= both[:, :1, 0]
+        return torch.where(better, q, q_nominal), torch.where(better, both[..., 1], both[..., 0])
 
     def step(self, jac_t: torch.Tensor, error: torch.Tensor, orientation: bool = True) -> torch.Tensor:
-        """One step ``(B, N)`` rad of the graph's task, computed in float64 (a float32 graph casts in and out)."""
-        wide = self.dtype != torch.float64
-        if wide:
-            jac_t, error = jac_t.to(torch.float64), error.to(torch.float64)
+        """One step ``(B, N)`` rad of the graph's task (float64: see ``dtype``)."""
         if self.task == "pose":
-            step = pose_step(jac_t, error, self.damping_gain, self.damping_floor_sq, self.eye6, SOLVERS[self.solver])
-        else:
-            step = position_first_step(jac_t, error, self.damping_gain, self.damping_floor_sq, self.orientation_damping_sq,
-                                       self.eye3, self.max_step, self.max_orientation_step, orientation=orientation,
-                                       inverse=INVERSES3[self.solver])
-        return step.to(self.dtype) if wide else step
+            return pose_step(jac_t, error, self.damping_gain, self.damping_floor_sq, self.eye6, SOLVERS[self.solver])
+        return position_first_step(jac_t, error, self.damping_gain, self.damping_floor_sq, self.orientation_damping_sq,
+                                   self.eye3, self.max_step, self.max_orientation_step, orientation=orientation,
+                                   inverse=INVERSES3[self.solver])
 
     def remaining(self, error: torch.Tensor) -> torch.Tensor:
-        """``(B, 2)`` from the error ``(B, 6)`` at the command: position error norm (m) and the
-        orientation deviation angle (rad; the rotation error is ``sin(angle) axis``)."""
+        """``(B, 2, K)`` from errors ``(B, 6, K)``: position error norm (m) and the orientation
+        deviation angle (rad; the rotation error is ``sin(angle) axis``) of each column."""
+        norms = (self.blocks @ (error * error)).sqrt()  # (B, 2, K)
         # onnxruntime has Asin for float32 only: float32 is ample for a reported angle (1e-7 relative)
-        turn = torch.asin(torch.clamp(error[:, 3:].norm(dim=-1), max=1.0).float()).to(error.dtype)
-        return torch.stack([error[:, :3].norm(dim=-1), turn], -1)
+        turn = torch.asin(torch.clamp(norms, max=1.0).float()).to(norms.dtype)
+        return torch.where(self.is_position_row, norms, turn)
 
-    def pose_error(self, target: torch.Tensor, position: torch.Tensor, rotation: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
-        """``[p_t - p - r(q), vee(R_t R^T)]`` ``(B, 6)`` (m, rad), ``base`` frame, for the TCP at
-        ``position`` ``(B, 3)`` with ``rotation`` ``(B, 3, 3)``."""
-        dp = self.models.add_residual(target[:, :3, 3] - position, q, -1.0)
-        e = target[:, :3, :3] @ rotation.transpose(-1, -2)
-        skew = (e - e.transpose(-1, -2)).reshape(-1, 9)
-        return torch.cat([dp, 0.5 * skew[:, [7, 2, 3]]], -1)
+    def loaded_error(self, weights: torch.Tensor, pose: torch.Tensor, joint_frames: torch.Tensor, q: torch.Tensor,
+                     wrench: torch.Tensor | None) -> torch.Tensor:
+        """``[p_t - p - r(q), vee(R_t R^T)]`` ``(B, 6, 1)`` (m, rad, ``base``) of the calibrated TCP
+        ``pose`` ``(B, 4, 4)``: linear in the pose, ``weights @ vec(pose)`` with the target's
+        ``weights`` (:func:`_target_weights`), one product per iterate."""
+        error = weights @ pose.reshape(-1, 16, 1)
+        if self.models.residual is None:  # structural, fixed at construction
+            return error
+        return error - torch.nn.functional.pad(self.models.residual(q), (0, 3)).unsqueeze(-1)
+
+
+def _target_weights() -> torch.Tensor:
+    """``(16, 96)``: the target pose (row-major, ``(B, 16)``) times it is the ``(B, 6, 16)`` matrix
+    ``W`` with ``W vec(T) = [p_t - p, vee(R_t R^T)]`` for a TCP pose ``T`` (``vee`` of the skew
+    part, ``0.5 (A - A^T)`` with ``A = R_t R^T``; the homogeneous 1 of either pose carries the
+    constant terms)."""
+    w = torch.zeros(16, 6, 16, dtype=torch.float64)
+    for r in range(3):
+        w[4 * r + 3, r, 15] = 1.0  # + p_t (T[15] = 1)
+        w[15, r, 4 * r + 3] = -1.0  # - p   (T_t[15] = 1)
+    # e_o = 0.5 [A21 - A12, A02 - A20, A10 - A01], A_ij = sum_k Rt_ik R_jk
+    for row, (i, j) in enumerate(((2, 1), (0, 2), (1, 0))):
+        for k in range(3):
+            w[4 * i + k, 3 + row, 4 * j + k] += 0.5
+            w[4 * j + k, 3 + row, 4 * i + k] -= 0.5
+    return w.reshape(16, 96)
 
 
 class CompensatorWithResidual(nn.Module):
@@ -414,7 +518,7 @@ class LoadedCompensatorGraph(CompensatorGraph):
         **options,
     ) -> None:
         super().__init__(model, x, residual, dtype=dtype, device=device, **options)
-        self.deflection = DeflectionGraph(compliance, wrench_frame=wrench_frame, dtype=dtype, device=device)
+        self.deflection = DeflectionGraph(compliance, wrench_frame=wrench_frame, dtype=torch.float64, device=device)
 
     @classmethod
     def from_stored(cls, stored, **options) -> LoadedCompensatorGraph:
@@ -424,13 +528,15 @@ class LoadedCompensatorGraph(CompensatorGraph):
     def forward(self, q_nominal: torch.Tensor, wrench: torch.Tensor) -> torch.Tensor:  # type: ignore[override]  # wrench: 2nd graph input
         return self.solve(q_nominal, wrench)[0]
 
-    def loaded_error(self, target: torch.Tensor, pose: torch.Tensor, joint_frames: torch.Tensor, q: torch.Tensor,
+    def loaded_error(self, weights: torch.Tensor, pose: torch.Tensor, joint_frames: torch.Tensor, q: torch.Tensor,
                      wrench: torch.Tensor | None) -> torch.Tensor:
         """The error measured at the loaded TCP (the Jacobian stays rigid)."""
         if wrench is None:
             raise ValueError("a loaded compensator needs the wrench")
+        pose = pose.reshape(-1, 4, 4)
         position, rotation = self.deflection.loaded_pose(pose, joint_frames, wrench)
-        return self.pose_error(target, position, rotation, q).unsqueeze(-1)
+        loaded = torch.cat([torch.cat([rotation, position.unsqueeze(-1)], -1), pose[:, 3:]], 1)
+        return super().loaded_error(weights, loaded, joint_frames, q, wrench)
 
 
 class LoadedMonitorGraph(MonitorGraph):

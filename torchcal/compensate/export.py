@@ -94,6 +94,11 @@ def onnx_bytes(
     onnxruntime's contrib domain is declared for the compensator's ``Inverse`` node; a graph
     without one does not list it.
     """
+    if isinstance(module, CompensatorWithResidual):  # its steps are Loops that stop at convergence
+        from torchcal.compensate.loop_graph import compensator_model
+
+        return compensator_model(module.graph, n_joints, input_name, (output_name, *extra_outputs), wrench_input=wrench_input,
+                                 opset=OPSET, contrib=uses_contrib_inverse(module)).SerializeToString()
     buffer = io.BytesIO()
     example = torch.zeros(2, n_joints, dtype=dtype)
     outputs = [output_name, *extra_outputs]
@@ -298,8 +303,8 @@ def convergence_report(graphs: dict[str, torch.nn.Module], stored, n_poses: int 
 
     Poses: ``n_poses`` uniform within the joint limits, and as many again with the second-to-last
     joint within +-1 deg (the wrist singularity of 6-R wrists and of 7-joint arms; with the
-    budget's wrenches for a loaded model). For each command: the position the fixed iteration
-    count leaves unsolved, ``|p_nom(q_c) + monitor(q_c) - p_nom(q_t)|`` (mm, through the monitor
+    budget's wrenches for a loaded model). For each command: the position the steps leave
+    unsolved, ``|p_nom(q_c) + monitor(q_c) - p_nom(q_t)|`` (mm, through the monitor
     graph, and compared with the compensator's own ``residual`` output), and the orientation
     deviation of the calibrated tool from the nominal target (rad, the ``residual`` output: the
     compensator computes it through the kinematics at ``q_c``). Strata: all uniform poses; wrist
@@ -512,7 +517,7 @@ def _solver_description(compensator: CompensatorGraph, portable: bool) -> dict:
     if compensator.task == "pose":
         return {
             "task": "pose",
-            "method": "damped least squares on the 6-D pose, fixed iteration count, from q_nominal",
+            "method": "damped least squares on the 6-D pose from q_nominal, each pose until converged (at most `iterations` steps)",
             **common,
             "linear_solve": (
                 "6x6, float64 in every variant: unrolled Gauss-Jordan (standard ONNX operators)" if portable else
@@ -522,8 +527,8 @@ def _solver_description(compensator: CompensatorGraph, portable: bool) -> dict:
     return {
         "task": "position",
         "method": ("task-priority damped least squares from q_nominal: the TCP position first, the orientation in the "
-                   f"position task's null space; the last {compensator.iterations - compensator.orientation_steps} of "
-                   f"{compensator.iterations} steps are position-only"),
+                   f"position task's null space; each pose until converged, at most {compensator.orientation_steps} such steps "
+                   f"then at most {compensator.iterations - compensator.orientation_steps} position-only ones"),
         **common,
         "orientation_damping_floor": math.sqrt(float(compensator.orientation_damping_sq)),
         "max_orientation_step_rad": float(compensator.max_orientation_step),
@@ -591,7 +596,7 @@ def _convergence_text(manifest: dict) -> str:
     else:
         what = ("It solves the full 6-D pose; near singular poses the damping keeps the correction small instead of exact, "
                 "for the position too.")
-    lines = [(f"The compensator runs {conv['iterations']} Newton steps (fixed, no data-dependent branches; task "
+    lines = [(f"The compensator runs at most {conv['iterations']} Newton steps, each pose until it has converged (task "
               f"`{conv['task']}`). {what} Every step moves a joint by at most "
               f"{manifest['solver']['max_step_rad']:.2f} rad and every iterate stays within the joint limits."), "",
              "| poses | n | within 1 um | within 1 um where solvable | unsolved p99 / max (mm) | orientation deviation p99 / max (rad) |",

@@ -8,6 +8,8 @@ PC needs neither torch nor the rest of torchcal's dependencies::
     q_corrected = rt.correct(q_nominal_rad)        # (N,) or (B, N), rad
     q_corrected, residual = rt.correct_with_residual(q_nominal_rad)
                                                    # residual: (2,) or (B, 2): position m, orientation rad
+    q_corrected, residual = rt.correct_one(q_nominal_rad)
+                                                   # one pose per control cycle: preallocated, bound buffers
     tcp_error_m = rt.predict_error(q_rad)          # (3,) or (B, 3), m, robot base frame
 
 A folder exported with a stiffness stage (``manifest["stages"]["stiffness"]``) needs the
@@ -43,7 +45,9 @@ class CompensatorRuntime:
         folder: the folder written by ``torchcal export`` (``manifest.json`` + ``.onnx`` files).
         precision: ``"float64"`` (default) or ``"float32"`` graphs.
         threads: onnxruntime intra-op threads; ``1`` for a real-time single core (default),
-            ``None`` for onnxruntime's default (all cores, for batches).
+            ``None`` for onnxruntime's default (all cores, for batches). With one thread no
+            thread pool exists, so nothing spins between calls (``scripts/bench_onnx.py``
+            measures the session options against one another).
         expected_robot: refuse the folder unless it was exported for this robot name.
         expected_joints: refuse the folder unless its joint names are these, in this order.
     """
@@ -92,6 +96,43 @@ class CompensatorRuntime:
             options.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
         self._compensator = self._load("compensator" + suffix, options, ort)
         self._monitor = self._load("monitor" + suffix, options, ort)
+        self._bound: tuple | None = None  # correct_one's buffers, made on its first call
+
+    def _bind_one(self):
+        """Input and output buffers of one pose, bound to the compensator session once (IOBinding):
+        a call then copies the joints in and runs, with no per-call dicts or output allocation."""
+        session, names = self._compensator
+        q = np.zeros((1, self.n_joints), dtype=self.dtype)
+        outputs = [np.zeros((1, self.n_joints), dtype=self.dtype), np.zeros((1, 2), dtype=self.dtype)]
+        binding = session.io_binding()
+        binding.bind_cpu_input(names[0], q)
+        for meta, array in zip(session.get_outputs(), outputs):
+            binding.bind_output(meta.name, "cpu", 0, array.dtype, list(array.shape), array.ctypes.data)
+        self._bound = (binding, q, outputs)
+        return self._bound
+
+    def correct_one(self, q_nominal) -> tuple[np.ndarray, np.ndarray]:
+        """One corrected command ``(N,)`` rad and its residual ``(2,)`` (m, rad) for one nominal
+        command ``(N,)`` rad: the controller's per-cycle call.
+
+        The same checks as :meth:`correct` (joint count, finite input and output) on buffers bound
+        to the session once; the returned arrays are fresh copies. A folder with a stiffness stage
+        takes its wrench through :meth:`correct_with_residual`.
+        """
+        if self.wrench_input:
+            raise CompensatorError(f"{self.folder}: this compensator has a stiffness stage; use correct_with_residual(q, wrench)")
+        binding, q, outputs = self._bound or self._bind_one()
+        array = np.asarray(q_nominal, dtype=self.dtype)
+        if array.shape != (self.n_joints,):
+            raise CompensatorError(f"joint input has shape {array.shape}; expected ({self.n_joints},) for robot "
+                                   f"'{self.manifest['robot']}' ({', '.join(self.joint_names)}), rad")
+        if not np.isfinite(array).all():
+            raise CompensatorError("joint input has NaN or infinite values; refusing to compensate")
+        q[0] = array
+        self._compensator[0].run_with_iobinding(binding)
+        if not np.isfinite(outputs[0]).all():
+            raise CompensatorError(f"{self.folder}: no finite output for this pose ({self.precision} graph); keep the nominal command")
+        return outputs[0][0].copy(), outputs[1][0].copy()
 
     def _load(self, key: str, options, ort):
         name = self.manifest["files"].get(key)

@@ -55,7 +55,7 @@ def pose_step(jac_t: torch.Tensor, error: torch.Tensor, damping_gain: torch.Tens
     """
     lam2 = damping_gain * (error * error).sum(-2, keepdim=True) + damping_floor_sq  # (B, 1, 1)
     normal = jac_t.transpose(-1, -2) @ jac_t + lam2 * eye6
-    return (jac_t @ solve(normal, error, eye6)).squeeze(-1)
+    return (jac_t @ solve(normal, error, eye6))[..., 0]  # indexing: squeeze of a dynamic shape exports as an If
 
 
 def position_first_step(jac_t: torch.Tensor, error: torch.Tensor, damping_gain: torch.Tensor, damping_floor_sq: torch.Tensor,
@@ -76,18 +76,28 @@ def position_first_step(jac_t: torch.Tensor, error: torch.Tensor, damping_gain: 
         orientation: ``False`` for a position-only step (structural: fixed at export).
         inverse: the 3x3 inverse (:func:`~torchcal.compensate.linalg.inverse3`, or
             :func:`~torchcal.compensate.linalg.ort_inverse`).
+
+    The products share work (about 40 ONNX nodes with the orientation, 20 without): the 6x6
+    Gram matrix ``J J^T`` gives ``Jp Jp^T`` and ``Jp Jo^T`` at once, one product applies the
+    position inverse to ``e_p`` and to ``Jp Jo^T`` together, and both parts are bounded by one
+    set of nodes on the ``(B, N, 2)`` stack of the two moves.
     """
-    jp, jo = jac_t[..., :3], jac_t[..., 3:]
-    ep, eo = error[:, :3], error[:, 3:]
+    jp = jac_t[..., :3]
+    ep = error[:, :3]
     lam_p = damping_gain * (ep * ep).sum(-2, keepdim=True) + damping_floor_sq
-    jp_t = jp.transpose(-1, -2)
-    gram_inv = inverse(jp_t @ jp + lam_p * eye3)  # (B, 3, 3)
-    dq_p = jp @ (gram_inv @ ep)  # (B, N, 1)
-    step = bounded(dq_p.squeeze(-1), max_step)
     if not orientation:
-        return step
-    jo_free = jo - jp @ (gram_inv @ (jp_t @ jo))  # (Jo P)^T, (B, N, 3)
-    eo_left = eo - jo.transpose(-1, -2) @ dq_p
+        dq_p = jp @ (inverse(jp.transpose(-1, -2) @ jp + lam_p * eye3) @ ep)  # (B, N, 1)
+        return bounded(dq_p[..., 0], max_step)
+    gram = jac_t.transpose(-1, -2) @ jac_t  # (B, 6, 6): [[Jp Jp^T, Jp Jo^T], [Jo Jp^T, Jo Jo^T]]
+    gram_inv = inverse(gram[:, :3, :3] + lam_p * eye3)  # (B, 3, 3)
+    solved = gram_inv @ torch.cat([ep, gram[:, :3, 3:]], -1)  # [G^-1 e_p | G^-1 Jp Jo^T], (B, 3, 4)
+    moved = jp @ solved  # [dq_p | Jp^T G^-1 Jp Jo^T], (B, N, 4)
+    dq_p = moved[..., :1]
+    jo_free = jac_t[..., 3:] - moved[..., 1:]  # (Jo P)^T, (B, N, 3)
+    eo_left = error[:, 3:] - gram[:, 3:, :3] @ solved[..., :1]  # e_o - Jo dq_p
     lam_o = damping_gain * (eo_left * eo_left).sum(-2, keepdim=True) + orientation_damping_sq
     dq_o = jo_free @ (inverse(jo_free.transpose(-1, -2) @ jo_free + lam_o * eye3) @ eo_left)
-    return step + bounded(dq_o.squeeze(-1), max_orientation_step)
+    both = torch.cat([dq_p, dq_o], -1)  # (B, N, 2)
+    limits = torch.stack([max_step, max_orientation_step])
+    scale = torch.clamp(limits / both.abs().amax(-2, keepdim=True), max=1.0)  # as bounded(), per part
+    return (both * scale).sum(-1)

@@ -25,7 +25,7 @@ from torchcal.kinematics.mdh import chain_transforms
 _LENGTH_UNITS = {"m": 1.0, "mm": 1e-3, "cm": 1e-2}
 _ANGLE_UNITS = {"rad": 1.0, "deg": math.pi / 180.0}
 _ROW_KEYS = ("alpha", "a", "d", "theta")
-_OPTIONAL_ROW_KEYS = ("beta", "min", "max", "velocity")
+_OPTIONAL_ROW_KEYS = ("beta", "min", "max", "velocity", "acceleration")
 
 
 @dataclass(frozen=True)
@@ -43,6 +43,8 @@ class RobotModel:
         source: file the model was read from, if any.
         urdf: URDF text describing the same chain (for pytorch-kinematics).
         base_link / end_link: URDF link names of ``base`` and ``flange``.
+        velocity_limits / acceleration_limits: ``(N,)`` joint speed (rad/s) and acceleration
+            (rad/s^2) limits where the YAML gives them for every joint, else ``None``.
     """
 
     name: str
@@ -57,6 +59,7 @@ class RobotModel:
     base_link: str = "base"
     end_link: str = "flange"
     velocity_limits: torch.Tensor | None = None
+    acceleration_limits: torch.Tensor | None = None
 
     @property
     def dof(self) -> int:
@@ -172,7 +175,7 @@ def robot_from_yaml(path: str | Path) -> RobotModel:
     joints = kin.get("joints")
     if not isinstance(joints, list) or not joints:
         raise ModelError(f"{path}: kinematics.joints must be a non-empty list of rows")
-    rows, limits, velocities = [], [], []
+    rows, limits, velocities, accelerations = [], [], [], []
     for i, row in enumerate(joints, start=1):
         if not isinstance(row, dict):
             raise ModelError(f"{path}: joint {i} must be a mapping with keys {_ROW_KEYS}")
@@ -192,6 +195,8 @@ def robot_from_yaml(path: str | Path) -> RobotModel:
         limits.append([lo * as_, hi * as_])
         if "velocity" in row:
             velocities.append(_number(row["velocity"], path, f"joint {i} 'velocity'") * as_)
+        if "acceleration" in row:
+            accelerations.append(_number(row["acceleration"], path, f"joint {i} 'acceleration'") * as_)
     tool = kin.get("tool", [0.0, 0.0, 0.0])
     if not isinstance(tool, list) or len(tool) != 3:
         raise ModelError(f"{path}: kinematics.tool must be a list of 3 numbers [x, y, z]")
@@ -205,6 +210,7 @@ def robot_from_yaml(path: str | Path) -> RobotModel:
         tool=torch.tensor(tool_m, dtype=torch.float64),
         source=str(path),
         velocity_limits=torch.tensor(velocities, dtype=torch.float64) if len(velocities) == n else None,
+        acceleration_limits=torch.tensor(accelerations, dtype=torch.float64) if len(accelerations) == n else None,
     )
 
 
@@ -226,7 +232,8 @@ def robot_to_yaml(robot: RobotModel, table: torch.Tensor | None = None, tool: to
         "  joints:",
     ]
     velocities = robot.velocity_limits.tolist() if robot.velocity_limits is not None else [None] * robot.dof
-    for row, lim, velocity in zip(table.tolist(), robot.joint_limits.tolist(), velocities):
+    accelerations = robot.acceleration_limits.tolist() if robot.acceleration_limits is not None else [None] * robot.dof
+    for row, lim, velocity, acceleration in zip(table.tolist(), robot.joint_limits.tolist(), velocities, accelerations):
         alpha, a, beta, theta, d = row
         entries = [f"alpha: {alpha * deg:.9g}", f"a: {a * 1e3:.9g}", f"d: {d * 1e3:.9g}", f"theta: {theta * deg:.9g}"]
         if abs(beta) > 0:
@@ -234,6 +241,8 @@ def robot_to_yaml(robot: RobotModel, table: torch.Tensor | None = None, tool: to
         entries += [f"min: {lim[0] * deg:.9g}", f"max: {lim[1] * deg:.9g}"]
         if velocity is not None:
             entries.append(f"velocity: {velocity * deg:.9g}")
+        if acceleration is not None:
+            entries.append(f"acceleration: {acceleration * deg:.9g}")
         lines.append("    - {" + ", ".join(entries) + "}")
     lines.append("  tool: [" + ", ".join(f"{v * 1e3:.9g}" for v in tool.tolist()) + "]")
     return "\n".join(lines) + "\n"

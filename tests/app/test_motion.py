@@ -1,0 +1,160 @@
+"""``torchcal motion`` end to end: files in, trajectory and report out, bad input as one line."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from torchcal.cli import main
+from torchcal.kinematics.error_model import ErrorModel
+from torchcal.kinematics.robot import default_robot_path, load_robot
+from torchcal.motion.waypoints import waypoints_csv
+
+DEG = math.pi / 180.0
+ROBOT = str(default_robot_path())
+Q_START = [0.0, -70.0, 20.0, 10.0, 50.0, 0.0]
+
+
+def _start_arg(q=Q_START) -> str:
+    return "start=[" + ",".join(f"{v:g}" for v in q) + "]"
+
+
+@pytest.fixture(scope="module")
+def line_file(tmp_path_factory):
+    """A 100 mm line from the pose of Q_START, constant orientation (nominal twin robot)."""
+    model = ErrorModel(load_robot(default_robot_path()))
+    first = model.tcp_pose(torch.tensor(Q_START, dtype=torch.float64) * DEG, model.nominal_vector())
+    poses = first.expand(2, 4, 4).clone()
+    poses[1, :3, 3] += torch.tensor([0.06, -0.08, 0.0], dtype=torch.float64)
+    path = tmp_path_factory.mktemp("motion") / "path.csv"
+    path.write_text(waypoints_csv(poses))
+    return path, poses
+
+
+def _read_trajectory(path):
+    lines = path.read_text().splitlines()
+    header = lines[0].split(",")
+    return header, np.array([[float(v) for v in line.split(",")] for line in lines[1:]])
+
+
+def test_motion_writes_trajectory_and_report(tmp_path, line_file, capsys):
+    path, poses = line_file
+    out = tmp_path / "TRAJ.csv"
+    assert main(["motion", "--robot", ROBOT, "--path", str(path), "--out", str(out), _start_arg(), "dt=0.004"]) == 0
+    printed = capsys.readouterr().out
+    assert "path error: max" in printed and "joint speed: max" in printed and "report:" in printed
+    header, data = _read_trajectory(out)
+    assert header == ["t", "q1", "q2", "q3", "q4", "q5", "q6"]
+    np.testing.assert_allclose(np.diff(data[:, 0]), 0.004, atol=1e-9)
+    # a second forward kinematics (pytorch-kinematics on the URDF) of the written joints
+    robot = load_robot(default_robot_path())
+    flange = robot.pk_chain().forward_kinematics(torch.from_numpy(data[:, 1:] * DEG)).get_matrix()
+    tcp = (flange[:, :3, :3] @ robot.tool + flange[:, :3, 3]).numpy()
+    start, end = poses[0, :3, 3].numpy(), poses[1, :3, 3].numpy()
+    u = end - start
+    lam = np.clip((tcp - start) @ u / (u @ u), 0, 1)
+    assert np.linalg.norm(tcp - (start + lam[:, None] * u), axis=-1).max() * 1e3 < 0.005
+    assert np.linalg.norm(tcp[-1] - end) * 1e3 < 0.005
+    report = tmp_path / "TRAJ_report"
+    metrics = json.loads((report / "motion.json").read_text())
+    assert metrics["within_tolerance"] and metrics["path_error_max_mm"] < 0.005
+    assert metrics["duration_s"] == pytest.approx(data[-1, 0])
+    for name in ("report.md", "report.html", "figures/path_error.png", "figures/joint_speed.png",
+                 "figures/joint_accel.png", "figures/singularity.png"):
+        assert (report / name).is_file()
+    # joint speeds in the report are the finite differences of the file's joints
+    speed = np.abs(np.diff(data[:, 1:], axis=0)).max(0) / 0.004
+    np.testing.assert_allclose(metrics["joint_speed_max_deg_s"], speed, rtol=1e-6)
+
+
+@pytest.mark.parametrize("body, expected", [
+    ("x,y,z,rx,ry,rz\n1,2,3,4,5,6\n1,2,x3,4,5,6\n", "row 3, column 'z'"),
+    ("x,y,z,rx,ry\n1,2,3,4,5\n", "missing column 'rz'"),
+])
+def test_bad_path_file_is_one_line(tmp_path, capsys, body, expected):
+    path = tmp_path / "bad.csv"
+    path.write_text(body)
+    code = main(["motion", "--robot", ROBOT, "--path", str(path), "--out", str(tmp_path / "t.csv"), _start_arg()])
+    err = capsys.readouterr().err
+    assert code == 2 and expected in err and str(path) in err and err.count("\n") == 1
+    assert not (tmp_path / "t.csv").exists()
+
+
+@pytest.mark.parametrize("option, expected", [
+    ([], "start=[q1,...,q6] (deg) is required"),
+    (["start=[1,2,3]"], "start has 3 values"),
+    ([_start_arg(), "speed=-5"], "speed must be a finite number in (0, inf], got -5.0"),
+    ([_start_arg(), "joint_speed=[1,1,1,1,1,0]"], "joint_speed limits must be positive"),
+    ([_start_arg(), "dampng=1"], "invalid override"),
+])
+def test_bad_options_are_one_line(tmp_path, line_file, capsys, option, expected):
+    code = main(["motion", "--robot", ROBOT, "--path", str(line_file[0]), "--out", str(tmp_path / "t.csv"), *option])
+    err = capsys.readouterr().err
+    assert code == 2 and expected in err and err.count("\n") == 1
+
+
+def test_out_of_reach_writes_the_report_but_no_trajectory(tmp_path, capsys):
+    path = tmp_path / "far.csv"
+    path.write_text("x,y,z,rx,ry,rz\n600,0,700,0,90,0\n1400,0,700,0,90,0\n")  # 1.4 m: beyond the arm's reach
+    out = tmp_path / "t.csv"
+    model = ErrorModel(load_robot(default_robot_path()))
+    from torchcal.kinematics import transforms as tf
+    from torchcal.kinematics.ik import solve_ik
+
+    target = tf.homogeneous(tf.euler_xyz_to_matrix(torch.tensor([0.0, 90 * DEG, 0.0], dtype=torch.float64)),
+                            torch.tensor([0.6, 0.0, 0.7], dtype=torch.float64))
+    q0 = solve_ik(model, model.nominal_vector(), target, torch.tensor([0, -30, 30, 0, 30, 0], dtype=torch.float64) * DEG).q
+    code = main(["motion", "--robot", ROBOT, "--path", str(path), "--out", str(out), _start_arg((q0 / DEG).tolist())])
+    err = capsys.readouterr().err
+    assert code == 2 and "exceeds the tolerance" in err and "not written" in err
+    assert not out.exists()
+    metrics = json.loads((tmp_path / "t_report" / "motion.json").read_text())
+    assert not metrics["within_tolerance"] and metrics["path_error_max_mm"] > 1.0
+
+
+def test_out_names_a_folder(tmp_path, line_file, capsys):
+    code = main(["motion", "--robot", ROBOT, "--path", str(line_file[0]), "--out", str(tmp_path), _start_arg()])
+    assert code == 2 and "names an existing folder" in capsys.readouterr().err
+
+
+@pytest.fixture(scope="module")
+def calibrated(tmp_path_factory):
+    """A twin with geometric errors, calibrated from 150 simulated tracker poses."""
+    from torchcal.config.schema import FitConfig
+    from torchcal.sim.twin import Twin, TwinConfig
+    from torchcal.stages.geometry import fit, save_fit
+
+    twin = Twin.create(TwinConfig(seed=3, gravity=False, gear=False))
+    train = twin.sample(150, torch.Generator().manual_seed(11))
+    result = fit(twin.robot, train, FitConfig(residual="none", gravity_compliance="none", joint_harmonics="none"))
+    return twin, save_fit(tmp_path_factory.mktemp("model") / "model", twin.robot, train, result, {})
+
+
+def test_model_plans_the_real_robot(tmp_path, line_file, calibrated):
+    """With --model the joints put the twin's true TCP on the path; the nominal joints miss it by about a mm."""
+    from torchcal.stages.store import load_model
+
+    twin, model_dir = calibrated
+    path, poses = line_file
+    runs = {}
+    for name, extra in (("model", ["--model", str(model_dir)]), ("nominal", [])):
+        out = tmp_path / f"{name}.csv"
+        assert main(["motion", "--robot", ROBOT, "--path", str(path), "--out", str(out), _start_arg(), *extra]) == 0
+        runs[name] = _read_trajectory(out)[1]
+    stored = load_model(model_dir)
+    # the path in the instrument frame, through the calibrated base frame; the twin's truth is there too
+    frame = stored.model.instrument_from_base(stored.x)
+    start, end = (frame[:3, :3] @ poses[:, :3, 3].T).T + frame[:3, 3]
+    start, end = start.numpy(), end.numpy()
+    errors = {}
+    for name, data in runs.items():
+        tcp = twin.model.tcp_pose(torch.from_numpy(data[:, 1:] * DEG), twin.x_true)[:, :3, 3].numpy()
+        u = end - start
+        lam = np.clip((tcp - start) @ u / (u @ u), 0, 1)
+        errors[name] = np.linalg.norm(tcp - (start + lam[:, None] * u), axis=-1).max() * 1e3
+    assert errors["model"] < 0.1
+    assert errors["nominal"] > 5 * errors["model"]

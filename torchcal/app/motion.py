@@ -1,0 +1,204 @@
+"""``torchcal motion``: a joint trajectory for a waypoint path, with its report.
+
+Reads the path file (:mod:`torchcal.motion.waypoints`), the robot file and, with a model folder,
+the calibrated kinematics (geometry and joint-space errors: the joints the real robot must be
+sent); plans the motion (:mod:`torchcal.motion.planner`); writes the report (always) and the
+trajectory CSV (``t`` s, ``q1..qN`` deg, one row every ``dt``; atomically) when every sample is
+within the path tolerance and the joint limits. Returns the lines the command prints.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from torchcal.core.errors import ModelError, TorchcalError
+from torchcal.core.io import atomic_write_json, atomic_write_text
+from torchcal.core.overrides import apply_overrides
+from torchcal.kinematics.error_model import ErrorModel
+from torchcal.kinematics.robot import RobotModel, load_robot
+from torchcal.motion.planner import PlannedMotion, PlanOptions, measure, plan_motion
+from torchcal.motion.priority import TcpKinematics
+from torchcal.motion.waypoints import load_waypoints
+
+DEG = math.pi / 180.0
+
+
+@dataclass(frozen=True)
+class MotionOutcome:
+    """What ``torchcal motion`` wrote and prints.
+
+    Attributes:
+        trajectory: the trajectory CSV.
+        report: the report folder (``report.md``, ``report.html``, ``figures/``, ``motion.json``).
+        metrics: scalar figures (mm, deg, s) as in ``motion.json``.
+        lines: lines to print.
+    """
+
+    trajectory: Path
+    report: Path
+    metrics: dict
+    lines: list[str]
+
+
+def default_report_folder(out: Path) -> Path:
+    """``TRAJ_report/`` next to ``TRAJ.csv``."""
+    return out.with_name(f"{out.stem}_report")
+
+
+def kinematics_of(robot: RobotModel, model_dir: Path | None) -> tuple[TcpKinematics, str]:
+    """TCP kinematics of the nominal robot or of a calibrated model folder, and a line saying which."""
+    if model_dir is None:
+        error_model = ErrorModel(robot)
+        x = error_model.nominal_vector()
+        return TcpKinematics(error_model.table(x), error_model.T_base_0,
+                             error_model.T_n_flange @ error_model.flange_from_tool(x)), f"nominal kinematics of {robot.name}"
+    from torchcal.identify.joint_errors import JointSpaceErrors
+    from torchcal.stages.store import load_model
+
+    stored = load_model(model_dir)
+    if stored.robot.dof != robot.dof or stored.robot.name != robot.name:
+        raise ModelError(f"{model_dir}: the model is of robot '{stored.robot.name}' ({stored.robot.dof} joints), "
+                         f"--robot is '{robot.name}' ({robot.dof} joints)")
+    model, x = stored.model, stored.x.to(torch.float64).cpu()
+    errors = JointSpaceErrors.from_metadata(stored.metadata)
+    joint_map = None if errors.empty else (lambda q: errors.effective_joints(stored.robot, q))
+    kin = TcpKinematics(model.table(x), model.T_base_0.cpu(), model.T_n_flange.cpu() @ model.flange_from_tool(x),
+                        joint_map=joint_map)
+    parts = ["geometry"] + (["joint-space errors"] if joint_map is not None else [])
+    left = [name for name, present in (("learned residual head", stored.residual is not None),
+                                       ("stiffness", stored.stiffness is not None)) if present]
+    note = f"; not used: {', '.join(left)} (no joint-space chain)" if left else ""
+    return kin, f"calibrated kinematics of {model_dir} ({' and '.join(parts)}){note}"
+
+
+def trajectory_csv(planned: PlannedMotion) -> str:
+    """``t, q1..qN`` (s, deg), one row per sample."""
+    n = planned.q.shape[1]
+    lines = [",".join(["t"] + [f"q{j}" for j in range(1, n + 1)])]
+    q_deg = planned.q / DEG
+    for t, row in zip(planned.t, q_deg):
+        lines.append(",".join([f"{t:.6f}"] + [f"{v:.12g}" for v in row]))
+    return "\n".join(lines) + "\n"
+
+
+def _check_outputs(out: Path, report: Path) -> None:
+    if out.is_dir():
+        raise TorchcalError(f"{out}: --out names an existing folder; give a file name (TRAJ.csv)")
+    if report.exists() and not report.is_dir():
+        raise TorchcalError(f"{report}: the report folder's name is taken by a file")
+    if report.is_dir() and any(report.iterdir()) and not (report / "motion.json").is_file():
+        raise TorchcalError(f"{report}: exists and is not a motion report folder; give another --report")
+
+
+def run_motion(robot_file: Path, path_file: Path, out: Path, overrides: list[str], *, model_dir: Path | None = None,
+               report_dir: Path | None = None) -> MotionOutcome:
+    """Plan the motion, write the report and (within tolerance and joint limits) the trajectory.
+
+    Raises:
+        TorchcalError: bad input (one line naming file, row and column or the option), or a motion
+            that leaves the path tolerance or a joint range (the report is written first).
+    """
+    out = Path(out)
+    report_dir = Path(report_dir) if report_dir is not None else default_report_folder(out)
+    _check_outputs(out, report_dir)
+    options = apply_overrides(PlanOptions(), overrides)
+    robot = load_robot(robot_file)
+    options.check(robot)
+    waypoints = load_waypoints(path_file)
+    kin, source = kinematics_of(robot, Path(model_dir) if model_dir is not None else None)
+    planned = plan_motion(kin, robot, waypoints.poses, options)
+    settings = options.priority()
+    measured = measure(kin, planned, settings)
+    metrics = {k: v for k, v in measured.items() if not isinstance(v, np.ndarray)}
+
+    limits = robot.joint_limits.numpy()
+    outside = (planned.q < limits[:, 0] - 1e-9) | (planned.q > limits[:, 1] + 1e-9)
+    failures = []
+    if metrics["path_error_max_mm"] > options.tolerance:
+        k = int(np.argmax(measured["position_error_mm"]))
+        seg = int(planned.segment[k])
+        failures.append(f"path error {metrics['path_error_max_mm']:.3g} mm at t = {planned.t[k]:.3f} s (between rows "
+                        f"{waypoints.lines[seg]} and {waypoints.lines[seg + 1]} of {waypoints.path}) exceeds the "
+                        f"tolerance {options.tolerance:g} mm")
+    over_v = np.array(metrics["joint_speed_max_deg_s"]) / np.array(metrics["joint_speed_limit_deg_s"])
+    over_a = np.array(metrics["joint_accel_max_deg_s2"]) / np.array(metrics["joint_accel_limit_deg_s2"])
+    for name, ratio in (("speed", over_v), ("acceleration", over_a)):
+        if ratio.max() > 1.0 + 1e-6:
+            j = int(np.argmax(ratio))
+            failures.append(f"q{j + 1} {name} reaches {100 * ratio[j]:.1f} % of its limit")
+    if outside.any():
+        k, j = map(int, np.argwhere(outside)[0])
+        failures.append(f"q{j + 1} = {planned.q[k, j] / DEG:.3f} deg at t = {planned.t[k]:.3f} s is outside its range "
+                        f"[{limits[j, 0] / DEG:g}, {limits[j, 1] / DEG:g}] deg")
+    metrics.update({"within_tolerance": not failures, "tolerance_mm": options.tolerance,
+                    "limit_source": planned.limit_source, "kinematics": source})
+
+    inputs = (f"Path {waypoints.path} ({len(waypoints.lines)} waypoints, base frame), {source}; speed "
+              f"{options.speed:g} mm/s, acceleration {options.accel:g} mm/s^2, interpolation period {options.dt:g} s; "
+              f"joint limits: {planned.limit_source}.")
+    method = ("Position first: the TCP position is the primary task, the orientation acts only in the position "
+              "task's null space and yields near a singularity of the pose (damping of its own singular values below "
+              f"orientation_eps = {options.orientation_eps:g}); limits are met by slowing down along the path "
+              "(time-optimal time law), never by leaving it. The robot stops at every waypoint.")
+    verdict = (f"Verdict: every sample within the path tolerance, the joint limits and ranges; trajectory written to {out}."
+               if not failures else "Verdict: NOT written: " + "; ".join(failures) + ".")
+    summary = [inputs, method, verdict]
+    series = {
+        "t": planned.t,
+        "position_error_mm": measured["position_error_mm"],
+        "orientation_deviation_deg": measured["orientation_deviation_deg"],
+        "joint_speed_deg_s": measured["joint_speed_deg_s"],
+        "joint_accel_deg_s2": measured["joint_accel_deg_s2"],
+        "singular": (planned.sigma_orientation < settings.orientation_eps)
+        | (planned.sigma_position < settings.position_eps),
+        "sigma_orientation": planned.sigma_orientation,
+        "sigma_position_mm": planned.sigma_position * 1e3,
+        "tcp_speed_mm_s": np.linalg.norm(np.diff(kin.pose(torch.from_numpy(planned.q))[:, :3, 3].numpy(), axis=0),
+                                         axis=-1) / options.dt * 1e3,
+    }
+    from torchcal.report.document import write_report
+    from torchcal.report.motion import motion_report
+
+    report = motion_report(f"Motion along {waypoints.path.name}", summary, metrics, series,
+                           {"tolerance": options.tolerance, "orientation_eps": options.orientation_eps,
+                            "position_eps": options.position_eps})
+    write_report(report_dir, report)
+    atomic_write_json(report_dir / "motion.json", metrics)
+    if failures:
+        raise TorchcalError(f"{'; '.join(failures)}; report in {report_dir / 'report.md'}; {out} not written")
+    atomic_write_text(out, trajectory_csv(planned))
+    return MotionOutcome(trajectory=out, report=report_dir, metrics=metrics, lines=summary_lines(metrics, out, report_dir))
+
+
+def _outside(value: float) -> str:
+    return "no sample outside singular neighbourhoods" if math.isnan(value) else \
+        f"{value:.3g} deg outside singular neighbourhoods"
+
+
+def summary_lines(metrics: dict, out: Path, report_dir: Path) -> list[str]:
+    """The lines ``torchcal motion`` prints."""
+    peak_v, peak_a = np.array(metrics["joint_speed_max_deg_s"]), np.array(metrics["joint_accel_max_deg_s2"])
+    speed = peak_v / np.array(metrics["joint_speed_limit_deg_s"])
+    accel = peak_a / np.array(metrics["joint_accel_limit_deg_s2"])
+    trajectory = f"trajectory: {out} ({metrics['n_samples']} samples, {metrics['duration_s']:.3f} s)"
+    path_error = (f"path error: max {metrics['path_error_max_mm']:.2g} mm over the samples (start "
+                  f"{metrics['start_error_mm']:.2g}, end {metrics['end_error_mm']:.2g}; tolerance "
+                  f"{metrics['tolerance_mm']:g} mm)")
+    orientation = (f"orientation deviation: max {metrics['orientation_deviation_max_deg']:.3g} deg "
+                   f"({_outside(metrics['orientation_deviation_regular_max_deg'])}; "
+                   f"{metrics['samples_orientation_yielding']} samples where the orientation task is near-singular "
+                   f"and yields, {metrics['samples_position_yielding']} where the position task does)")
+    joints = (f"joint speed: max {peak_v.max():.1f} deg/s (q{int(np.argmax(peak_v)) + 1}), at most "
+              f"{100 * speed.max():.0f} % of a limit (q{int(np.argmax(speed)) + 1}); joint acceleration: max "
+              f"{peak_a.max():.0f} deg/s^2 (q{int(np.argmax(peak_a)) + 1}), at most {100 * accel.max():.0f} % of a "
+              f"limit (q{int(np.argmax(accel)) + 1})")
+    lines = [trajectory, path_error, orientation, joints]
+    if metrics["first_waypoint_from_start_deg"] > 0.01:
+        lines.append(f"first waypoint solved {metrics['first_waypoint_from_start_deg']:.3g} deg (largest joint) away from "
+                     "start: the trajectory begins there, not at start")
+    return [*lines, f"report: {report_dir / 'report.md'} (and report.html)"]
