@@ -251,14 +251,8 @@ def _block_latency(calls_by_name: dict, calls: int, rounds: int = 7) -> dict:
     per: dict[str, list[tuple[float, float]]] = {name: [] for name in calls_by_name}
     for _ in range(rounds):
         for name, fn in calls_by_name.items():
-            for _ in range(50):
-                fn()
-            times = np.empty(calls)
-            for i in range(calls):
-                t0 = time.perf_counter_ns()
-                fn()
-                times[i] = time.perf_counter_ns() - t0
-            per[name].append((float(np.median(times)) / 1e3, float(np.percentile(times, 99)) / 1e3))
+            block = _latency(fn, calls, warmup=50)
+            per[name].append((block["median_us"], block["p99_us"]))
     return {name: {"median_us": float(np.median([m for m, _ in v])), "p99_us": float(np.median([p for _, p in v])),
                    "calls": calls, "rounds": rounds} for name, v in per.items()}
 
