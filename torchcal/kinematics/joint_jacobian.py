@@ -27,6 +27,14 @@ def geometric_jacobian(model: ErrorModel, q: torch.Tensor, x: torch.Tensor) -> t
     """TCP pose ``T_instrument_tool`` ``(..., 4, 4)`` and geometric Jacobian ``(..., 6, N)``."""
     pose = model.tcp_pose(q, x)
     axes, origins = joint_frames(model, q, x)
-    lever = pose[..., None, :3, 3] - origins
+    return pose, jacobian_columns(axes, origins, pose[..., :3, 3])
+
+
+def jacobian_columns(axes: torch.Tensor, origins: torch.Tensor, point: torch.Tensor) -> torch.Tensor:
+    """Geometric Jacobian ``(..., 6, N)`` of ``point`` ``(..., 3)`` from revolute joint axes and origins ``(..., N, 3)``.
+
+    Column ``i`` is ``[z_i x (p - o_i); z_i]``, in the frame the axes, origins and point are given in.
+    """
+    lever = point[..., None, :] - origins
     linear = torch.linalg.cross(axes, lever, dim=-1)
-    return pose, torch.cat([linear, axes], -1).transpose(-1, -2)
+    return torch.cat([linear, axes], -1).transpose(-1, -2)

@@ -42,6 +42,7 @@ import torch
 
 from torchcal.core.errors import ModelError
 from torchcal.kinematics import transforms as tf
+from torchcal.kinematics.joint_jacobian import jacobian_columns
 from torchcal.kinematics.mdh import chain_transforms
 
 
@@ -70,9 +71,7 @@ class TcpKinematics:
         axes = torch.einsum("ij,...nj->...ni", r_b, rot[..., :, :, 2])
         origins = torch.einsum("ij,...nj->...ni", r_b, pos) + p_b
         pose = self.base @ tf.homogeneous(rot[..., -1, :, :], pos[..., -1, :]) @ self.tail
-        lever = pose[..., None, :3, 3] - origins
-        jac = torch.cat([torch.linalg.cross(axes, lever, dim=-1), axes], -1).transpose(-1, -2)
-        return pose, jac
+        return pose, jacobian_columns(axes, origins, pose[..., :3, 3])
 
     def pose(self, q: torch.Tensor) -> torch.Tensor:
         """``T_base_tool`` ``(..., 4, 4)`` at commanded joints ``q`` ``(..., N)`` rad."""
