@@ -112,7 +112,9 @@ def _cmd_evaluate(args) -> int:
 def _cmd_export(args) -> int:
     from torchcal.compensate.export import export_model
 
-    manifest = export_model(args.model, args.out, iterations=args.iterations, portable=args.portable, task=args.task)
+    manifest = export_model(args.model, args.out, iterations=args.iterations, portable=args.portable, task=args.task,
+                            tcp_mm=args.tcp_mm, tcp_rpy_deg=args.tcp_rpy_deg,
+                            allow_large_corrections=args.allow_large_corrections)
     conv = manifest["convergence"]
     wrist = conv["strata"]["wrist_singular"]
     wrist_text = "" if not wrist.get("n_poses") else (
@@ -123,6 +125,14 @@ def _cmd_export(args) -> int:
         f"{manifest['iterations']} steps leave {100 * conv['share_within_1um']:.1f} % of random poses within 1 um "
         f"(p99 {conv['unsolved_tcp_mm']['p99']:.2e} mm){wrist_text}"
     )
+    tcp = manifest["tcp"]
+    for where, e in manifest["corrections"]["extent"].items():
+        what = "measured point" if tcp.get("is_measured_point") else f"TCP {tcp['rpy_deg']} deg,"
+        print(f"{what} {[round(v, 3) for v in tcp['position_mm']]} mm in the flange frame: over the {where} the largest joint "
+              f"correction is {e['largest_joint_correction_deg']:.3g} deg (joint {e['joint']}), the tool orientation "
+              f"deviation up to {e['largest_tool_rotation_deg']:.3g} deg")
+    for line in manifest["corrections"]["exceeded_but_allowed"]:
+        print(f"warning: {line} (allowed by --allow-large-corrections)")
     return 0
 
 
@@ -269,6 +279,13 @@ def build_parser(with_options: bool = False) -> argparse.ArgumentParser:
                    help="Newton steps of the compensator (default: 6 for position, 3 for pose)")
     p.add_argument("--portable", action="store_true",
                    help="standard ONNX operators only (no onnxruntime contrib Inverse): for other runtimes, slower")
+    p.add_argument("--tcp-mm", type=float, nargs=3, default=None, metavar=("X", "Y", "Z"),
+                   help="production TCP in the flange frame, mm (0 0 0: the flange); the compensator serves it "
+                        "(default: the calibration's measured point)")
+    p.add_argument("--tcp-rpy-deg", type=float, nargs=3, default=None, metavar=("RX", "RY", "RZ"),
+                   help="orientation of the production TCP in the flange frame, fixed-axis XYZ deg (default: 0 0 0)")
+    p.add_argument("--allow-large-corrections", action="store_true",
+                   help="export even when a joint correction or the tool's orientation deviation exceeds the limits")
     p.set_defaults(func=_cmd_export)
 
     p = add("motion", help="joint trajectory of a TCP path through singularities (position first, within joint limits)")

@@ -380,8 +380,17 @@ def export_model(
     iterations: int | None = None,
     portable: bool = False,
     task: str = DEFAULT_TASK,
+    tcp_mm: list[float] | None = None,
+    tcp_rpy_deg: list[float] | None = None,
+    allow_large_corrections: bool = False,
 ) -> dict:
     """Export the compensator of a model folder; returns the manifest (also written to disk).
+
+    ``tcp_mm`` / ``tcp_rpy_deg``: the production TCP in the flange frame (mm, fixed-axis XYZ deg), the
+    point the compensator serves (:mod:`torchcal.compensate.production_tcp`); neither given: the
+    calibration's measured point (the fitted tool), stated as such in the manifest.
+    ``allow_large_corrections``: export even when a joint correction or the tool orientation
+    deviation exceeds the stated limits (otherwise refused).
 
     ``wrench_frame`` (``tool`` | ``base``) sets the axes of the ``wrench`` input of a model
     folder with a stiffness stage; it is recorded in the manifest. ``task``: ``position``
@@ -398,16 +407,33 @@ def export_model(
     if out_dir.resolve() == model_dir.resolve():
         raise TorchcalError(f"{out_dir}: the export folder must lie outside the model folder {model_dir}")
     check_output_folder(out_dir)
+    from torchcal.compensate.production_tcp import production_view, tcp_entry, tcp_transform
+
     stored = load_model(model_dir)
+    if tcp_mm is None and tcp_rpy_deg is None:
+        tcp = tcp_entry(None, None, None, stored)  # the calibration's measured point, as the graphs of run/evaluate
+    else:
+        T_tcp = tcp_transform(tcp_mm, tcp_rpy_deg)
+        tcp = tcp_entry(T_tcp, tcp_mm, tcp_rpy_deg, stored)
+        stored = production_view(stored, T_tcp)
     with staged_folder(out_dir) as staging:
         return _export_into(staging, model_dir, stored, wrench_frame=wrench_frame, iterations=iterations,
-                            portable=portable, task=task)
+                            portable=portable, task=task, tcp=tcp, allow_large_corrections=allow_large_corrections)
 
 
 def _export_into(out_dir: Path, model_dir: Path, stored, *, wrench_frame: str, iterations: int | None,
-                 portable: bool, task: str) -> dict:
+                 portable: bool, task: str, tcp: dict | None = None, allow_large_corrections: bool = True) -> dict:
     """Write the export files of ``stored`` into ``out_dir`` (a staging folder); returns the manifest."""
+    from torchcal.compensate.production_tcp import check_corrections, correction_extent
+
     graphs = build_graphs(stored, wrench_frame=wrench_frame, iterations=iterations, portable=portable, task=task)
+    extent = {}
+    if not has_wrench_input(graphs):
+        if stored.training_q is not None and len(_regular(stored.robot, stored.training_q)):
+            extent["training poses"] = correction_extent(compensator_of(graphs), _regular(stored.robot, stored.training_q))
+        extent["joint range"] = correction_extent(
+            compensator_of(graphs), _regular(stored.robot, stored.robot.sample_joints(2000, torch.Generator().manual_seed(2))))
+    exceeded = check_corrections(extent, allow_large_corrections)
     loaded = has_wrench_input(graphs)
     robot = stored.robot
     files, digests = {}, {}
@@ -450,6 +476,8 @@ def _export_into(out_dir: Path, model_dir: Path, stored, *, wrench_frame: str, i
         "held_out_metrics": _held_out_metrics(model_dir, meta),
         "expected_accuracy_95": _expected_accuracy(stored),
         "versions": _versions(),
+        "tcp": tcp,
+        "corrections": {"limits": _correction_limits(), "extent": extent, "exceeded_but_allowed": exceeded},
         "files": files,
         "sha256": digests,
     }
@@ -460,6 +488,21 @@ def _export_into(out_dir: Path, model_dir: Path, stored, *, wrench_frame: str, i
     atomic_write_json(out_dir / "manifest.json", manifest)
     atomic_write_text(out_dir / "README.md", readme_text(manifest))
     return manifest
+
+
+def _regular(robot, q: torch.Tensor) -> torch.Tensor:
+    """``q`` less the poses near a singularity (the convergence report's strata): there any
+    compensator's step is large by the geometry, not by the model."""
+    sigma_p, sigma_w = singular_values(robot, q.to(torch.float64))
+    return q[(sigma_p >= POSITION_SINGULAR_BELOW_M) & (sigma_w >= WRIST_SINGULAR_BELOW)]
+
+
+def _correction_limits() -> dict:
+    from torchcal.compensate.production_tcp import MAX_JOINT_CORRECTION_DEG, MAX_TOOL_ROTATION_DEG
+
+    return {"largest_joint_correction_deg": MAX_JOINT_CORRECTION_DEG, "largest_tool_rotation_deg": MAX_TOOL_ROTATION_DEG,
+            "sampling": ("the model's training poses and 2000 poses uniform within the joint limits (seed 2), both less "
+                         "those in the convergence report's singular strata")}
 
 
 def _solver_description(compensator: CompensatorGraph, portable: bool) -> dict:

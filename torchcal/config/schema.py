@@ -56,6 +56,17 @@ class FitConfig:
             (:mod:`torchcal.stages.prediction_uncertainty`): ``conformal`` (default), ``gaussian``
             (both calibrated on the out-of-fold errors of the fit's grouped cross-validation, which
             then runs even when nothing else is chosen) or ``none`` (no calibration, no extra fits).
+        prior: what the fit knows before the data (:mod:`torchcal.stages.prior_options`):
+            ``tolerance`` (default: manufacturing tolerances per parameter kind), ``none`` (the rank
+            cut of earlier versions) or an earlier model folder (its parameters and covariance).
+        prior_scale: ``auto`` (default: grouped cross-validation between the nominal robot and the
+            tolerances scaled x0.25, x1, x4, x16), ``nominal`` or a number multiplying the MDH sigmas.
+        tolerance_length_mm: prior 1-sigma of MDH lengths a, d (mm; overrides the robot file's
+            ``calibration_prior`` and the default 0.5).
+        tolerance_angle_deg: prior 1-sigma of MDH angles alpha, beta (deg; default 0.05).
+        tolerance_joint_offset_deg: prior 1-sigma of joint zero offsets theta (deg; default 0.1).
+        tolerance_tool_mm: prior 1-sigma of the tool point per axis (mm; default 10).
+        tolerance_tool_deg: prior 1-sigma of the tool rotation, orientation data only (deg; default 5).
     """
 
     method: str = "lm"
@@ -79,6 +90,13 @@ class FitConfig:
     gravity_compliance: str = "auto"
     joint_harmonics: str = "auto"
     uncertainty: str = "conformal"
+    prior: str = "tolerance"
+    prior_scale: str = "auto"
+    tolerance_length_mm: float | None = None
+    tolerance_angle_deg: float | None = None
+    tolerance_joint_offset_deg: float | None = None
+    tolerance_tool_mm: float | None = None
+    tolerance_tool_deg: float | None = None
 
     def __post_init__(self) -> None:
         """Refuse out-of-range values where they are defined (before any file is read)."""
@@ -95,6 +113,19 @@ class FitConfig:
             raise TorchcalError(f"length_unit must be 'mm' or 'm', got {self.length_unit!r}")
         if self.uncertainty not in ("conformal", "gaussian", "none"):
             raise TorchcalError(f"uncertainty must be 'conformal', 'gaussian' or 'none', got {self.uncertainty!r}")
+        for name in ("tolerance_length_mm", "tolerance_angle_deg", "tolerance_joint_offset_deg", "tolerance_tool_mm",
+                     "tolerance_tool_deg"):
+            if getattr(self, name) is not None:
+                check_range(self, name, low=0.0, low_open=True)
+        if str(self.prior_scale).lower() not in ("auto", "nominal"):
+            import math
+
+            try:
+                scale = float(self.prior_scale)
+            except ValueError:
+                scale = -1.0
+            if not math.isfinite(scale) or scale < 0:
+                raise TorchcalError(f"prior_scale must be auto, nominal or a number >= 0, got {self.prior_scale!r}")
         if self.tool_mm is not None:
             import math
 

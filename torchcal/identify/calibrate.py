@@ -21,6 +21,7 @@ from torchcal.data.measurements import Measurements
 from torchcal.identify.base import Identifier, SolveResult
 from torchcal.identify.identifiability import IdentifiabilityReport, analyze
 from torchcal.identify.lm import LevenbergMarquardt
+from torchcal.identify.prior import Prior, PriorSpec, solve_map
 from torchcal.identify.problem import CalibrationProblem
 from torchcal.identify.uncertainty import covariance
 from torchcal.kinematics.error_model import DEFAULT_PARALLEL_THRESHOLD_DEG, ErrorModel
@@ -44,6 +45,9 @@ class CalibrationResult:
             (:class:`~torchcal.identify.compliance.GravityCompliance`), if any.
         harmonics: first-harmonic joint errors identified with the geometry
             (:class:`~torchcal.identify.harmonics.JointHarmonics`), if any.
+        prior: the prior of a MAP fit (:mod:`torchcal.identify.prior`); ``None`` for the rank-cut fit.
+        noise_sigma_m: the data's noise sigma per coordinate the MAP fit weighted them with.
+        prior_selection: how the prior's scale was chosen (the cross-validation table), if it was.
     """
 
     model: ErrorModel
@@ -57,6 +61,9 @@ class CalibrationResult:
     notes: list[str] = field(default_factory=list)
     compliance: object | None = None
     harmonics: object | None = None
+    prior: Prior | None = None
+    noise_sigma_m: float | None = None
+    prior_selection: dict | None = None
 
     @property
     def free_names(self) -> list[str]:
@@ -91,6 +98,7 @@ def calibrate(
     device: str | torch.device = "cpu",
     whitening: torch.Tensor | None = None,
     units: np.ndarray | None = None,
+    prior: PriorSpec | None = None,
 ) -> CalibrationResult:
     """Identify the geometric parameters of ``robot`` from position (and orientation) data.
 
@@ -105,6 +113,9 @@ def calibrate(
             sigma of unit weight.
         units: ``(n,)`` configuration region of each pose: the covariance then also allows
             residuals correlated within a region (:func:`~torchcal.identify.uncertainty.covariance`).
+        prior: MAP identification with this prior (:mod:`torchcal.identify.prior`): every parameter
+            is estimated, the rank analysis is a diagnostic and what the data cannot see stays at
+            the prior. ``None``: the rank cut (non-identifiable parameters fixed at nominal).
     """
     identifier = identifier or LevenbergMarquardt()
     use_orientation = data.rotation is not None if use_orientation is None else use_orientation
@@ -124,12 +135,16 @@ def calibrate(
         if name not in model.layout.names:
             raise DataError(f"cannot fix unknown parameter '{name}'; known: {', '.join(model.layout.names)}")
         active[model.layout.index(name)] = False
+    if prior is not None and prior.nominal:
+        active[model.layout.table_slice] = False
     candidates = torch.nonzero(active).squeeze(-1)
     problem = CalibrationProblem(
         model, data, candidates, use_orientation=use_orientation,
         whitening=None if whitening is None else whitening.to(device),
     )
     rows = problem.rows_per_pose * len(data)
+    if prior is not None:
+        return _calibrate_map(model, problem, prior, identifier, units, data)
     if rows <= len(candidates):
         raise DataError(
             f"{len(data)} poses give {rows} equations, fewer than the {len(candidates)} parameters to "
@@ -163,4 +178,44 @@ def calibrate(
     return CalibrationResult(
         model=model, x=x, free=final_free, covariance=cov, sigma_residual_m=sigma,
         identifiability=report, solve=result, method=identifier.name, notes=notes,
+    )
+
+
+def _calibrate_map(model: ErrorModel, problem: CalibrationProblem, spec: PriorSpec, identifier: Identifier,
+                   units: np.ndarray | None, data: Measurements) -> CalibrationResult:
+    """MAP identification of every candidate parameter; the rank analysis is kept as a diagnostic."""
+    x0 = model.nominal_vector()
+    if spec.earlier is not None:
+        x0 = x0.clone()
+        keep = model.layout.base_slice
+        earlier = spec.earlier.x.to(x0)
+        x0 = torch.cat([earlier[: keep.start], x0[keep], earlier[keep.stop :]])
+    names = model.layout.names
+    prior = spec.build(list(names), problem.free, x0)
+    flat = int((~torch.isfinite(prior.sigma)).sum())
+    if problem.rows_per_pose * len(data) <= flat:
+        raise DataError(f"{len(data)} poses give {problem.rows_per_pose * len(data)} equations, no more than the "
+                        f"{flat} parameters without a prior (instrument frame); measure more poses", path=data.source)
+    _, jac0 = problem.jacobian(x0)
+    report = analyze(jac0, problem.names)
+    notes = []
+    if report.dependent:
+        msg = (
+            f"rank analysis (diagnostic): {len(report.dependent)} parameter(s) the data cannot separate from others "
+            "stay at their prior, with its sigma: "
+            + "; ".join(
+                f"{n} (confounded with {', '.join(p for p, _ in partners[:2]) or 'nothing'})"
+                for n, partners in report.dependent.items()
+            )
+        )
+        notes.append(msg)
+        warnings.warn(msg, IdentifiabilityWarning, stacklevel=3)
+    notes.append(f"prior: {spec.describe()}")
+    fit = solve_map(problem, prior, x0, identifier, units=units, rows_per_pose=problem.rows_per_pose)
+    reference, x = model.recentered(fit.x)
+    model.T_reference = reference
+    return CalibrationResult(
+        model=model, x=x, free=problem.free.clone(), covariance=fit.covariance, sigma_residual_m=fit.noise_sigma,
+        identifiability=report, solve=fit.solve, method=identifier.name, notes=notes, prior=prior,
+        noise_sigma_m=fit.noise_sigma,
     )

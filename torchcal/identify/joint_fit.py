@@ -156,9 +156,17 @@ def fit_joint_errors(robot: RobotModel, data: Measurements, geometric, points: t
         warnings.warn(msg, IdentifiabilityWarning, stacklevel=2)
     kept = [i for i, n in enumerate(names) if n not in dropped]
     free = torch.cat([geometric.free, size + torch.tensor(kept, dtype=torch.long)])
-    sol = LevenbergMarquardt().solve(problem.with_free(free), x0)
-    r, jac = problem.with_free(free).jacobian(sol.x)
-    cov, sigma = covariance(jac, r, units)
+    if geometric.prior is not None:
+        # the geometry keeps its prior (identify.prior); the joint-space coefficients have none
+        from torchcal.identify.prior import solve_map
+
+        prior = geometric.prior.extended(free, len(kept))
+        fit = solve_map(problem.with_free(free), prior, x0, LevenbergMarquardt(), units=units)
+        sol, cov, sigma = fit.solve, fit.covariance, fit.noise_sigma
+    else:
+        sol = LevenbergMarquardt().solve(problem.with_free(free), x0)
+        r, jac = problem.with_free(free).jacobian(sol.x)
+        cov, sigma = covariance(jac, r, units)
     rows = basis.shape[1]
     values = torch.zeros(rows, robot.dof, dtype=torch.float64)
     sigmas = torch.zeros(rows, robot.dof, dtype=torch.float64)
@@ -176,6 +184,7 @@ def fit_joint_errors(robot: RobotModel, data: Measurements, geometric, points: t
     compliance = GravityCompliance(points, values[: len(points)]) if points else None
     fitted = JointHarmonics(values[len(points) :], sigmas[len(points) :]) if harmonics else None
     return replace(geometric, model=model, x=x, covariance=cov[:n_geo, :n_geo], sigma_residual_m=sigma,
+                   noise_sigma_m=sigma if geometric.prior is not None else geometric.noise_sigma_m,
                    notes=notes, compliance=compliance, harmonics=fitted)
 
 

@@ -45,6 +45,7 @@ class StructureCV:
     fold_results: dict[str, list]
     comparison: Comparison
     error_vectors_mm: dict[str, np.ndarray] = field(default_factory=dict)
+    prior: object | None = None  # the geometry's PriorSpec (identify.prior), for fits that must repeat it
 
     @property
     def chosen(self) -> tuple[str, str]:

@@ -28,6 +28,7 @@ from torchcal.identify.joint_errors import JointSpaceErrors
 from torchcal.model_selection.leakage import LeakageReport
 from torchcal.report import plots
 from torchcal.report.document import Figure, Paragraph, Preformatted, Report, Section, Table
+from torchcal.report.prior import prior_sections
 from torchcal.stages.geometry import (
     NOMINAL_PROTOCOL,
     held_out_errors,
@@ -503,6 +504,7 @@ def parameter_sections(stored: StoredModel, truth_x: torch.Tensor | None = None,
             "Where the robot stands in the instrument's frame and where the measured point sits on the flange, as "
             "identified (calibration.json frames holds the same, with the 4x4 matrix)."), frames_table(stored)]),
         Section("Parameters against nominal", blocks),
+        *prior_sections(stored.metadata),
     ]
 
 

@@ -103,13 +103,47 @@ def make_config_folds(robot: RobotModel, data: Measurements, config: FitConfig):
                       groups=config.cv_groups)
 
 
-def geometry_fitter(robot: RobotModel, config: FitConfig):
-    """``geometry(train, units=None)``: the geometric fit of ``config`` (``units``: see :func:`calibrate`)."""
+def geometry_fitter(robot: RobotModel, config: FitConfig, prior=None, cache: dict | None = None):
+    """``geometry(train, units=None)``: the geometric fit of ``config`` (``units``: see :func:`calibrate`).
+
+    ``prior``: a :class:`~torchcal.identify.prior.PriorSpec` (MAP fit) or ``None`` (rank cut).
+    ``cache``: fits of training parts already made with this prior (``prior_scale.fold_key``).
+    """
     def geometry(train: Measurements, units: np.ndarray | None = None) -> CalibrationResult:
+        if cache and units is None:
+            from torchcal.model_selection.prior_scale import fold_key
+
+            hit = cache.get(fold_key(train))
+            if hit is not None:
+                return hit
         return calibrate(robot, train, identifier=IDENTIFIERS[config.method](**_identifier_options(robot, config)),
-                         parallel_threshold_deg=config.parallel_threshold_deg, device=config.device, units=units)
+                         parallel_threshold_deg=config.parallel_threshold_deg, device=config.device, units=units,
+                         prior=prior)
 
     return geometry
+
+
+def choose_prior(robot: RobotModel, data: Measurements, config: FitConfig, progress=None):
+    """The prior of ``config`` (``None`` without one), its scale chosen by the grouped CV when ``auto``.
+
+    Returns ``(spec, selection record or None, per-fold fits of the chosen spec)``.
+    """
+    from torchcal.stages.prior_options import base_spec, parse_scale
+
+    base = base_spec(robot, config)
+    scale = parse_scale(config.prior_scale)
+    if base is None:
+        return None, None, {}
+    if scale is not None:
+        from dataclasses import replace
+
+        return replace(base, scale=scale), None, {}
+    from torchcal.model_selection.prior_scale import cross_validate_prior_scales, selection_record
+
+    folds = make_config_folds(robot, data, config)
+    chosen, comparison, fits = cross_validate_prior_scales(
+        data, lambda spec: geometry_fitter(robot, config, spec), base, folds, progress=progress)
+    return chosen, selection_record(comparison, chosen), fits
 
 
 def _identifier_options(robot: RobotModel, config: FitConfig) -> dict:
@@ -148,7 +182,8 @@ def fit_with_selection(robot: RobotModel, data: Measurements, config: FitConfig,
         import warnings
 
         warnings.warn(few, stacklevel=2)
-    geometry = geometry_fitter(robot, config)
+    prior, prior_selection, prior_fits = choose_prior(robot, data, config, progress=progress)
+    geometry = geometry_fitter(robot, config, prior, prior_fits)
     structure = None
     gravity, harmonics = options[0]
     # the CV also calibrates the prediction uncertainty (stages.prediction_uncertainty)
@@ -156,6 +191,7 @@ def fit_with_selection(robot: RobotModel, data: Measurements, config: FitConfig,
         folds = make_config_folds(robot, data, config)
         structure = cross_validate_structures(robot, data, geometry, options, folds, progress=progress,
                                               harmonic_min_range_deg=config.harmonic_min_range_deg)
+        structure.prior = prior
         gravity, harmonics = structure.chosen
     if progress is not None:
         progress("fitting the chosen structure on all poses")
@@ -165,6 +201,11 @@ def fit_with_selection(robot: RobotModel, data: Measurements, config: FitConfig,
                               config.harmonic_min_range_deg, units=units)
     if few is not None:
         result.notes.append(f"warning: {few}")
+    if prior_selection is not None:
+        result.prior_selection = prior_selection
+        result.notes.append(f"prior scale chosen by {prior_selection['protocol']}: "
+                            + ", ".join(f"{r['name']} {r['cv_rms_mm']:.4f} mm" for r in prior_selection["candidates"])
+                            + f" -> {prior_selection['chosen']} ({prior_selection['reason']})")
     if structure is not None and len(options) > 1:
         comparison = structure.comparison
         result.notes.append(f"structure chosen by {comparison.protocol}: "
@@ -185,8 +226,18 @@ def cross_validate_stored_structure(stored: StoredModel, data: Measurements, con
     gravity = next(name for name, members in POINT_SETS.items() if members == points)
     harmonics = "first" if terms.harmonics is not None else "none"
     folds = make_config_folds(stored.robot, data, config)
-    return cross_validate_structures(stored.robot, data, geometry_fitter(stored.robot, config), [(gravity, harmonics)],
-                                     folds, harmonic_min_range_deg=config.harmonic_min_range_deg)
+    prior = None
+    if stored.metadata.get("prior"):  # the folder's fit had a prior: its scale as chosen then
+        from dataclasses import replace
+
+        from torchcal.stages.prior_options import base_spec
+
+        base = base_spec(stored.robot, config)
+        prior = None if base is None else replace(base, scale=float(stored.metadata["prior"]["scale"]))
+    structure = cross_validate_structures(stored.robot, data, geometry_fitter(stored.robot, config, prior),
+                                          [(gravity, harmonics)], folds, harmonic_min_range_deg=config.harmonic_min_range_deg)
+    structure.prior = prior
+    return structure
 
 
 #: Corrections of the MDH table beyond these are far outside manufacturing tolerances (mm, deg).
@@ -232,10 +283,12 @@ def save_fit(folder: Path, robot: RobotModel, data: Measurements, result: Calibr
     """
     import warnings
 
-    warning = implausible_corrections(result)
-    if warning is not None:
-        warnings.warn(warning, stacklevel=2)
-        result.notes.append(f"warning: {warning}")
+    from torchcal.stages.prior_options import prior_metadata, prior_warning
+
+    for warning in (implausible_corrections(result), prior_warning(result)):
+        if warning is not None:
+            warnings.warn(warning, stacklevel=2)
+            result.notes.append(f"warning: {warning}")
     ident = result.identifiability
     meta = {
         "method": result.method,
@@ -244,6 +297,7 @@ def save_fit(folder: Path, robot: RobotModel, data: Measurements, result: Calibr
         "residual_sigma_mm": result.sigma_residual_m * 1e3,
         "solver": {"iterations": result.solve.iterations, "message": result.solve.message, "cost_history": result.solve.history},
         "notes": result.notes,
+        "prior": prior_metadata(result),
         **extra,
     }
     meta.update(JointSpaceErrors.of(result).to_metadata())

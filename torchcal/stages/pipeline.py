@@ -25,6 +25,7 @@ from torchcal.kinematics.robot import RobotModel
 from torchcal.model_selection.compare import Comparison
 from torchcal.model_selection.structure import StructureCV
 from torchcal.stages.geometry import fit_with_selection, save_fit
+from torchcal.stages.prior_options import prior_metadata
 from torchcal.stages.residual import ResidualOutcome, fit_residual_stage, write_selection
 
 #: The decision recorded in ``model_selection.json`` when no head was asked for.
@@ -60,6 +61,12 @@ class FitRun:
     def lines(self) -> list[str]:
         """What a command prints about the fit: identifiability, then the selection table and decision."""
         lines = [self.result.identifiability.summary()]
+        if self.result.prior_selection is not None and self.result.prior is not None:
+            lines += [f"prior: {self.result.prior.spec.describe()}; strength chosen by cross-validation:",
+                      self.result.prior_selection["table"]]
+        prior = prior_metadata(self.result)
+        if prior is not None:
+            lines.append(prior["summary"])
         if self.residual is not None:
             lines += [self.residual.table, self.residual.decision]
         elif self.structure is not None and self.structure.comparison is not None:

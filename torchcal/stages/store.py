@@ -138,6 +138,7 @@ def save_model(
         "robot_name": robot.name,
         "base_link": robot.base_link,
         "end_link": robot.end_link,
+        "nominal_tool_mm": (robot.tool.detach().cpu() * 1e3).tolist(),
         "parallel_threshold_deg": model.parallel_threshold_deg,
         "with_orientation": model.with_orientation,
         "parameter_names": list(model.layout.names),
@@ -256,7 +257,9 @@ def load_model(folder: str | Path, device: str | torch.device = "cpu") -> Stored
     if not isinstance(names, list):
         raise ModelError(f"{meta_path}: no parameter_names list")
     robot_path = _member_path(folder, meta.get("robot_file"), "robot_file")
-    robot = load_robot(robot_path, base_link=meta.get("base_link"), end_link=meta.get("end_link"))
+    tool = meta.get("nominal_tool_mm")  # a URDF has no tool: the one the fit was given is kept here
+    robot = load_robot(robot_path, base_link=meta.get("base_link"), end_link=meta.get("end_link"),
+                       tool=None if tool is None else (float(tool[0]) * 1e-3, float(tool[1]) * 1e-3, float(tool[2]) * 1e-3))
     tensors = read_tensors(folder / "calibration.safetensors",
                            {"x": 1, "T_reference": 2, "free": 1, "covariance": 2}, finite=("x", "T_reference", "training_q"))
     if tuple(tensors["T_reference"].shape) != (4, 4):

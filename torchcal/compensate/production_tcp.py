@@ -1,0 +1,117 @@
+"""The TCP the compensator serves, and how far its corrections reach.
+
+A calibration measures a reflector (or probe) on the flange; production needs another point: the
+torch tip, the gripper centre. :func:`production_view` re-expresses a stored model so that both the
+nominal and the calibrated chain end in the production TCP ``T_flange_tcp`` (position in mm and
+fixed-axis XYZ angles in deg, in the ``flange`` frame; ``export --tcp-mm 0 0 0`` is the flange): the flange
+frame ``T_N_flange`` becomes ``T_N_flange T_flange_tcp`` and the tool entries are zero. The
+compensator then corrects where the calibrated model puts *that* point (and its orientation),
+using the flange orientation the model knows, not the measuring reflector's fitted offset.
+
+:func:`correction_extent` measures the largest joint correction and the largest orientation
+deviation of the tool that the compensator's commands leave, over the training poses and over
+the joint range; :func:`check_corrections` refuses an export whose median over the training
+poses exceeds :data:`MAX_JOINT_CORRECTION_DEG` or :data:`MAX_TOOL_ROTATION_DEG` unless the user allows it explicitly: corrections that large
+come from parameters the data did not determine, or from a wrong robot file.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import torch
+
+from torchcal.core.errors import TorchcalError
+from torchcal.kinematics import transforms as tf
+from torchcal.kinematics.error_model import ErrorModel
+
+#: An export whose joint corrections exceed this (deg; median over the training poses: the largest and
+#: the 99th percentile are reported, over the joint range too, but near singular poses any step is
+#: large, so they are not judged) is refused without ``allow_large_corrections``.
+MAX_JOINT_CORRECTION_DEG = 2.0
+#: An export whose tool orientation deviation exceeds this (deg, median as above) is refused likewise.
+MAX_TOOL_ROTATION_DEG = 2.0
+
+
+def tcp_transform(position_mm: list[float] | None, rpy_deg: list[float] | None) -> torch.Tensor:
+    """``T_flange_tcp`` ``(4, 4)`` (m) from a position (mm) and fixed-axis XYZ angles (deg)."""
+    position = [0.0, 0.0, 0.0] if position_mm is None else [float(v) for v in position_mm]
+    angles = [0.0, 0.0, 0.0] if rpy_deg is None else [float(v) for v in rpy_deg]
+    if len(position) != 3 or len(angles) != 3 or not all(math.isfinite(v) for v in position + angles):
+        raise TorchcalError(f"the production TCP needs 3 finite position values (mm) and 3 angles (deg), "
+                            f"got {position} and {angles}")
+    rotation = tf.euler_xyz_to_matrix(torch.tensor([math.radians(a) for a in angles], dtype=torch.float64))
+    return tf.homogeneous(rotation, torch.tensor(position, dtype=torch.float64) * 1e-3)
+
+
+def production_view(stored, T_flange_tcp: torch.Tensor):
+    """``stored`` with both chains ending in the production TCP (the fitted tool entries set to zero)."""
+    robot = replace(stored.robot, T_n_flange=stored.robot.T_n_flange.to(torch.float64) @ T_flange_tcp,
+                    tool=torch.zeros(3, dtype=torch.float64))
+    model = ErrorModel(robot, with_orientation=stored.model.with_orientation,
+                       parallel_threshold_deg=stored.model.parallel_threshold_deg,
+                       T_instrument_base=stored.model.T_reference, device=stored.model.device)
+    x = stored.x.clone()
+    x[model.layout.tool_slice] = 0.0
+    return replace(stored, robot=robot, model=model, x=x)
+
+
+def tcp_entry(T_flange_tcp: torch.Tensor | None, position_mm, rpy_deg, stored) -> dict:
+    """The manifest's ``tcp``: what the compensator targets (``T_flange_tcp`` ``None``: the measured point)."""
+    layout = stored.model.layout
+    reflector = (stored.x[layout.tool_slice][:3].detach().cpu() * 1e3).tolist()
+    if T_flange_tcp is None:
+        return {"position_mm": reflector, "rpy_deg": None, "frame": "flange", "is_measured_point": True,
+                "measured_point_mm": reflector,
+                "note": ("the compensator moves the calibration's measured point (the fitted reflector or probe offset) "
+                         "to where the nominal robot puts the nominal tool; give --tcp-mm (and --tcp-rpy-deg) for the "
+                         "production TCP, e.g. --tcp-mm 0 0 0 for the flange")}
+    return {
+        "position_mm": (T_flange_tcp[:3, 3] * 1e3).tolist(),
+        "rpy_deg": [0.0, 0.0, 0.0] if rpy_deg is None else [float(v) for v in rpy_deg],
+        "frame": "flange",
+        "is_measured_point": False,
+        "measured_point_mm": reflector,
+        "note": ("the compensator moves this TCP (position and orientation) to where the nominal robot puts it; the "
+                 "measured point (the calibration's reflector or probe) is not its target"),
+    }
+
+
+def correction_extent(graph, q: torch.Tensor) -> dict:
+    """Largest joint correction (deg, and which joint) and tool orientation deviation (deg) of ``graph``'s commands at ``q``."""
+    with torch.no_grad():
+        q_c, residual = graph.solve(q.to(torch.float64))
+    move = (q_c - q).abs()
+    worst = int(move.amax(0).argmax())
+    per_pose = move.amax(-1)
+    return {
+        "n_poses": int(q.shape[0]),
+        "largest_joint_correction_deg": math.degrees(float(move.max())),
+        "joint": worst + 1,
+        "p99_joint_correction_deg": math.degrees(float(per_pose.quantile(0.99))),
+        "median_joint_correction_deg": math.degrees(float(per_pose.median())),
+        "largest_tool_rotation_deg": math.degrees(float(residual[:, 1].max())),
+        "p99_tool_rotation_deg": math.degrees(float(residual[:, 1].quantile(0.99))),
+        "median_tool_rotation_deg": math.degrees(float(residual[:, 1].median())),
+    }
+
+
+def check_corrections(extent: dict[str, dict], allow: bool) -> list[str]:
+    """Lines naming the limits an export exceeds; raises :class:`TorchcalError` unless ``allow``."""
+    found = []
+    for where, e in extent.items():
+        if where != "training poses":
+            continue  # reported, not judged: near (not at) singular poses any orientation step is large
+        if e["median_joint_correction_deg"] > MAX_JOINT_CORRECTION_DEG:
+            found.append(f"joint corrections of {e['median_joint_correction_deg']:.3g} deg (median; up to "
+                         f"{e['largest_joint_correction_deg']:.3g}, joint {e['joint']}) over the {where} "
+                         f"(limit {MAX_JOINT_CORRECTION_DEG:g} deg)")
+        if e["median_tool_rotation_deg"] > MAX_TOOL_ROTATION_DEG:
+            found.append(f"tool orientation off by {e['median_tool_rotation_deg']:.3g} deg (median; up to "
+                         f"{e['largest_tool_rotation_deg']:.3g}) over the {where} (limit {MAX_TOOL_ROTATION_DEG:g} deg)")
+    if found and not allow:
+        raise TorchcalError("export refused: " + "; ".join(found) + ". Corrections this large come from parameters the "
+                            "data did not determine or from a wrong robot file; check the calibration's prior report, or "
+                            "pass --allow-large-corrections to export anyway")
+    return found
