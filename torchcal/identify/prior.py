@@ -30,6 +30,7 @@ data gradient) where that is larger, as :mod:`torchcal.identify.uncertainty` doe
 
 from __future__ import annotations
 
+import copy
 import math
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
@@ -40,6 +41,7 @@ import yaml
 
 from torchcal.core.errors import ModelError
 from torchcal.identify.base import Identifier, SolveResult
+from torchcal.identify.lm import LevenbergMarquardt
 from torchcal.identify.problem import LeastSquaresProblem
 from torchcal.identify.uncertainty import _widened
 from torchcal.kinematics.robot import read_robot_text
@@ -50,6 +52,13 @@ KINDS = ("length_mm", "angle_deg", "joint_offset_deg", "tool_mm", "tool_deg")
 TOLERANCE_SIGMAS = 3.0
 #: The first solve weights the data with this fraction of the starting residual's RMS as sigma.
 START_FACTOR = 0.3
+#: A MAP solve stops when a step would lower chi^2 (the cost in units of the noise variance) by less
+#: than this: the estimate is then within about sqrt(2 x 0.001) = 0.045 posterior sigma of the
+#: minimum, where Levenberg-Marquardt's relative tolerance alone crawls on along the directions the
+#: prior barely holds (correlated parameters) for as many steps again.
+CHI2_TOLERANCE = 1e-3
+#: Levenberg-Marquardt's starting damping (relative to the largest diagonal) in a MAP solve.
+MAP_INITIAL_DAMPING = 1e-12
 
 
 def parameter_kind(name: str) -> str | None:
@@ -320,6 +329,13 @@ def solve_map(problem: LeastSquaresProblem, prior: Prior, x0: torch.Tensor, iden
     s = max(float(r0.norm()) / m**0.5 * START_FACTOR if start_sigma is None else float(start_sigma), 1e-300)
     x = x0.clone()
     solve = None
+    if isinstance(identifier, LevenbergMarquardt):
+        # the cost at the minimum is about m s^2 / 2: its relative tolerance as a chi^2 tolerance
+        identifier = copy.copy(identifier)
+        identifier.ftol = max(identifier.ftol, 2.0 * CHI2_TOLERANCE / m)
+        # the prior makes every Gauss-Newton system well posed: start nearly undamped, so that steps
+        # along the weakly held directions are not shrunk for many iterations (a bad step is still rejected)
+        identifier.initial_damping = min(identifier.initial_damping, MAP_INITIAL_DAMPING)
     for _ in range(iterations):
         solve = identifier.solve(PriorProblem(problem, prior, s), x)  # type: ignore[arg-type]  # any LeastSquaresProblem
         x = solve.x
