@@ -25,7 +25,7 @@ from torchcal.identify.calibrate import CalibrationResult, calibrate, register_i
 from torchcal.identify.compliance import POINT_SETS
 from torchcal.identify.harmonics import HARMONIC_SETS
 from torchcal.identify.joint_errors import JointSpaceErrors
-from torchcal.identify.joint_fit import fit_joint_errors, joint_error_options
+from torchcal.identify.joint_fit import fit_joint_errors, joint_error_options, predicted_positions
 from torchcal.identify.lm import LevenbergMarquardt
 from torchcal.identify.problem import CalibrationProblem
 from torchcal.kinematics.error_model import ErrorModel
@@ -213,6 +213,10 @@ def fit_with_selection(robot: RobotModel, data: Measurements, config: FitConfig,
                               config.harmonic_min_range_deg, units=units)
     if few is not None:
         result.notes.append(f"warning: {few}")
+    misfit = implausible_residual(robot, data, result)
+    if misfit is not None:
+        warnings.warn(misfit, stacklevel=2)
+        result.notes.append(f"warning: {misfit}")
     if prior_selection is not None:
         result.prior_selection = prior_selection
         result.notes.append(selection_summary(prior_selection))
@@ -260,6 +264,22 @@ def pose_count_warning(n_poses: int, n_parameters: int, coordinates_per_pose: in
     need = math.ceil(MIN_EQUATIONS_PER_PARAMETER * n_parameters / coordinates_per_pose)
     return (f"{n_poses} poses give {n_poses * coordinates_per_pose} coordinates for {n_parameters} parameters "
             f"({ratio:.2f} per parameter): the fit follows the noise; measure at least {need} poses")
+
+
+def implausible_residual(robot: RobotModel, data: Measurements, result: CalibrationResult) -> str | None:
+    """A warning when the fit leaves more than :data:`TOLERANCE_MM` RMS on its own poses.
+
+    No robot built within manufacturing tolerances leaves that once calibrated: the robot file (or
+    the measurement set-up) is wrong. With a prior the MDH table cannot run off to absorb such a
+    file (the corrections' own warning then stays silent), so the misfit itself is named.
+    """
+    errors = data.position.to(result.x.device) - predicted_positions(result, data.q.to(result.x.device))
+    rms_mm = float(errors.norm(dim=-1).pow(2).mean().sqrt()) * 1e3
+    if rms_mm <= TOLERANCE_MM:
+        return None
+    return (f"the fitted model leaves {rms_mm:.1f} mm RMS on its own poses, more than a robot built within manufacturing "
+            f"tolerances can ({TOLERANCE_MM:g} mm): check the robot file ({robot.name}) against the robot and the "
+            "measurement set-up")
 
 
 def implausible_corrections(result: CalibrationResult) -> str | None:
