@@ -70,8 +70,9 @@ def compensation_on_true_robot(
     # the model's own error at this TCP (true minus predicted at the same joints): what no compensator
     # can remove, the yardstick of the compensated error (a TCP away from the measured point sees the
     # orientation the position data determined less well)
-    with torch.no_grad():
-        result["model_own_error"] = position_metrics(true_positions(q) - stored.model.tcp_position(q, stored.x))
+    with torch.no_grad():  # the monitor graph: the model's whole prediction (geometry, joint-space terms, head)
+        predicted_base = stored.robot.tcp_position(q) + graphs["monitor"](*args)
+        result["model_own_error"] = position_metrics(true_positions(q) - (predicted_base @ T[:3, :3].T + T[:3, 3]))
     result["onnx_float64_over_torch"] = result["onnx_float64"]["position_rms_mm"] / torch_rms
     result["onnx_float32_over_torch"] = result["onnx_float32"]["position_rms_mm"] / torch_rms
     # Split the poses by whether the fixed Newton steps solved the model's own equations (the
