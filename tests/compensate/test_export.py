@@ -114,7 +114,13 @@ def test_onnx_compensation_on_the_true_twin(exported, twin, stored, graphs):
     onnx32_rms = rms(run(folder, "compensator_f32", q))
     uncompensated = rms(q)
     assert onnx_rms <= 1.05 * torch_rms and onnx32_rms <= 1.05 * torch_rms
-    assert onnx_rms < 0.1 * uncompensated
+    # the flange is not the measured point: what compensation leaves there is the model's own error at
+    # the flange (true minus predicted at the same joints), not the tracker's noise
+    with torch.no_grad():
+        predicted = stored.model.tcp_position(q, stored.x)
+    own = float((twin.true_tcp_positions(q, flange) - predicted).norm(dim=-1).pow(2).mean().sqrt() * 1e3)
+    assert onnx_rms <= 1.10 * own
+    assert onnx_rms < 0.5 * uncompensated
 
 
 def test_export_and_check_reports_parity(model_dir, twin, tmp_path):
@@ -124,7 +130,9 @@ def test_export_and_check_reports_parity(model_dir, twin, tmp_path):
     assert result["compensator_tcp_max_mm"] <= 1e-9
     on_twin = result["compensation_on_true_robot"]  # the exported commands sent to the true twin
     assert on_twin["n_poses"] == 200 and on_twin["onnx_float64_over_torch"] <= 1.05
-    assert on_twin["torch"]["position_rms_mm"] < 0.1 * on_twin["uncompensated"]["position_rms_mm"]
+    # scored at the exported TCP (the flange): what is left is the model's own error there
+    assert on_twin["torch"]["position_rms_mm"] <= 1.10 * on_twin["model_own_error"]["position_rms_mm"]
+    assert on_twin["torch"]["position_rms_mm"] < 0.5 * on_twin["uncompensated"]["position_rms_mm"]
     assert result["monitor_max_mm"] <= 1e-9
     assert result["n_poses"] == 200
     # the exported monitor predicts the held-out tracker points to the noise level of the twin

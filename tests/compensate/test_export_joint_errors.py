@@ -19,6 +19,7 @@ from torchcal.compensate.compensator import (
     _TwoModels,
 )
 from torchcal.compensate.export import build_graphs, export_model
+from torchcal.compensate.production_tcp import production_view, tcp_transform
 from torchcal.config.schema import FitConfig
 from torchcal.identify.compliance import GravityCompliance
 from torchcal.identify.harmonics import JointHarmonics
@@ -124,10 +125,15 @@ def sagging(tmp_path_factory):
     return twin, folder, export_model(folder, root / "export"), root / "export"
 
 
+def served(folder):
+    """The model as the exported files serve it: the default production TCP, the flange."""
+    return production_view(load_model(folder), tcp_transform(None, None))
+
+
 def test_export_carries_the_joint_space_errors_with_onnxruntime_parity(sagging):
     _twin, folder, manifest, out = sagging
     assert manifest["stages"]["gravity_compliance"] and manifest["stages"]["joint_harmonics"]
-    stored = load_model(folder)
+    stored = served(folder)
     q = stored.robot.sample_joints(2000, torch.Generator().manual_seed(8))
     graphs = build_graphs(stored)
     with torch.no_grad():
@@ -153,9 +159,10 @@ def test_compensation_with_joint_space_errors_on_the_true_twin(sagging):
     from torchcal.compensate.true_robot_check import compensation_on_true_robot
 
     twin, folder, manifest, out = sagging
-    stored = load_model(folder)
+    stored = served(folder)
     q = twin.robot.sample_joints(300, torch.Generator().manual_seed(9), margin=math.radians(5))
-    result = compensation_on_true_robot(stored, build_graphs(stored), out, manifest, q, twin.true_positions)
+    true_flange = lambda qq: twin.true_tcp_positions(qq, tcp_transform(None, None))  # noqa: E731
+    result = compensation_on_true_robot(stored, build_graphs(stored), out, manifest, q, true_flange)
     assert result["onnx_float64_over_torch"] <= 1.05
     solved = result["torch_on_solved"]["position_rms_mm"]
     assert solved < 0.05 * result["uncompensated"]["position_rms_mm"]
@@ -167,8 +174,8 @@ def test_compensation_with_joint_space_errors_on_the_true_twin(sagging):
     T = stored.model.instrument_from_base(stored.x)
     target = stored.robot.tcp_position(q) @ T[:3, :3].T + T[:3, 3]
     with torch.no_grad():
-        miss = (twin.true_positions(rigid["compensator"](q)) - target).norm(dim=-1) * 1e3
-        full = (twin.true_positions(build_graphs(stored)["compensator"](q)) - target).norm(dim=-1) * 1e3
+        miss = (true_flange(rigid["compensator"](q)) - target).norm(dim=-1) * 1e3
+        full = (true_flange(build_graphs(stored)["compensator"](q)) - target).norm(dim=-1) * 1e3
     assert float(full.median()) < float(miss.median())
 
 

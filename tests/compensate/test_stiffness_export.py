@@ -11,6 +11,7 @@ import pytest
 import torch
 
 from torchcal.compensate.export import GRAPHS, build_graphs, export_model, sample_wrenches
+from torchcal.compensate.production_tcp import production_view, tcp_transform
 from torchcal.compensate.runtime import CompensatorError, CompensatorRuntime
 from torchcal.instruments.stiffness.commands import fit_stiffness
 from torchcal.instruments.stiffness.twin import StiffnessTwin
@@ -37,7 +38,8 @@ def stiff_export(stiff_dir, tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def stored(stiff_dir):
-    return load_model(stiff_dir)
+    """The model as the exported files serve it: the default production TCP, the flange."""
+    return production_view(load_model(stiff_dir), tcp_transform(None, None))
 
 
 @pytest.fixture(scope="module")
