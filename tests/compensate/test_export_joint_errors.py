@@ -165,7 +165,9 @@ def test_compensation_with_joint_space_errors_on_the_true_twin(sagging):
     result = compensation_on_true_robot(stored, build_graphs(stored), out, manifest, q, true_flange)
     assert result["onnx_float64_over_torch"] <= 1.05
     solved = result["torch_on_solved"]["position_rms_mm"]
-    assert solved < 0.05 * result["uncompensated"]["position_rms_mm"]
+    # at the flange (the export's default TCP) what is left is the model's own error there
+    assert solved <= 1.10 * result["model_own_error"]["position_rms_mm"]
+    assert solved < 0.5 * result["uncompensated"]["position_rms_mm"]
     # dropping the joint-space terms from the same model leaves the sag and gear errors in place
     meta = dict(stored.metadata)
     for key in ("gravity_compliance", "joint_harmonics"):

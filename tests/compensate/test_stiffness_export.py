@@ -33,13 +33,16 @@ def stiff_dir(tmp_path_factory):
 @pytest.fixture(scope="module")
 def stiff_export(stiff_dir, tmp_path_factory):
     out = tmp_path_factory.mktemp("stiff_export")
-    return out, export_model(stiff_dir, out)
+    # the production TCP is where the twin's load acts and where it is scored: its tool point
+    tool_mm = (load_model(stiff_dir).robot.tool * 1e3).tolist()
+    return out, export_model(stiff_dir, out, tcp_mm=tool_mm)
 
 
 @pytest.fixture(scope="module")
 def stored(stiff_dir):
-    """The model as the exported files serve it: the default production TCP, the flange."""
-    return production_view(load_model(stiff_dir), tcp_transform(None, None))
+    """The model as the exported files serve it: the production TCP at the tool point (``stiff_export``)."""
+    stored = load_model(stiff_dir)
+    return production_view(stored, tcp_transform((stored.robot.tool * 1e3).tolist(), None))
 
 
 @pytest.fixture(scope="module")
