@@ -97,7 +97,7 @@ def _child(case: str, data_root: str, out: str) -> None:
     root = Path(data_root)
     if case == "twin":
         argv = ["run", f"out={out}", f"export_dir={out}/exported"]
-    elif case == "ur10-A3000":
+    elif case.startswith("ur10-A3000"):
         lines = (root / "ipa-ur10-tmac" / "poses_A_grid.csv").read_text().splitlines()
         rows = np.sort(np.random.default_rng(0).permutation(len(lines) - 1)[:3000]) + 1
         data = Path(out) / "A3000.csv"
@@ -105,6 +105,8 @@ def _child(case: str, data_root: str, out: str) -> None:
         data.write_text("\n".join([lines[0]] + [lines[i] for i in rows]) + "\n")
         argv = ["fit", "--robot", str(root / "ipa-ur10-tmac" / "robot.yaml"), "--data", str(data),
                 "--out", str(Path(out) / "model"), "progress=false"]
+        if case.endswith("geometry"):
+            argv += ["residual=none", "gravity_compliance=none", "joint_harmonics=none"]
     else:
         argv = ["fit", "--robot", str(root / "jacobi-ur5-gts3800" / "robot.yaml"),
                 "--data", str(root / "jacobi-ur5-gts3800" / "poses.csv"), "--out", str(Path(out) / "model"),
@@ -126,6 +128,8 @@ def _child(case: str, data_root: str, out: str) -> None:
 CASES = {
     "twin": "`torchcal run` (default twin)",
     "ur10-A3000": "`torchcal fit`, UR10 series A, 3000 seeded rows",
+    "ur10-A3000-geometry": "`torchcal fit`, UR10 series A, 3000 seeded rows, geometry alone "
+                           "(`residual=none gravity_compliance=none joint_harmonics=none`)",
     "ur5-1000": "`torchcal fit`, UR5, 1000 poses",
 }
 
@@ -164,8 +168,8 @@ def main() -> None:
 
     trees = {"this tree": None} | ({"baseline": args.baseline} if args.baseline else {})
     runs: dict[str, dict[str, list[dict]]] = {c: {t: [] for t in trees} for c in args.cases}
-    for case in args.cases:
-        for k in range(args.repeats):
+    for k in range(args.repeats):
+        for case in args.cases:
             for tree, path in trees.items():
                 r = _run(case, path, args.data_root)
                 runs[case][tree].append(r)
