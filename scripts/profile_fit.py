@@ -175,7 +175,7 @@ def main() -> None:
                 runs[case][tree].append(r)
                 print(f"{case} [{tree}] run {k + 1}: {r['total_wall']:.1f} s wall, {r['total_cpu']:.1f} s CPU, "
                       f"load {r['load_before']:.1f}", flush=True)
-    stages = [s for s in dict.fromkeys(s for _, _, s in STAGES)] + ["rest"]
+    stages = list(dict.fromkeys(s for _, _, s in STAGES)) + ["rest"]
     lines = ["# Where a fit's time goes", "",
              f"`scripts/profile_fit.py`: median of {args.repeats} run(s) per case, each a fresh process; wall and "
              "CPU (all threads) seconds per stage, exclusive of nested stages. Load average (1 min) before "
