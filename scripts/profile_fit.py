@@ -159,6 +159,8 @@ def main() -> None:
     parser.add_argument("--cases", nargs="*", default=list(CASES))
     parser.add_argument("--baseline", default=None, help="source tree of the version to compare with")
     parser.add_argument("--out", default=str(ROOT / "docs"))
+    parser.add_argument("--collect", action="store_true",
+                        help="reuse the runs an earlier invocation saved under OUT/profile_fit_runs")
     parser.add_argument("--child", default=None, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.child is not None:
@@ -168,10 +170,17 @@ def main() -> None:
 
     trees = {"this tree": None} | ({"baseline": args.baseline} if args.baseline else {})
     runs: dict[str, dict[str, list[dict]]] = {c: {t: [] for t in trees} for c in args.cases}
+    saved = Path(args.out) / "profile_fit_runs"
+    saved.mkdir(parents=True, exist_ok=True)
     for k in range(args.repeats):
         for case in args.cases:
             for tree, path in trees.items():
-                r = _run(case, path, args.data_root)
+                file = saved / f"{case}__{tree.replace(' ', '-')}__{k}.json"
+                if args.collect and file.exists():  # a run saved by an earlier, interrupted invocation
+                    r = json.loads(file.read_text())
+                else:
+                    r = _run(case, path, args.data_root)
+                    atomic_write_json(file, r)
                 runs[case][tree].append(r)
                 print(f"{case} [{tree}] run {k + 1}: {r['total_wall']:.1f} s wall, {r['total_cpu']:.1f} s CPU, "
                       f"load {r['load_before']:.1f}", flush=True)

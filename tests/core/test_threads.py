@@ -52,9 +52,9 @@ def _weights(head) -> torch.Tensor:
 
 def test_mlp_bit_identical_on_one_and_two_threads(two_threads):
     x, y, xv, yv = _data()
-    two = _weights(MLPHead(max_epochs=8, patience=4, batch_size=64).fit(x, y, xv, yv))
+    two = _weights(MLPHead(max_epochs=3, patience=2, batch_size=64).fit(x, y, xv, yv))
     with fit_threads():
-        one = _weights(MLPHead(max_epochs=8, patience=4, batch_size=64).fit(x, y, xv, yv))
+        one = _weights(MLPHead(max_epochs=3, patience=2, batch_size=64).fit(x, y, xv, yv))
     assert torch.equal(one, two)
 
 
