@@ -160,7 +160,7 @@ def main() -> None:
     parser.add_argument("--baseline", default=None, help="source tree of the version to compare with")
     parser.add_argument("--out", default=str(ROOT / "docs"))
     parser.add_argument("--collect", action="store_true",
-                        help="reuse the runs an earlier invocation saved under OUT/profile_fit_runs")
+                        help="no new runs: tabulate those earlier invocations saved under OUT/profile_fit_runs")
     parser.add_argument("--child", default=None, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.child is not None:
@@ -176,7 +176,9 @@ def main() -> None:
         for case in args.cases:
             for tree, path in trees.items():
                 file = saved / f"{case}__{tree.replace(' ', '-')}__{k}.json"
-                if args.collect and file.exists():  # a run saved by an earlier, interrupted invocation
+                if args.collect:  # only the runs saved by earlier invocations
+                    if not file.exists():
+                        continue
                     r = json.loads(file.read_text())
                 else:
                     r = _run(case, path, args.data_root)
@@ -193,6 +195,8 @@ def main() -> None:
     for case in args.cases:
         for tree in trees:
             rs = runs[case][tree]
+            if not rs:
+                continue
             lines += [f"## {CASES[case]}: {tree}", "", "| stage | wall [s] | CPU [s] |", "|---|---:|---:|"]
             for stage in stages:
                 w, c = _median(rs, "wall", stage), _median(rs, "cpu", stage)
