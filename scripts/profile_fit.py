@@ -121,8 +121,9 @@ def _child(case: str, data_root: str, out: str) -> None:
     cpu["rest"] = total_c - sum(cpu.values())
     import torchcal
 
-    print(json.dumps({"wall": wall, "cpu": cpu, "total_wall": total_w, "total_cpu": total_c,
-                      "torchcal": str(Path(torchcal.__file__).parent)}))
+    # which source ran: the baseline tree given, or the installed one (checked, not assumed)
+    source = "baseline" if tree and Path(torchcal.__file__).is_relative_to(tree) else "installed"
+    print(json.dumps({"wall": wall, "cpu": cpu, "total_wall": total_w, "total_cpu": total_c, "torchcal": source}))
 
 
 CASES = {
@@ -206,7 +207,7 @@ def main() -> None:
             lines += ["", "runs (wall s / load): " + ", ".join(f"{r['total_wall']:.1f} / {r['load_before']:.1f}"
                                                              for r in rs), ""]
     atomic_write_json(Path(args.out) / "profile_fit.json", {"cases": args.cases, "repeats": args.repeats,
-                                                            "trees": trees, "runs": runs})
+                                                            "trees": list(trees), "runs": runs})
     atomic_write_text(Path(args.out) / "profile_fit.md", "\n".join(lines))
     print("\n".join(lines))
 
