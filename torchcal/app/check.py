@@ -37,6 +37,7 @@ from torchcal.identify.calibrate import register_instrument
 from torchcal.identify.lm import LevenbergMarquardt
 from torchcal.identify.problem import CalibrationProblem
 from torchcal.kinematics.error_model import ErrorModel
+from torchcal.report.document import Paragraph, Preformatted, Report, Section, Table
 from torchcal.stages.geometry import model_joints
 from torchcal.stages.prediction_uncertainty import stored_prediction
 from torchcal.stages.store import StoredModel, load_model
@@ -107,9 +108,9 @@ class CheckResult:
 
     def lines(self) -> list[str]:
         best = self.best
-        out = [f"{self.source}: {self.n_poses} poses, frame re-registered: RMS {float(np.sqrt(np.mean(self.errors_mm**2))):.3f} mm; "
+        out = [(f"{self.source}: {self.n_poses} poses, frame re-registered: RMS {float(np.sqrt(np.mean(self.errors_mm**2))):.3f} mm; "
                f"{self.exceedances} beyond their predicted 95 % radius (expected {0.05 * self.n_poses:.1f}, tail p "
-               f"{self.exceedance_p:.2g})"]
+               f"{self.exceedance_p:.2g})")]
         if best is not None:
             out.append(f"most likely change: {best.group} ({', '.join(best.names)}): dBIC {best.delta_bic:+.1f}, "
                        f"likelihood ratio p {best.p_value:.2g} (named above dBIC {BIC_CHANGED:g})")
@@ -194,3 +195,23 @@ def check_model(model_dir: str | Path, data_file: str | Path) -> CheckResult:
     stored = load_model(model_dir)
     data = load_measurements(data_file, stored.robot)
     return check_data(stored, data)
+
+
+def check_report(result: CheckResult, model_dir: str | Path) -> Report:
+    """The report of a check: verdict, evidence per group, per-pose errors against their 95 % radius."""
+    doc = result.to_dict()
+    groups = Table("groups", ["group", "parameters", "k", "chi2", "dBIC", "likelihood ratio p"],
+                   [[g["group"], ", ".join(g["names"]), str(g["k"]), f"{g['chi2']:.1f}", f"{g['delta_bic']:+.1f}",
+                     f"{g['lr_p_value']:.2g}"] for g in doc["groups"]["ranked"]],
+                   caption=f"refits from the old model freeing the frame and one group; frame only: chi2 "
+                           f"{result.chi2_null:.1f}; a group is named above dBIC {BIC_CHANGED:g}")
+    poses = Table("poses", ["row", "error, mm", "predicted 95 % radius, mm", "beyond"],
+                  [[str(p["row"]), f"{p['error_mm']:.3f}", f"{p['p95_mm']:.3f}", "yes" if p["beyond"] else ""]
+                   for p in doc["poses"]])
+    return Report(f"Check of {Path(model_dir).name} on {Path(result.source).name}", [
+        Section("Verdict", [Paragraph(f"{result.verdict}" + (f": changed {', '.join(result.changed)}" if result.changed else "")),
+                            Preformatted("\n".join(result.lines())), Paragraph(f"Protocol: {PROTOCOL}."),
+                            Paragraph(f"Not tested: {doc['not_tested']}.")]),
+        Section("Which group changed", [groups]),
+        Section("Per pose", [poses]),
+    ])
