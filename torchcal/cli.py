@@ -127,7 +127,7 @@ def _cmd_export(args) -> int:
     )
     tcp = manifest["tcp"]
     for where, e in manifest["corrections"]["extent"].items():
-        what = "measured point" if tcp.get("is_measured_point") else f"TCP {tcp['rpy_deg']} deg,"
+        what = "flange" if tcp.get("is_flange") else f"TCP {tcp['rpy_deg']} deg,"
         print(f"{what} {[round(v, 3) for v in tcp['position_mm']]} mm in the flange frame: over the {where} the largest joint "
               f"correction is {e['largest_joint_correction_deg']:.3g} deg (joint {e['joint']}), the tool orientation "
               f"deviation up to {e['largest_tool_rotation_deg']:.3g} deg")
@@ -312,8 +312,8 @@ def build_parser(with_options: bool = False) -> argparse.ArgumentParser:
     p.add_argument("--portable", action="store_true",
                    help="standard ONNX operators only (no onnxruntime contrib Inverse): for other runtimes, slower")
     p.add_argument("--tcp-mm", type=float, nargs=3, default=None, metavar=("X", "Y", "Z"),
-                   help="production TCP in the flange frame, mm (0 0 0: the flange); the compensator serves it "
-                        "(default: the calibration's measured point)")
+                   help="production TCP in the flange frame, mm (default: the flange); the compensator serves it, "
+                        "not the calibration's measured point")
     p.add_argument("--tcp-rpy-deg", type=float, nargs=3, default=None, metavar=("RX", "RY", "RZ"),
                    help="orientation of the production TCP in the flange frame, fixed-axis XYZ deg (default: 0 0 0)")
     p.add_argument("--allow-large-corrections", action="store_true",

@@ -10,6 +10,7 @@ import pytest
 import torch
 
 from torchcal.compensate.export import GRAPHS, OPSET, build_graphs, export_and_check
+from torchcal.compensate.production_tcp import production_view, tcp_transform
 from torchcal.kinematics.error_model import ErrorModel
 from torchcal.kinematics.joint_jacobian import geometric_jacobian
 from torchcal.stages.store import load_model
@@ -17,7 +18,8 @@ from torchcal.stages.store import load_model
 
 @pytest.fixture(scope="module")
 def stored(model_dir):
-    return load_model(model_dir)
+    """The model as the exported files serve it: the default production TCP, the flange."""
+    return production_view(load_model(model_dir), tcp_transform(None, None))
 
 
 @pytest.fixture(scope="module")
@@ -98,12 +100,14 @@ def test_compensator_parity_on_10k_poses(exported, stored, graphs):
 
 
 def test_onnx_compensation_on_the_true_twin(exported, twin, stored, graphs):
-    """Corrected joints sent to the true robot land on T_reference @ nominal pose."""
-    folder, _ = exported
+    """Corrected joints sent to the true robot put its flange (the default TCP) on T_reference @ nominal flange."""
+    folder, manifest = exported
+    assert manifest["tcp"]["is_flange"] and manifest["tcp"]["position_mm"] == [0.0, 0.0, 0.0]
     q = twin.robot.sample_joints(400, torch.Generator().manual_seed(23), margin=math.radians(5))
     base = stored.model.instrument_from_base(stored.x)
-    target = twin.robot.tcp_position(q) @ base[:3, :3].T + base[:3, 3]
-    rms = lambda qq: float((twin.true_positions(qq) - target).norm(dim=-1).pow(2).mean().sqrt() * 1e3)  # noqa: E731
+    target = twin.robot.flange_pose(q)[..., :3, 3] @ base[:3, :3].T + base[:3, 3]
+    flange = torch.eye(4, dtype=torch.float64)
+    rms = lambda qq: float((twin.true_tcp_positions(qq, flange) - target).norm(dim=-1).pow(2).mean().sqrt() * 1e3)  # noqa: E731
     with torch.no_grad():
         torch_rms = rms(graphs["compensator"](q))
     onnx_rms = rms(run(folder, "compensator", q))
@@ -116,7 +120,7 @@ def test_onnx_compensation_on_the_true_twin(exported, twin, stored, graphs):
 def test_export_and_check_reports_parity(model_dir, twin, tmp_path):
     gen = torch.Generator().manual_seed(24)
     test = twin.sample(200, gen)
-    result = export_and_check(model_dir, tmp_path / "out", test, true_positions=twin.true_positions)
+    result = export_and_check(model_dir, tmp_path / "out", test, true_tcp_positions=twin.true_tcp_positions)
     assert result["compensator_tcp_max_mm"] <= 1e-9
     on_twin = result["compensation_on_true_robot"]  # the exported commands sent to the true twin
     assert on_twin["n_poses"] == 200 and on_twin["onnx_float64_over_torch"] <= 1.05

@@ -5,15 +5,18 @@ import math
 import torch
 
 from torchcal.compensate.export import build_graphs
+from torchcal.compensate.production_tcp import production_view, tcp_transform
 from torchcal.compensate.true_robot_check import compensation_on_true_robot
 from torchcal.stages.store import load_model
 
 
 def test_exported_commands_land_as_torch_commands_on_the_true_twin(exported, model_dir, twin):
     folder, manifest = exported
-    stored = load_model(model_dir)
+    flange = tcp_transform(None, None)  # the export's default TCP
+    stored = production_view(load_model(model_dir), flange)
     q = twin.robot.sample_joints(300, torch.Generator().manual_seed(41), margin=math.radians(5))
-    result = compensation_on_true_robot(stored, build_graphs(stored), folder, manifest, q, twin.true_positions)
+    true_flange = lambda qq: twin.true_tcp_positions(qq, flange)  # noqa: E731
+    result = compensation_on_true_robot(stored, build_graphs(stored), folder, manifest, q, true_flange)
     assert result["n_poses"] == 300
     # the acceptance: ONNX commands within 5 % of the torch compensator on the true robot
     assert result["onnx_float64_over_torch"] <= 1.05 and result["onnx_float32_over_torch"] <= 1.05
@@ -21,7 +24,7 @@ def test_exported_commands_land_as_torch_commands_on_the_true_twin(exported, mod
     T = stored.model.instrument_from_base(stored.x)
     target = stored.robot.tcp_position(q) @ T[:3, :3].T + T[:3, 3]
     with torch.no_grad():
-        miss = (twin.true_positions(build_graphs(stored)["compensator"](q)) - target).norm(dim=-1)
+        miss = (true_flange(build_graphs(stored)["compensator"](q)) - target).norm(dim=-1)
     assert abs(float(miss.pow(2).mean().sqrt()) * 1e3 - result["torch"]["position_rms_mm"]) < 1e-9
     # where the Newton steps solved the model, only the calibration's own error remains: far
     # below the uncompensated error, and the unsolved poses are the minority

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import pytest
@@ -186,3 +186,77 @@ def test_orientation_only_parameter_stays_at_prior_with_a_wrong_tool_rotation():
     assert "tool_rx" not in rows  # not estimated without orientation data
     for name in ("alpha6", "a6"):
         assert abs(rows[name]["moved_sigmas"]) < 2.0, rows[name]
+
+
+def test_log_evidence_of_a_linear_model_is_the_exact_gaussian_marginal_likelihood():
+    """Linear model, Gaussian prior: log N(y; A mu, s^2 I + A Sigma A^T), whatever the MAP's route."""
+    from scipy.stats import multivariate_normal
+
+    from torchcal.identify.prior import log_evidence
+
+    gen = torch.Generator().manual_seed(5)
+    a = torch.randn(25, 3, generator=gen, dtype=torch.float64)
+    y = torch.randn(25, generator=gen, dtype=torch.float64)
+    mean = torch.tensor([0.2, -0.1, 0.5], dtype=torch.float64)
+    sigma = torch.tensor([0.3, 2.0, 0.05], dtype=torch.float64)
+    prior = _prior(3, mean, sigma)
+    s = 0.4
+    h = a.T @ a / s**2 + prior.precision
+    x = torch.linalg.solve(h, a.T @ y / s**2 + prior.precision @ mean)
+    problem = LinearProblem(a, y, torch.arange(3))
+    r, jac = problem.jacobian(x)
+    value = log_evidence(jac, r, prior.precision, x - mean, s)
+    cov = s**2 * torch.eye(25, dtype=torch.float64) + a @ torch.diag(sigma**2) @ a.T
+    exact = multivariate_normal(mean=(a @ mean).numpy(), cov=cov.numpy()).logpdf(y.numpy())
+    assert abs(value - exact) < 1e-8
+
+
+def test_extended_prior_without_extra_entries_is_the_prior_itself():
+    """Every joint-space coefficient dropped (extra 0): the mean keeps its length (it once went negative)."""
+    prior = _prior(3, torch.tensor([1.0, 2.0, 3.0], dtype=torch.float64), torch.ones(3, dtype=torch.float64))
+    same = prior.extended(torch.arange(3), 0, 5)
+    assert same.mean.tolist() == [1.0, 2.0, 3.0, 0.0, 0.0] and torch.equal(same.precision, prior.precision)
+    two = prior.extended(torch.tensor([0, 1, 2, 4]), 1, 5)
+    assert two.precision.shape == (4, 4) and float(two.precision[3, 3]) == 0.0 and math.isinf(float(two.sigma[3]))
+    with pytest.raises(ModelError):
+        prior.extended(torch.tensor([0, 1, 2, 5]), 1, 5)
+
+
+def test_evidence_prefers_calibrating_a_robot_with_errors_and_not_one_without():
+    """A twin built with tolerance-sized errors: the nominal robot is far less probable. The same poses
+    measured on the nominal robot itself: no scale beats the nominal candidate by more than the tie."""
+    from torchcal.model_selection.prior_scale import EVIDENCE_TIE, evidence_prior_scales
+
+    twin, train, _ = _in_model_twin(1, 80)
+
+    def fitter(spec):
+        return lambda data, start=None: calibrate(twin.robot, data, prior=spec, start=start)
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        chosen, record, full = evidence_prior_scales(fitter, PriorSpec(), train)
+        assert not chosen.nominal and full.prior.spec.scale == chosen.scale
+        deltas = {c["name"]: c["delta_log_evidence"] for c in record["candidates"]}
+        assert deltas["nominal"] < -10 * EVIDENCE_TIE
+        exact = twin.model.tcp_position(train.q, twin.model.nominal_vector())
+        clean = replace(train, position=exact + 2e-5 * torch.randn(exact.shape, generator=torch.Generator().manual_seed(3),
+                                                                    dtype=torch.float64))
+        chosen, record, _ = evidence_prior_scales(fitter, PriorSpec(), clean)
+    assert chosen.nominal or chosen.scale == 0.25, record["table"]
+
+
+def test_a_warm_started_fit_reaches_the_cold_fit_in_fewer_steps():
+    """The fold fits start from the fit on all poses: same minimum (the fold's own), fewer iterations."""
+    twin, train, _ = _in_model_twin(2, 120)
+    fold = train.subset(np.arange(0, 120, 2))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        full = calibrate(twin.robot, train, prior=PriorSpec())
+        cold = calibrate(twin.robot, fold, prior=PriorSpec())
+        warm = calibrate(twin.robot, fold, prior=PriorSpec(), start=full)
+    p_cold = cold.model.tcp_position(train.q, cold.x)
+    p_warm = warm.model.tcp_position(train.q, warm.x)
+    assert float((p_cold - p_warm).norm(dim=-1).max()) < 1e-6  # m: the same model, predicted on every pose
+    sd = cold.covariance.diagonal().sqrt()
+    assert float(((cold.x[cold.free] - warm.x[warm.free]).abs() / sd).max()) < 0.1
+    assert warm.solve.iterations <= cold.solve.iterations

@@ -119,7 +119,7 @@ def run(config: RunConfig, console=None) -> dict:
     write_member_json(model_dir, "metrics.json", {"held_out_data": test.source, "stages": metrics, "final_stage": summary["final_stage"]})
     if config.export:
         export_dir = Path(config.export_dir) / config.name
-        summary["export"] = export_and_check(model_dir, export_dir, test, true_positions=twin.true_positions)
+        summary["export"] = export_and_check(model_dir, export_dir, test, true_tcp_positions=twin.true_tcp_positions)
         console.log(summary["export"]["summary"])
         _log_compensation_on_twin(summary["export"]["compensation_on_true_robot"], console)
     report = _write_report(folder, stored, train, test, structure, summary, truth_x)
@@ -163,11 +163,13 @@ def _selection(model_dir: Path) -> dict | None:
     return json.loads(path.read_text(encoding="utf-8")) if path.is_file() else None
 
 
-def _log_compensation_on_twin(result: dict, console) -> None:
+def _log_compensation_on_twin(result: dict, console, tcp: str = "the flange") -> None:
     """One line on the exported compensator's commands sent to the true twin, one on the poses it left unsolved."""
     console.log(
-        "compensated on the true twin ({n} test poses, RMS): uncompensated {u:.4f} mm, torch {t:.4f} mm, "
+        "compensated on the true twin at the exported TCP ({tcp}; {n} test poses, RMS): uncompensated {u:.4f} mm, "
+        "torch {t:.4f} mm (the model's own error there {m:.4f} mm), "
         "onnxruntime float64 {o:.4f} mm ({r64:.4f}x torch), float32 {o32:.4f} mm ({r32:.4f}x)".format(
+            tcp=tcp, m=result["model_own_error"]["position_rms_mm"],
             n=result["n_poses"], u=result["uncompensated"]["position_rms_mm"], t=result["torch"]["position_rms_mm"],
             o=result["onnx_float64"]["position_rms_mm"], r64=result["onnx_float64_over_torch"],
             o32=result["onnx_float32"]["position_rms_mm"], r32=result["onnx_float32_over_torch"])

@@ -45,6 +45,15 @@ from torchcal.compensate.compensator import (
 )
 from torchcal.compensate.linalg import CONTRIB_DOMAIN
 from torchcal.compensate.onnx_checks import ort_feeds, ort_session, unsolved_distance_m
+from torchcal.compensate.production_tcp import (
+    MAX_JOINT_CORRECTION_DEG,
+    MAX_TOOL_ROTATION_DEG,
+    check_corrections,
+    correction_extent,
+    production_view,
+    tcp_entry,
+    tcp_transform,
+)
 from torchcal.compensate.true_robot_check import compensation_on_true_robot
 from torchcal.core.errors import TorchcalError
 from torchcal.core.folder import check_output_folder, staged_folder
@@ -386,9 +395,9 @@ def export_model(
 ) -> dict:
     """Export the compensator of a model folder; returns the manifest (also written to disk).
 
-    ``tcp_mm`` / ``tcp_rpy_deg``: the production TCP in the flange frame (mm, fixed-axis XYZ deg), the
-    point the compensator serves (:mod:`torchcal.compensate.production_tcp`); neither given: the
-    calibration's measured point (the fitted tool), stated as such in the manifest.
+    ``tcp_mm`` / ``tcp_rpy_deg``: the production TCP in the flange frame (mm, fixed-axis XYZ deg;
+    default: the flange), the point the compensator serves (:mod:`torchcal.compensate.production_tcp`),
+    stated in the manifest's ``tcp``; the calibration's measured point (the reflector) is not its target.
     ``allow_large_corrections``: export even when a joint correction or the tool orientation
     deviation exceeds the stated limits (otherwise refused).
 
@@ -407,15 +416,10 @@ def export_model(
     if out_dir.resolve() == model_dir.resolve():
         raise TorchcalError(f"{out_dir}: the export folder must lie outside the model folder {model_dir}")
     check_output_folder(out_dir)
-    from torchcal.compensate.production_tcp import production_view, tcp_entry, tcp_transform
-
     stored = load_model(model_dir)
-    if tcp_mm is None and tcp_rpy_deg is None:
-        tcp = tcp_entry(None, None, None, stored)  # the calibration's measured point, as the graphs of run/evaluate
-    else:
-        T_tcp = tcp_transform(tcp_mm, tcp_rpy_deg)
-        tcp = tcp_entry(T_tcp, tcp_mm, tcp_rpy_deg, stored)
-        stored = production_view(stored, T_tcp)
+    T_tcp = tcp_transform(tcp_mm, tcp_rpy_deg)
+    tcp = tcp_entry(T_tcp, tcp_mm, tcp_rpy_deg, stored)
+    stored = production_view(stored, T_tcp)
     with staged_folder(out_dir) as staging:
         return _export_into(staging, model_dir, stored, wrench_frame=wrench_frame, iterations=iterations,
                             portable=portable, task=task, tcp=tcp, allow_large_corrections=allow_large_corrections)
@@ -424,8 +428,6 @@ def export_model(
 def _export_into(out_dir: Path, model_dir: Path, stored, *, wrench_frame: str, iterations: int | None,
                  portable: bool, task: str, tcp: dict | None = None, allow_large_corrections: bool = True) -> dict:
     """Write the export files of ``stored`` into ``out_dir`` (a staging folder); returns the manifest."""
-    from torchcal.compensate.production_tcp import check_corrections, correction_extent
-
     graphs = build_graphs(stored, wrench_frame=wrench_frame, iterations=iterations, portable=portable, task=task)
     extent = {}
     if not has_wrench_input(graphs):
@@ -498,8 +500,6 @@ def _regular(robot, q: torch.Tensor) -> torch.Tensor:
 
 
 def _correction_limits() -> dict:
-    from torchcal.compensate.production_tcp import MAX_JOINT_CORRECTION_DEG, MAX_TOOL_ROTATION_DEG
-
     return {"largest_joint_correction_deg": MAX_JOINT_CORRECTION_DEG, "largest_tool_rotation_deg": MAX_TOOL_ROTATION_DEG,
             "sampling": ("the model's training poses and 2000 poses uniform within the joint limits (seed 2), both less "
                          "those in the convergence report's singular strata")}
@@ -686,18 +686,25 @@ graph: compensated TCP within {budget['compensator_tcp_mm']['max']:.2e} mm (max)
 """
 
 
-def export_and_check(model_dir: str | Path, out_dir: str | Path, test, true_positions=None) -> dict:
-    """Export, then run the exported graphs with onnxruntime on the test poses.
+def export_and_check(model_dir: str | Path, out_dir: str | Path, test, true_tcp_positions=None,
+                     tcp_mm: list[float] | None = None, tcp_rpy_deg: list[float] | None = None) -> dict:
+    """Export (production TCP ``tcp_mm`` / ``tcp_rpy_deg``, default the flange), then run the exported
+    graphs with onnxruntime on the test poses.
 
-    Returns parity numbers (ORT against the torch graphs, mm and rad) and the held-out position
-    error of the exported monitor graph (instrument frame, mm, no re-registration). With
-    ``true_positions`` (``q -> (B, 3)`` true TCP in the instrument frame, m: a twin's truth), also
+    Returns parity numbers (ORT against the torch graphs of the same TCP, mm and rad) and the
+    held-out position error of the model's monitor at the measured point (instrument frame, mm,
+    no re-registration: the test file measures that point, not the production TCP). With
+    ``true_tcp_positions`` (``(q, T_flange_tcp) -> (B, 3)`` true position of a TCP in the instrument
+    frame, m: a twin's truth, :meth:`~torchcal.sim.twin.Twin.true_tcp_positions`), also
     ``compensation_on_true_robot``: the commands of torch and of both exported files at the test
-    poses, sent to that robot (:func:`~torchcal.compensate.true_robot_check.compensation_on_true_robot`).
+    poses, sent to that robot, scored at the exported TCP
+    (:func:`~torchcal.compensate.true_robot_check.compensation_on_true_robot`).
     """
     out_dir = Path(out_dir)
-    manifest = export_model(model_dir, out_dir)
-    stored = load_model(model_dir)
+    manifest = export_model(model_dir, out_dir, tcp_mm=tcp_mm, tcp_rpy_deg=tcp_rpy_deg)
+    measured = load_model(model_dir)
+    T_tcp = tcp_transform(tcp_mm, tcp_rpy_deg)
+    stored = production_view(measured, T_tcp)  # what the files serve
     graphs = build_graphs(stored)
     q = test.q.to(torch.float64)
     wrench = None
@@ -715,10 +722,11 @@ def export_and_check(model_dir: str | Path, out_dir: str | Path, test, true_posi
     ort_mon = torch.from_numpy(session.run(None, ort_feeds(session, q.numpy(), w))[0])
     model = stored.model
     tcp = lambda qq: (model.base_flange_pose(qq, stored.x) @ model.flange_from_tool(stored.x))[..., :3, 3]  # noqa: E731
-    nominal = stored.robot.tcp_position(q)
-    predicted_base = nominal + ort_mon
-    rot, trans = model.instrument_from_base(stored.x)[:3, :3], model.instrument_from_base(stored.x)[:3, 3]
-    held_out = position_metrics(test.position - (predicted_base @ rot.T + trans))
+    with torch.no_grad():
+        measured_monitor = build_graphs(measured)["monitor"](*args)
+    predicted_base = measured.robot.tcp_position(q) + measured_monitor
+    T_ref = measured.model.instrument_from_base(measured.x)
+    held_out = position_metrics(test.position - (predicted_base @ T_ref[:3, :3].T + T_ref[:3, 3]))
     result = {
         "out_dir": str(out_dir),
         "n_poses": len(test),
@@ -729,9 +737,9 @@ def export_and_check(model_dir: str | Path, out_dir: str | Path, test, true_posi
         "held_out_monitor": held_out,
         "sha256_compensator": manifest["sha256"]["compensator"],
     }
-    if true_positions is not None:
+    if true_tcp_positions is not None:
         result["compensation_on_true_robot"] = compensation_on_true_robot(
-            stored, graphs, out_dir, manifest, q, true_positions, wrench)
+            stored, graphs, out_dir, manifest, q, lambda qq: true_tcp_positions(qq, T_tcp), wrench)
     result["summary"] = (
         f"export: {out_dir} (compensator ORT vs torch {result['compensator_tcp_max_mm']:.1e} mm, "
         f"float32 budget {manifest['float32_error_budget']['compensator_tcp_mm']['max']:.1e} mm)")

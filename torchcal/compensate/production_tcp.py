@@ -3,7 +3,7 @@
 A calibration measures a reflector (or probe) on the flange; production needs another point: the
 torch tip, the gripper centre. :func:`production_view` re-expresses a stored model so that both the
 nominal and the calibrated chain end in the production TCP ``T_flange_tcp`` (position in mm and
-fixed-axis XYZ angles in deg, in the ``flange`` frame; ``export --tcp-mm 0 0 0`` is the flange): the flange
+fixed-axis XYZ angles in deg, in the ``flange`` frame; default: the flange itself): the flange
 frame ``T_N_flange`` becomes ``T_N_flange T_flange_tcp`` and the tool entries are zero. The
 compensator then corrects where the calibrated model puts *that* point (and its orientation),
 using the flange orientation the model knows, not the measuring reflector's fitted offset.
@@ -57,24 +57,19 @@ def production_view(stored, T_flange_tcp: torch.Tensor):
     return replace(stored, robot=robot, model=model, x=x)
 
 
-def tcp_entry(T_flange_tcp: torch.Tensor | None, position_mm, rpy_deg, stored) -> dict:
-    """The manifest's ``tcp``: what the compensator targets (``T_flange_tcp`` ``None``: the measured point)."""
+def tcp_entry(T_flange_tcp: torch.Tensor, position_mm, rpy_deg, stored) -> dict:
+    """The manifest's ``tcp``: what the compensator targets (default: the flange), and the measured point it does not."""
     layout = stored.model.layout
     reflector = (stored.x[layout.tool_slice][:3].detach().cpu() * 1e3).tolist()
-    if T_flange_tcp is None:
-        return {"position_mm": reflector, "rpy_deg": None, "frame": "flange", "is_measured_point": True,
-                "measured_point_mm": reflector,
-                "note": ("the compensator moves the calibration's measured point (the fitted reflector or probe offset) "
-                         "to where the nominal robot puts the nominal tool; give --tcp-mm (and --tcp-rpy-deg) for the "
-                         "production TCP, e.g. --tcp-mm 0 0 0 for the flange")}
     return {
         "position_mm": (T_flange_tcp[:3, 3] * 1e3).tolist(),
         "rpy_deg": [0.0, 0.0, 0.0] if rpy_deg is None else [float(v) for v in rpy_deg],
         "frame": "flange",
-        "is_measured_point": False,
+        "is_flange": position_mm is None and rpy_deg is None,
         "measured_point_mm": reflector,
         "note": ("the compensator moves this TCP (position and orientation) to where the nominal robot puts it; the "
-                 "measured point (the calibration's reflector or probe) is not its target"),
+                 "measured point (the calibration's reflector or probe) is not its target; export --tcp-mm / "
+                 "--tcp-rpy-deg give another TCP"),
     }
 
 

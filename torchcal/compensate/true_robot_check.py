@@ -42,8 +42,8 @@ def compensation_on_true_robot(
         wrench: ``(B, 6)`` expected load for graphs with a stiffness stage, else ``None``.
 
     Returns:
-        ``{"n_poses", "uncompensated", "torch", "onnx_float64", "onnx_float32"}`` with the
-        position metrics (mm) of each, and ``onnx_float64_over_torch`` / ``onnx_float32_over_torch``:
+        ``{"n_poses", "uncompensated", "torch", "onnx_float64", "onnx_float32", "model_own_error"}`` with the
+        position metrics (mm) of each (the last: true minus model-predicted TCP at ``q``), and ``onnx_float64_over_torch`` / ``onnx_float32_over_torch``:
         ratios of RMS error (1.0 = the export loses nothing); ``solved_share``, the share of poses
         whose command puts the model's predicted TCP within 1 um of the target, and
         ``torch_on_solved`` / ``torch_on_unsolved``: the torch metrics on either part.
@@ -67,6 +67,11 @@ def compensation_on_true_robot(
     for name, error in errors.items():
         result[name] = position_metrics(error)
     torch_rms = result["torch"]["position_rms_mm"]
+    # the model's own error at this TCP (true minus predicted at the same joints): what no compensator
+    # can remove, the yardstick of the compensated error (a TCP away from the measured point sees the
+    # orientation the position data determined less well)
+    with torch.no_grad():
+        result["model_own_error"] = position_metrics(true_positions(q) - stored.model.tcp_position(q, stored.x))
     result["onnx_float64_over_torch"] = result["onnx_float64"]["position_rms_mm"] / torch_rms
     result["onnx_float32_over_torch"] = result["onnx_float32"]["position_rms_mm"] / torch_rms
     # Split the poses by whether the fixed Newton steps solved the model's own equations (the

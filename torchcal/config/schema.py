@@ -6,6 +6,7 @@ They are the schema the YAML files under ``configs/`` and ``key=value`` override
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 from torchcal.core.errors import TorchcalError
@@ -59,8 +60,10 @@ class FitConfig:
         prior: what the fit knows before the data (:mod:`torchcal.stages.prior_options`):
             ``tolerance`` (default: manufacturing tolerances per parameter kind), ``none`` (the rank
             cut of earlier versions) or an earlier model folder (its parameters and covariance).
-        prior_scale: ``auto`` (default: grouped cross-validation between the nominal robot and the
-            tolerances scaled x0.25, x1, x4, x16), ``nominal`` or a number multiplying the MDH sigmas.
+        prior_scale: ``auto`` (default: the marginal likelihood, evidence, chooses between the nominal
+            robot and the tolerances scaled x0.25, x1, x4, x16), ``cv`` (the same candidates by the
+            grouped cross-validation, one fit per candidate and fold), ``nominal`` or a number
+            multiplying the MDH sigmas.
         tolerance_length_mm: prior 1-sigma of MDH lengths a, d (mm; overrides the robot file's
             ``calibration_prior`` and the default 0.5).
         tolerance_angle_deg: prior 1-sigma of MDH angles alpha, beta (deg; default 0.05).
@@ -117,20 +120,15 @@ class FitConfig:
                      "tolerance_tool_deg"):
             if getattr(self, name) is not None:
                 check_range(self, name, low=0.0, low_open=True)
-        if str(self.prior_scale).lower() not in ("auto", "nominal"):
-            import math
-
+        if str(self.prior_scale).lower() not in ("auto", "cv", "nominal"):
             try:
                 scale = float(self.prior_scale)
             except ValueError:
                 scale = -1.0
             if not math.isfinite(scale) or scale < 0:
-                raise TorchcalError(f"prior_scale must be auto, nominal or a number >= 0, got {self.prior_scale!r}")
-        if self.tool_mm is not None:
-            import math
-
-            if len(self.tool_mm) != 3 or not all(math.isfinite(v) for v in self.tool_mm):
-                raise TorchcalError(f"tool_mm needs 3 finite values (x, y, z in mm), got {list(self.tool_mm)}")
+                raise TorchcalError(f"prior_scale must be auto, cv, nominal or a number >= 0, got {self.prior_scale!r}")
+        if self.tool_mm is not None and (len(self.tool_mm) != 3 or not all(math.isfinite(v) for v in self.tool_mm)):
+            raise TorchcalError(f"tool_mm needs 3 finite values (x, y, z in mm), got {list(self.tool_mm)}")
 
 
 @dataclass

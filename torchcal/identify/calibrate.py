@@ -47,7 +47,8 @@ class CalibrationResult:
             (:class:`~torchcal.identify.harmonics.JointHarmonics`), if any.
         prior: the prior of a MAP fit (:mod:`torchcal.identify.prior`); ``None`` for the rank-cut fit.
         noise_sigma_m: the data's noise sigma per coordinate the MAP fit weighted them with.
-        prior_selection: how the prior's scale was chosen (the cross-validation table), if it was.
+        prior_selection: how the prior's scale was chosen (the evidence or cross-validation table), if it was.
+        log_evidence: the MAP fit's log marginal likelihood (:func:`~torchcal.identify.prior.log_evidence`).
     """
 
     model: ErrorModel
@@ -64,6 +65,7 @@ class CalibrationResult:
     prior: Prior | None = None
     noise_sigma_m: float | None = None
     prior_selection: dict | None = None
+    log_evidence: float | None = None
 
     @property
     def free_names(self) -> list[str]:
@@ -99,6 +101,7 @@ def calibrate(
     whitening: torch.Tensor | None = None,
     units: np.ndarray | None = None,
     prior: PriorSpec | None = None,
+    start: CalibrationResult | None = None,
 ) -> CalibrationResult:
     """Identify the geometric parameters of ``robot`` from position (and orientation) data.
 
@@ -116,6 +119,9 @@ def calibrate(
         prior: MAP identification with this prior (:mod:`torchcal.identify.prior`): every parameter
             is estimated, the rank analysis is a diagnostic and what the data cannot see stays at
             the prior. ``None``: the rank cut (non-identifiable parameters fixed at nominal).
+        start: a MAP fit of the same robot and layout to start from (its instrument frame,
+            parameters and noise sigma; e.g. the fit on all poses for a fold's fit, or the next
+            tighter prior): only the iterations change, the prior and the minimum do not.
     """
     identifier = identifier or LevenbergMarquardt()
     use_orientation = data.rotation is not None if use_orientation is None else use_orientation
@@ -124,7 +130,12 @@ def calibrate(
     if use_orientation and data.rotation is None:
         raise DataError("orientation fit requested but the file has no rx, ry, rz columns", path=data.source)
     data = data.to(device)
-    reference = register_instrument(robot, data) if register else torch.eye(4, dtype=torch.float64)
+    warm = start is not None and prior is not None and start.prior is not None
+    if warm:
+        assert start is not None
+        reference = start.model.T_reference.to(device)
+    else:
+        reference = register_instrument(robot, data) if register else torch.eye(4, dtype=torch.float64)
     model = ErrorModel(
         robot, with_orientation=use_orientation, parallel_threshold_deg=parallel_threshold_deg,
         T_instrument_base=reference, device=device,
@@ -144,7 +155,7 @@ def calibrate(
     )
     rows = problem.rows_per_pose * len(data)
     if prior is not None:
-        return _calibrate_map(model, problem, prior, identifier, units, data)
+        return _calibrate_map(model, problem, prior, identifier, units, data, start if warm else None)
     if rows <= len(candidates):
         raise DataError(
             f"{len(data)} poses give {rows} equations, fewer than the {len(candidates)} parameters to "
@@ -182,8 +193,11 @@ def calibrate(
 
 
 def _calibrate_map(model: ErrorModel, problem: CalibrationProblem, spec: PriorSpec, identifier: Identifier,
-                   units: np.ndarray | None, data: Measurements) -> CalibrationResult:
-    """MAP identification of every candidate parameter; the rank analysis is kept as a diagnostic."""
+                   units: np.ndarray | None, data: Measurements, start: CalibrationResult | None = None) -> CalibrationResult:
+    """MAP identification of every candidate parameter; the rank analysis is kept as a diagnostic.
+
+    ``start``: a MAP fit to start the iterations from (its frame is this model's reference already).
+    """
     x0 = model.nominal_vector()
     if spec.earlier is not None:
         x0 = x0.clone()
@@ -211,11 +225,19 @@ def _calibrate_map(model: ErrorModel, problem: CalibrationProblem, spec: PriorSp
         notes.append(msg)
         warnings.warn(msg, IdentifiabilityWarning, stacklevel=3)
     notes.append(f"prior: {spec.describe()}")
-    fit = solve_map(problem, prior, x0, identifier, units=units, rows_per_pose=problem.rows_per_pose)
+    x_start, sigma_start = x0, None
+    if start is not None:
+        # the start's frame is folded into this model's reference (its base entries are zero); entries
+        # this spec fixes (the MDH table of the nominal robot) stay at the prior mean
+        x_start = x0.clone()
+        x_start[problem.free] = start.x.to(x0)[problem.free]
+        sigma_start = start.noise_sigma_m
+    fit = solve_map(problem, prior, x_start, identifier, units=units, rows_per_pose=problem.rows_per_pose,
+                    start_sigma=sigma_start)
     reference, x = model.recentered(fit.x)
     model.T_reference = reference
     return CalibrationResult(
         model=model, x=x, free=problem.free.clone(), covariance=fit.covariance, sigma_residual_m=fit.noise_sigma,
         identifiability=report, solve=fit.solve, method=identifier.name, notes=notes, prior=prior,
-        noise_sigma_m=fit.noise_sigma,
+        noise_sigma_m=fit.noise_sigma, log_evidence=fit.log_evidence,
     )

@@ -32,6 +32,7 @@ from torchcal.identify.harmonics import HARMONIC_SETS, JointHarmonics, harmonic_
 from torchcal.identify.identifiability import analyze
 from torchcal.identify.joint_errors import JointSpaceErrors
 from torchcal.identify.lm import LevenbergMarquardt
+from torchcal.identify.prior import solve_map
 from torchcal.identify.uncertainty import covariance
 from torchcal.kinematics.error_model import ErrorModel
 from torchcal.kinematics.robot import RobotModel
@@ -158,10 +159,10 @@ def fit_joint_errors(robot: RobotModel, data: Measurements, geometric, points: t
     free = torch.cat([geometric.free, size + torch.tensor(kept, dtype=torch.long)])
     if geometric.prior is not None:
         # the geometry keeps its prior (identify.prior); the joint-space coefficients have none
-        from torchcal.identify.prior import solve_map
-
-        prior = geometric.prior.extended(free, len(kept))
-        fit = solve_map(problem.with_free(free), prior, x0, LevenbergMarquardt(), units=units)
+        prior = geometric.prior.extended(free, len(kept), size + len(cols))
+        # the geometry's noise sigma as the start: the joint terms lower it, a warm solve or two follow
+        fit = solve_map(problem.with_free(free), prior, x0, LevenbergMarquardt(), units=units,
+                        start_sigma=geometric.noise_sigma_m)
         sol, cov, sigma = fit.solve, fit.covariance, fit.noise_sigma
     else:
         sol = LevenbergMarquardt().solve(problem.with_free(free), x0)

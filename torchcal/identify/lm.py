@@ -57,11 +57,16 @@ class LevenbergMarquardt(Identifier):
                 converged, message = True, "gradient below gtol"
                 break
             step = torch.linalg.solve(jtj + lam * torch.diag(diag), -grad)
+            predicted = -(float(step @ grad) + 0.5 * float(step @ (jtj @ step)))
+            if 0.0 <= predicted < self.ftol * cost:
+                # at the minimum already (a warm start): a step could only be rejected on rounding,
+                # and the damping would double some 40 times before the loop gave up
+                converged, message = True, "predicted decrease below ftol"
+                break
             x_new = x.clone()
             x_new[free] = x[free] + step
             r_new = problem.residuals(x_new)
             cost_new = 0.5 * float(r_new @ r_new)
-            predicted = -(float(step @ grad) + 0.5 * float(step @ (jtj @ step)))
             rho = (cost - cost_new) / predicted if predicted > 0 else -1.0
             if rho > 0:
                 x = x_new

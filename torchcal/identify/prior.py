@@ -30,16 +30,21 @@ data gradient) where that is larger, as :mod:`torchcal.identify.uncertainty` doe
 
 from __future__ import annotations
 
+import copy
 import math
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 
 import numpy as np
 import torch
+import yaml
 
 from torchcal.core.errors import ModelError
 from torchcal.identify.base import Identifier, SolveResult
+from torchcal.identify.lm import LevenbergMarquardt
 from torchcal.identify.problem import LeastSquaresProblem
+from torchcal.identify.uncertainty import _widened
+from torchcal.kinematics.robot import read_robot_text
 
 #: Parameter kinds of the error layout and how a name maps to one.
 KINDS = ("length_mm", "angle_deg", "joint_offset_deg", "tool_mm", "tool_deg")
@@ -47,6 +52,13 @@ KINDS = ("length_mm", "angle_deg", "joint_offset_deg", "tool_mm", "tool_deg")
 TOLERANCE_SIGMAS = 3.0
 #: The first solve weights the data with this fraction of the starting residual's RMS as sigma.
 START_FACTOR = 0.3
+#: A MAP solve stops when a step would lower chi^2 (the cost in units of the noise variance) by less
+#: than this: the estimate is then within about sqrt(2 x 0.001) = 0.045 posterior sigma of the
+#: minimum, where Levenberg-Marquardt's relative tolerance alone crawls on along the directions the
+#: prior barely holds (correlated parameters) for as many steps again.
+CHI2_TOLERANCE = 1e-3
+#: Levenberg-Marquardt's starting damping (relative to the largest diagonal) in a MAP solve.
+MAP_INITIAL_DAMPING = 1e-12
 
 
 def parameter_kind(name: str) -> str | None:
@@ -98,10 +110,6 @@ def robot_file_tolerances(source: str | None) -> dict[str, float]:
     """The ``calibration_prior`` mapping of a YAML robot file (empty when it has none)."""
     if not source or Path(source).suffix.lower() not in (".yaml", ".yml") or not Path(source).is_file():
         return {}
-    import yaml
-
-    from torchcal.kinematics.robot import read_robot_text
-
     doc = yaml.safe_load(read_robot_text(Path(source)))
     section = doc.get("calibration_prior") if isinstance(doc, dict) else None
     if section is None:
@@ -223,10 +231,13 @@ class Prior:
     tolerance_sigma: torch.Tensor
     spec: PriorSpec
 
-    def extended(self, free: torch.Tensor, extra: int) -> Prior:
+    def extended(self, free: torch.Tensor, extra: int, size: int) -> Prior:
         """This prior followed by ``extra`` free entries without a prior (joint-space coefficients, mean 0).
 
-        ``free``: the indices of the extended problem (this prior's, then the ``extra`` ones).
+        ``free``: the indices of the extended problem (this prior's, then the ``extra`` ones);
+        ``size``: the length of the extended parameter vector. The mean is padded to ``size``, not
+        to the largest free index: with every extra coefficient dropped (``extra`` 0) that index
+        lies inside this prior's vector.
         """
         k = len(self.names)
         precision = torch.zeros(k + extra, k + extra, dtype=torch.float64)
@@ -234,7 +245,10 @@ class Prior:
         root = torch.zeros_like(precision)
         root[:k, :k] = self.sqrt_precision
         inf = torch.full((extra,), math.inf, dtype=torch.float64)
-        mean = torch.cat([self.mean, torch.zeros(int(free.max()) + 1 - len(self.mean), dtype=torch.float64)])
+        if size < len(self.mean) or (len(free) and int(free.max()) >= size):
+            raise ModelError(f"an extended prior of length {size} must hold the {len(self.mean)} entries of the prior "
+                             "and every free index")
+        mean = torch.cat([self.mean, torch.zeros(size - len(self.mean), dtype=self.mean.dtype)])
         return replace(self, names=[*self.names, *[f"extra{i}" for i in range(extra)]], free=free, mean=mean,
                        precision=precision, sqrt_precision=root, sigma=torch.cat([self.sigma, inf]),
                        tolerance_sigma=torch.cat([self.tolerance_sigma, inf]))
@@ -286,6 +300,7 @@ class MapFit:
     noise_sigma: float
     effective_parameters: float
     solve: SolveResult
+    log_evidence: float = math.nan
 
 
 def _effective(jac: torch.Tensor, precision: torch.Tensor, s: float) -> tuple[torch.Tensor, float]:
@@ -298,19 +313,29 @@ def _effective(jac: torch.Tensor, precision: torch.Tensor, s: float) -> tuple[to
 
 
 def solve_map(problem: LeastSquaresProblem, prior: Prior, x0: torch.Tensor, identifier: Identifier, *,
-              units: np.ndarray | None = None, rows_per_pose: int = 3, iterations: int = 6) -> MapFit:
+              units: np.ndarray | None = None, rows_per_pose: int = 3, iterations: int = 6,
+              start_sigma: float | None = None) -> MapFit:
     """MAP estimate of ``problem.free`` under ``prior``, the noise sigma re-estimated with the solution.
 
-    ``units``: ``(n,)`` configuration region of each pose (``rows_per_pose`` data rows each): the
-    covariance is widened to the cluster-robust estimate where larger (module docstring).
+    ``x0``: the starting point (the prior mean, or a warm start such as the fit on all poses);
+    ``start_sigma``: the noise sigma to start from (default: :data:`START_FACTOR` of the starting
+    residual's RMS). ``units``: ``(n,)`` configuration region of each pose (``rows_per_pose`` data
+    rows each): the covariance is widened to the cluster-robust estimate where larger (module docstring).
     """
     r0 = problem.residuals(x0)
     m = r0.numel()
-    # start from a fraction of the starting residual: the prior then holds the first solve well
-    # conditioned, and the re-estimated sigma settles within a few warm-started solves
-    s = max(float(r0.norm()) / m**0.5 * START_FACTOR, 1e-300)
+    # from the prior mean, start from a fraction of the starting residual: the prior then holds the
+    # first solve well conditioned, and the re-estimated sigma settles within a few warm-started solves
+    s = max(float(r0.norm()) / m**0.5 * START_FACTOR if start_sigma is None else float(start_sigma), 1e-300)
     x = x0.clone()
     solve = None
+    if isinstance(identifier, LevenbergMarquardt):
+        # the cost at the minimum is about m s^2 / 2: its relative tolerance as a chi^2 tolerance
+        identifier = copy.copy(identifier)
+        identifier.ftol = max(identifier.ftol, 2.0 * CHI2_TOLERANCE / m)
+        # the prior makes every Gauss-Newton system well posed: start nearly undamped, so that steps
+        # along the weakly held directions are not shrunk for many iterations (a bad step is still rejected)
+        identifier.initial_damping = min(identifier.initial_damping, MAP_INITIAL_DAMPING)
     for _ in range(iterations):
         solve = identifier.solve(PriorProblem(problem, prior, s), x)  # type: ignore[arg-type]  # any LeastSquaresProblem
         x = solve.x
@@ -323,14 +348,43 @@ def solve_map(problem: LeastSquaresProblem, prior: Prior, x0: torch.Tensor, iden
             break
     assert solve is not None
     cov, p_eff = posterior_covariance(jac, r, prior.precision, s, units, rows_per_pose)
-    return MapFit(x=x, covariance=cov, noise_sigma=s, effective_parameters=p_eff, solve=solve)
+    evidence = log_evidence(jac, r, prior.precision, x[problem.free] - prior.mean[problem.free].to(x), s)
+    return MapFit(x=x, covariance=cov, noise_sigma=s, effective_parameters=p_eff, solve=solve, log_evidence=evidence)
+
+
+def log_evidence(jac: torch.Tensor, residuals: torch.Tensor, precision: torch.Tensor, offset: torch.Tensor,
+                 s: float) -> float:
+    """Log marginal likelihood of the data under the prior, the model linearised at the MAP ``x``.
+
+    ``jac`` ``(m, K)`` and ``residuals`` ``(m,)`` of the data at ``x``; ``offset`` ``x - mean``
+    over the free entries; ``s`` the noise sigma. The Laplace form (closed for a linear model)::
+
+        -|r|^2 / (2 s^2) - d^T Lambda d / 2 - log det H / 2 + log det Lambda_p / 2
+        - m log(2 pi s^2) / 2 + (K - K_p) log(2 pi) / 2
+
+    with ``H = J^T J / s^2 + Lambda`` and ``Lambda_p`` the precision over the ``K_p`` entries that
+    have a prior; entries without one (the instrument frame) take a flat prior whose width is the
+    same for every candidate, so it cancels when candidates are compared. A candidate that fixes
+    parameters (the nominal robot) is the limit of a vanishing prior sigma there: those entries
+    drop out of ``H`` and ``Lambda_p`` alike.
+    """
+    m, k = jac.shape
+    lam = precision.to(jac)
+    h = jac.T @ jac / s**2 + lam
+    scale = h.diagonal().clamp_min(1e-300).sqrt()
+    _, logdet_h = torch.linalg.slogdet(h / torch.outer(scale, scale))
+    logdet_h = float(logdet_h) + 2.0 * float(scale.log().sum())
+    with_prior = lam.abs().sum(0) > 0
+    k_p = int(with_prior.sum())
+    logdet_p = float(torch.linalg.slogdet(lam[with_prior][:, with_prior])[1]) if k_p else 0.0
+    fit = float(residuals @ residuals) / s**2 + float(offset @ lam @ offset)
+    return (-0.5 * fit - 0.5 * logdet_h + 0.5 * logdet_p - 0.5 * m * math.log(2 * math.pi * s**2)
+            + 0.5 * (k - k_p) * math.log(2 * math.pi))
 
 
 def posterior_covariance(jac: torch.Tensor, residuals: torch.Tensor, precision: torch.Tensor, s: float,
                          units: np.ndarray | None = None, rows_per_pose: int = 3) -> tuple[torch.Tensor, float]:
     """Posterior covariance ``(K, K)`` and ``p_eff``; widened to the cluster-robust estimate per parameter."""
-    from torchcal.identify.uncertainty import _widened
-
     h, p_eff = _effective(jac, precision, s)
     scale = h.diagonal().clamp_min(1e-300).sqrt()
     inv = torch.linalg.pinv(h / torch.outer(scale, scale), hermitian=True) / torch.outer(scale, scale)

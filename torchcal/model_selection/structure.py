@@ -18,10 +18,12 @@ import torch
 from torchcal.core.errors import IdentifiabilityWarning
 from torchcal.data.folds import Folds
 from torchcal.data.measurements import Measurements
+from torchcal.identify.calibrate import CalibrationResult
 from torchcal.identify.compliance import POINT_SETS
 from torchcal.identify.harmonics import HARMONIC_SETS
 from torchcal.identify.joint_errors import JointSpaceErrors
 from torchcal.identify.joint_fit import fit_joint_errors, option_label, predicted_positions
+from torchcal.identify.prior import PriorSpec
 from torchcal.model_selection.compare import Candidate, Comparison, compare_candidates
 
 
@@ -45,7 +47,8 @@ class StructureCV:
     fold_results: dict[str, list]
     comparison: Comparison
     error_vectors_mm: dict[str, np.ndarray] = field(default_factory=dict)
-    prior: object | None = None  # the geometry's PriorSpec (identify.prior), for fits that must repeat it
+    prior: PriorSpec | None = None  # the geometry's prior (identify.prior), for fits that must repeat it
+    prior_start: CalibrationResult | None = None  # the MAP fit on all poses with that prior: later fits start from it
 
     @property
     def chosen(self) -> tuple[str, str]:

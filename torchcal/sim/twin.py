@@ -167,6 +167,12 @@ class Twin:
         """Noise-free TCP positions ``(B, 3)`` in the instrument frame, m."""
         return self.model.tcp_position(q + self.joint_deviation(q), self.x_true)
 
+    def true_tcp_positions(self, q: torch.Tensor, T_flange_tcp: torch.Tensor) -> torch.Tensor:
+        """Noise-free positions ``(B, 3)`` (instrument frame, m) of a production TCP ``T_flange_tcp``
+        ``(4, 4)`` given in the flange frame (the flange itself: the identity), not the measured point."""
+        T = self.T_instrument_base() @ self.model.base_flange_pose(q + self.joint_deviation(q), self.x_true)
+        return (T @ T_flange_tcp.to(T))[..., :3, 3]
+
     def measure(self, q: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
         """Noisy tracker measurement of the TCP at commanded joints ``q``."""
         clean = self.true_positions(q)

@@ -9,6 +9,8 @@ instrument whose fit ends in a robot geometry writes its model folder through :f
 from __future__ import annotations
 
 import math
+import warnings
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -23,12 +25,19 @@ from torchcal.identify.calibrate import CalibrationResult, calibrate, register_i
 from torchcal.identify.compliance import POINT_SETS
 from torchcal.identify.harmonics import HARMONIC_SETS
 from torchcal.identify.joint_errors import JointSpaceErrors
-from torchcal.identify.joint_fit import fit_joint_errors, joint_error_options
+from torchcal.identify.joint_fit import fit_joint_errors, joint_error_options, predicted_positions
 from torchcal.identify.lm import LevenbergMarquardt
 from torchcal.identify.problem import CalibrationProblem
 from torchcal.kinematics.error_model import ErrorModel
 from torchcal.kinematics.robot import RobotModel
 from torchcal.kinematics.transforms import rigid_registration
+from torchcal.model_selection.prior_scale import (
+    cross_validate_prior_scales,
+    evidence_prior_scales,
+    fold_key,
+    selection_record,
+    selection_summary,
+)
 from torchcal.model_selection.structure import cross_validate_structures, structure_label
 from torchcal.residual import head_names
 from torchcal.stages.base import GeometryStage
@@ -37,6 +46,7 @@ from torchcal.stages.prediction_uncertainty import (
     point_jacobian,
     write_uncertainty,
 )
+from torchcal.stages.prior_options import base_spec, parse_scale, prior_metadata, prior_warning
 from torchcal.stages.store import StoredModel, save_model
 
 
@@ -84,8 +94,6 @@ def with_tool(robot: RobotModel, config: FitConfig) -> RobotModel:
         return robot
     if len(config.tool_mm) != 3:
         raise DataError(f"tool_mm needs 3 values (x, y, z in mm), got {list(config.tool_mm)}")
-    from dataclasses import replace
-
     return replace(robot, tool=torch.tensor(config.tool_mm, dtype=torch.float64) * 1e-3)
 
 
@@ -103,47 +111,53 @@ def make_config_folds(robot: RobotModel, data: Measurements, config: FitConfig):
                       groups=config.cv_groups)
 
 
-def geometry_fitter(robot: RobotModel, config: FitConfig, prior=None, cache: dict | None = None):
-    """``geometry(train, units=None)``: the geometric fit of ``config`` (``units``: see :func:`calibrate`).
+def geometry_fitter(robot: RobotModel, config: FitConfig, prior=None, cache: dict | None = None,
+                    start: CalibrationResult | None = None):
+    """``geometry(train, units=None, start=None)``: the geometric fit of ``config`` (``units``: see :func:`calibrate`).
 
     ``prior``: a :class:`~torchcal.identify.prior.PriorSpec` (MAP fit) or ``None`` (rank cut).
     ``cache``: fits of training parts already made with this prior (``prior_scale.fold_key``).
+    ``start``: a MAP fit every fit starts its iterations from (the fit on all poses with this
+    prior: a fold's fit then needs a few steps instead of a solve from nominal; the minimum, hence
+    the held-out score, is the fold's own); a ``start`` given to ``geometry`` overrides it.
     """
-    def geometry(train: Measurements, units: np.ndarray | None = None) -> CalibrationResult:
-        if cache and units is None:
-            from torchcal.model_selection.prior_scale import fold_key
+    default_start = start
 
+    def geometry(train: Measurements, units: np.ndarray | None = None,
+                 start: CalibrationResult | None = None) -> CalibrationResult:
+        if cache and units is None:
             hit = cache.get(fold_key(train))
             if hit is not None:
                 return hit
         return calibrate(robot, train, identifier=IDENTIFIERS[config.method](**_identifier_options(robot, config)),
                          parallel_threshold_deg=config.parallel_threshold_deg, device=config.device, units=units,
-                         prior=prior)
+                         prior=prior, start=start if start is not None else default_start)
 
     return geometry
 
 
 def choose_prior(robot: RobotModel, data: Measurements, config: FitConfig, progress=None):
-    """The prior of ``config`` (``None`` without one), its scale chosen by the grouped CV when ``auto``.
+    """The prior of ``config`` (``None`` without one), its scale chosen by the data when ``auto`` or ``cv``.
 
-    Returns ``(spec, selection record or None, per-fold fits of the chosen spec)``.
+    Returns ``(spec, selection record or None, per-fold fits of the chosen spec, fit on all poses or None)``:
+    ``auto`` chooses by the evidence (one fit per candidate on all poses; the chosen one's fit is
+    returned as the warm start of every later fit), ``cv`` by the grouped cross-validation (its
+    per-fold fits of the chosen spec are returned for the structure CV to reuse).
     """
-    from torchcal.stages.prior_options import base_spec, parse_scale
-
     base = base_spec(robot, config)
     scale = parse_scale(config.prior_scale)
     if base is None:
-        return None, None, {}
-    if scale is not None:
-        from dataclasses import replace
-
-        return replace(base, scale=scale), None, {}
-    from torchcal.model_selection.prior_scale import cross_validate_prior_scales, selection_record
-
+        return None, None, {}, None
+    if isinstance(scale, float):
+        return replace(base, scale=scale), None, {}, None
+    if scale == "evidence":
+        chosen, record, full = evidence_prior_scales(lambda spec: geometry_fitter(robot, config, spec), base, data,
+                                                     progress=progress)
+        return chosen, record, {}, full
     folds = make_config_folds(robot, data, config)
     chosen, comparison, fits = cross_validate_prior_scales(
         data, lambda spec: geometry_fitter(robot, config, spec), base, folds, progress=progress)
-    return chosen, selection_record(comparison, chosen), fits
+    return chosen, selection_record(comparison, chosen), fits, None
 
 
 def _identifier_options(robot: RobotModel, config: FitConfig) -> dict:
@@ -179,11 +193,9 @@ def fit_with_selection(robot: RobotModel, data: Measurements, config: FitConfig,
     few = pose_count_warning(len(data), int(ErrorModel(robot, parallel_threshold_deg=config.parallel_threshold_deg)
                                              .default_active().sum()))
     if few is not None:
-        import warnings
-
         warnings.warn(few, stacklevel=2)
-    prior, prior_selection, prior_fits = choose_prior(robot, data, config, progress=progress)
-    geometry = geometry_fitter(robot, config, prior, prior_fits)
+    prior, prior_selection, prior_fits, full = choose_prior(robot, data, config, progress=progress)
+    geometry = geometry_fitter(robot, config, prior, prior_fits, start=full)
     structure = None
     gravity, harmonics = options[0]
     # the CV also calibrates the prediction uncertainty (stages.prediction_uncertainty)
@@ -191,21 +203,23 @@ def fit_with_selection(robot: RobotModel, data: Measurements, config: FitConfig,
         folds = make_config_folds(robot, data, config)
         structure = cross_validate_structures(robot, data, geometry, options, folds, progress=progress,
                                               harmonic_min_range_deg=config.harmonic_min_range_deg)
-        structure.prior = prior
+        structure.prior, structure.prior_start = prior, full
         gravity, harmonics = structure.chosen
     if progress is not None:
         progress("fitting the chosen structure on all poses")
     # the regions the CV holds out also say which residuals may be correlated (identify.uncertainty)
     units = structure.folds.groups if structure is not None else None
-    result = fit_joint_errors(robot, data, geometry(data, units), POINT_SETS[gravity], HARMONIC_SETS[harmonics],
+    result = fit_joint_errors(robot, data, geometry(data, units, start=full), POINT_SETS[gravity], HARMONIC_SETS[harmonics],
                               config.harmonic_min_range_deg, units=units)
     if few is not None:
         result.notes.append(f"warning: {few}")
+    misfit = implausible_residual(robot, data, result)
+    if misfit is not None:
+        warnings.warn(misfit, stacklevel=2)
+        result.notes.append(f"warning: {misfit}")
     if prior_selection is not None:
         result.prior_selection = prior_selection
-        result.notes.append(f"prior scale chosen by {prior_selection['protocol']}: "
-                            + ", ".join(f"{r['name']} {r['cv_rms_mm']:.4f} mm" for r in prior_selection["candidates"])
-                            + f" -> {prior_selection['chosen']} ({prior_selection['reason']})")
+        result.notes.append(selection_summary(prior_selection))
     if structure is not None and len(options) > 1:
         comparison = structure.comparison
         result.notes.append(f"structure chosen by {comparison.protocol}: "
@@ -228,10 +242,6 @@ def cross_validate_stored_structure(stored: StoredModel, data: Measurements, con
     folds = make_config_folds(stored.robot, data, config)
     prior = None
     if stored.metadata.get("prior"):  # the folder's fit had a prior: its scale as chosen then
-        from dataclasses import replace
-
-        from torchcal.stages.prior_options import base_spec
-
         base = base_spec(stored.robot, config)
         prior = None if base is None else replace(base, scale=float(stored.metadata["prior"]["scale"]))
     structure = cross_validate_structures(stored.robot, data, geometry_fitter(stored.robot, config, prior),
@@ -254,6 +264,22 @@ def pose_count_warning(n_poses: int, n_parameters: int, coordinates_per_pose: in
     need = math.ceil(MIN_EQUATIONS_PER_PARAMETER * n_parameters / coordinates_per_pose)
     return (f"{n_poses} poses give {n_poses * coordinates_per_pose} coordinates for {n_parameters} parameters "
             f"({ratio:.2f} per parameter): the fit follows the noise; measure at least {need} poses")
+
+
+def implausible_residual(robot: RobotModel, data: Measurements, result: CalibrationResult) -> str | None:
+    """A warning when the fit leaves more than :data:`TOLERANCE_MM` RMS on its own poses.
+
+    No robot built within manufacturing tolerances leaves that once calibrated: the robot file (or
+    the measurement set-up) is wrong. With a prior the MDH table cannot run off to absorb such a
+    file (the corrections' own warning then stays silent), so the misfit itself is named.
+    """
+    errors = data.position.to(result.x.device) - predicted_positions(result, data.q.to(result.x.device))
+    rms_mm = float(errors.norm(dim=-1).pow(2).mean().sqrt()) * 1e3
+    if rms_mm <= TOLERANCE_MM:
+        return None
+    return (f"the fitted model leaves {rms_mm:.1f} mm RMS on its own poses, more than a robot built within manufacturing "
+            f"tolerances can ({TOLERANCE_MM:g} mm): check the robot file ({robot.name}) against the robot and the "
+            "measurement set-up")
 
 
 def implausible_corrections(result: CalibrationResult) -> str | None:
@@ -281,10 +307,6 @@ def save_fit(folder: Path, robot: RobotModel, data: Measurements, result: Calibr
     ``uncertainty`` other than ``none``, the per-pose prediction uncertainty is calibrated on the
     chosen structure's out-of-fold errors and written too (``uncertainty.json``).
     """
-    import warnings
-
-    from torchcal.stages.prior_options import prior_metadata, prior_warning
-
     for warning in (implausible_corrections(result), prior_warning(result)):
         if warning is not None:
             warnings.warn(warning, stacklevel=2)

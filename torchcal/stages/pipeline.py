@@ -62,7 +62,8 @@ class FitRun:
         """What a command prints about the fit: identifiability, then the selection table and decision."""
         lines = [self.result.identifiability.summary()]
         if self.result.prior_selection is not None and self.result.prior is not None:
-            lines += [f"prior: {self.result.prior.spec.describe()}; strength chosen by cross-validation:",
+            lines += [(f"prior: {self.result.prior.spec.describe()}; strength chosen by "
+                       f"{self.result.prior_selection['protocol']}:"),
                       self.result.prior_selection["table"]]
         prior = prior_metadata(self.result)
         if prior is not None:

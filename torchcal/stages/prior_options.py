@@ -3,8 +3,8 @@
 ``FitConfig.prior``: ``tolerance`` (default; manufacturing tolerances, :mod:`torchcal.identify.prior`),
 ``none`` (the rank cut: parameters the data cannot separate fixed at nominal, everything else free)
 or a model folder (an earlier calibration, its parameters and covariance as the prior mean and
-covariance). ``prior_scale``: ``auto`` (grouped cross-validation, :mod:`torchcal.model_selection.prior_scale`),
-``nominal`` or a number multiplying the MDH sigmas. ``tolerance_*`` override the robot file's
+covariance). ``prior_scale``: ``auto`` (marginal likelihood) or ``cv`` (grouped cross-validation), both
+:mod:`torchcal.model_selection.prior_scale`, ``nominal`` or a number multiplying the MDH sigmas. ``tolerance_*`` override the robot file's
 ``calibration_prior`` and the built-in defaults.
 """
 
@@ -25,6 +25,7 @@ from torchcal.identify.prior import (
     taught_summary,
 )
 from torchcal.kinematics.robot import RobotModel
+from torchcal.stages.store import load_model
 
 TOLERANCE_OPTIONS = {
     "tolerance_length_mm": "length_mm",
@@ -35,19 +36,21 @@ TOLERANCE_OPTIONS = {
 }
 
 
-def parse_scale(value: str | float) -> float | None:
-    """``auto`` -> ``None`` (cross-validated), ``nominal`` -> 0, else a non-negative number."""
+def parse_scale(value: str | float) -> float | str:
+    """``auto`` -> ``"evidence"``, ``cv`` -> ``"cv"`` (chosen by the data), ``nominal`` -> 0, else a number >= 0."""
     text = str(value).strip().lower()
     if text == "auto":
-        return None
+        return "evidence"
+    if text == "cv":
+        return "cv"
     if text == "nominal":
         return 0.0
     try:
         scale = float(text)
     except ValueError:
-        raise DataError(f"prior_scale must be auto, nominal or a number >= 0, got {value!r}") from None
+        raise DataError(f"prior_scale must be auto, cv, nominal or a number >= 0, got {value!r}") from None
     if not math.isfinite(scale) or scale < 0:
-        raise DataError(f"prior_scale must be auto, nominal or a number >= 0, got {value!r}")
+        raise DataError(f"prior_scale must be auto, cv, nominal or a number >= 0, got {value!r}")
     return scale
 
 
@@ -63,8 +66,6 @@ def base_spec(robot: RobotModel, config) -> PriorSpec | None:
 
 def earlier_model(folder: Path, robot: RobotModel) -> EarlierModel:
     """An earlier model folder as prior: its parameters and their covariance (checked against ``robot``)."""
-    from torchcal.stages.store import load_model
-
     if not folder.is_dir():
         raise DataError(f"prior={folder}: neither 'tolerance', 'none' nor a model folder")
     stored = load_model(folder)

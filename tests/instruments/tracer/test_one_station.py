@@ -61,4 +61,11 @@ def test_irb120_draw_wire_default_fit_is_not_worse_than_nominal_on_blocked_cv(tm
     # the random split flatters the full geometry; the blocked folds refuse it
     assert rows["full"]["random_cv_rms_mm"] < rows["nominal"]["random_cv_rms_mm"]
     assert rows["full"]["blocks_cv_rms_mm"] > rows["nominal"]["blocks_cv_rms_mm"]
+    # the export serves the flange (its default TCP): the nominal structure leaves the robot's geometry
+    # at its drawing, so the compensator has nothing to correct there; the fitted attachment offset of the
+    # wire is a measuring point, not a joint correction (aiming at it once turned joints by degrees)
     assert main(["export", "--model", str(model), "--out", str(export)]) == 0
+    manifest = json.loads((export / "manifest.json").read_text())
+    assert manifest["tcp"]["is_flange"]
+    for extent in manifest["corrections"]["extent"].values():
+        assert extent["largest_joint_correction_deg"] < 1e-6
