@@ -334,7 +334,7 @@ def build_parser(with_options: bool = False) -> argparse.ArgumentParser:
     p.add_argument("--task", choices=["position", "pose"], default="position", help="as for export (default: position)")
     p.add_argument("--iterations", type=int, default=None, help="Newton steps (default: as for export)")
     p.add_argument("--tcp-mm", type=float, nargs=3, default=None, metavar=("X", "Y", "Z"),
-                   help="production TCP in the flange frame, mm, as for export (default: the calibration's measured point)")
+                   help="production TCP in the flange frame, mm, as for export (default: the flange)")
     p.add_argument("--tcp-rpy-deg", type=float, nargs=3, default=None, metavar=("RX", "RY", "RZ"),
                    help="orientation of the production TCP in the flange frame, fixed-axis XYZ deg")
     p.add_argument("--allow-large-corrections", action="store_true",

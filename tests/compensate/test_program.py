@@ -15,6 +15,7 @@ import torch
 
 from torchcal.cli import main
 from torchcal.compensate.export import build_graphs, compensator_of
+from torchcal.compensate.production_tcp import production_view, tcp_transform
 from torchcal.compensate.program import compensate_program, sidecar_path
 from torchcal.core.errors import TorchcalError
 from torchcal.stages.store import load_model
@@ -39,13 +40,15 @@ def program(twin, model_dir, tmp_path_factory):
     folder = tmp_path_factory.mktemp("program")
     q = twin.robot.sample_joints(300, torch.Generator().manual_seed(21), margin=0.2)
     _program(folder / "targets.csv", q, extra="250")
-    outcome = compensate_program(model_dir, folder / "targets.csv", folder / "corrected.csv")
+    tool_mm = (load_model(model_dir).x[-6:-3] * 1e3).tolist()  # the fitted measured point: observable on the twin
+    outcome = compensate_program(model_dir, folder / "targets.csv", folder / "corrected.csv", tcp_mm=tool_mm)
     return q, folder, outcome
 
 
 def test_written_commands_are_the_compensators(program, model_dir):
     q, folder, outcome = program
     stored = load_model(model_dir)
+    stored = production_view(stored, tcp_transform((stored.x[-6:-3] * 1e3).tolist(), None))
     with torch.no_grad():
         expected, residual = compensator_of(build_graphs(stored)).solve(q)
     out = _read(folder / "corrected.csv")
@@ -63,15 +66,17 @@ def test_corrected_commands_bring_the_true_tcp_to_the_nominal_target(program, tw
     """The twin's true measured point under the corrected commands lands on the nominal target far better.
 
     Compared in the instrument frame (the base frame of a fit is defined only up to what row 1 and
-    the instrument frame share; the flange only up to d6 / tool_z): the target is where the nominal
-    robot puts the nominal tool, placed by the model's instrument frame.
+    the instrument frame share; the flange only up to d6 / tool_z, so the TCP is the fitted measured
+    point): the target is where the nominal robot puts that point, placed by the model's instrument frame.
     """
     q, folder, _ = program
     out = _read(folder / "corrected.csv")
     q_c = torch.from_numpy(np.radians(np.stack([out[f"q{j}"] for j in range(1, q.shape[1] + 1)], 1)))
     stored = load_model(model_dir)
     frame = stored.model.instrument_from_base(stored.x)
-    target = twin.robot.tcp_position(q) @ frame[:3, :3].T + frame[:3, 3]
+    nominal = twin.robot.flange_pose(q)
+    target = nominal[:, :3, :3] @ stored.x[stored.model.layout.tool_slice][:3] + nominal[:, :3, 3]
+    target = target @ frame[:3, :3].T + frame[:3, 3]
     before = (twin.true_positions(q) - target).norm(dim=-1)
     after = (twin.true_positions(q_c) - target).norm(dim=-1)
     assert float(after.square().mean().sqrt()) < 0.2 * float(before.square().mean().sqrt())

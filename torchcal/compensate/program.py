@@ -144,7 +144,7 @@ def compensate_program(
     """Correct the joint targets of ``targets`` with the compensator of ``model_dir`` into ``out``.
 
     ``task``, ``iterations``, ``tcp_mm``, ``tcp_rpy_deg``: as ``torchcal export`` (the same
-    compensator; without a TCP, the calibration's measured point, stated in the summary).
+    compensator; without a TCP, the flange, stated in the summary).
     """
     model_dir, targets, out = Path(model_dir), Path(targets), Path(out)
     if task not in TASKS:
@@ -153,12 +153,9 @@ def compensate_program(
         raise TorchcalError(f"iterations must be >= 1, got {iterations}")
     check_program_output(out, targets)
     stored = load_model(model_dir)
-    if tcp_mm is None and tcp_rpy_deg is None:
-        reflector = [round(v * 1e3, 3) for v in stored.x[stored.model.layout.tool_slice][:3].tolist()]
-        tcp_note = f"targets of the calibration's measured point {reflector} mm (flange frame); --tcp-mm sets the production TCP"
-    else:
-        stored = production_view(stored, tcp_transform(tcp_mm, tcp_rpy_deg))
-        tcp_note = f"targets of the TCP {tcp_mm or [0, 0, 0]} mm, {tcp_rpy_deg or [0, 0, 0]} deg (flange frame)"
+    stored = production_view(stored, tcp_transform(tcp_mm, tcp_rpy_deg))  # as export: the flange by default
+    tcp_note = (f"targets of the TCP {tcp_mm or [0, 0, 0]} mm, {tcp_rpy_deg or [0, 0, 0]} deg in the flange frame"
+                + ("" if tcp_mm or tcp_rpy_deg else " (the flange; --tcp-mm sets the production TCP)"))
     q, lines = read_targets(targets, stored.robot)
     graphs = build_graphs(stored, task=task, iterations=iterations)
     if has_wrench_input(graphs):
