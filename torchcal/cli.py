@@ -1,4 +1,4 @@
-"""Command line: ``torchcal run | simulate | fit | evaluate | export | study | motion``.
+"""Command line: ``torchcal run | simulate | fit | evaluate | export | check | compensate | study | motion``.
 
 Options follow the command-line contract of the design; ``key=value`` overrides set fields of
 the command's configuration (dotted for nested ones, e.g. ``twin.n_train=120``). Heavy imports
@@ -133,6 +133,38 @@ def _cmd_export(args) -> int:
               f"deviation up to {e['largest_tool_rotation_deg']:.3g} deg")
     for line in manifest["corrections"]["exceeded_but_allowed"]:
         print(f"warning: {line} (allowed by --allow-large-corrections)")
+    return 0
+
+
+def _cmd_compensate(args) -> int:
+    from torchcal.compensate.program import compensate_program
+
+    outcome = compensate_program(args.model, args.targets, args.out, task=args.task, iterations=args.iterations,
+                                 tcp_mm=args.tcp_mm, tcp_rpy_deg=args.tcp_rpy_deg,
+                                 allow_large_corrections=args.allow_large_corrections)
+    for line in outcome.lines():
+        print(line)
+    return 0
+
+
+def _cmd_check(args) -> int:
+    from torchcal.app.check import check_model, check_report
+    from torchcal.core.io import atomic_write_json
+    from torchcal.report.document import write_report
+
+    if args.json:
+        _check_output_file(args.json, "--json")
+    if args.report and Path(args.report).exists() and not Path(args.report).is_dir():
+        from torchcal.core.errors import TorchcalError
+
+        raise TorchcalError(f"{args.report}: --report names an existing file; give a folder")
+    result = check_model(args.model, args.data)
+    if args.json:
+        atomic_write_json(args.json, result.to_dict())
+    if args.report:
+        write_report(args.report, check_report(result, args.model))
+    for line in result.lines():
+        print(line)
     return 0
 
 
@@ -287,6 +319,27 @@ def build_parser(with_options: bool = False) -> argparse.ArgumentParser:
     p.add_argument("--allow-large-corrections", action="store_true",
                    help="export even when a joint correction or the tool's orientation deviation exceeds the limits")
     p.set_defaults(func=_cmd_export)
+
+    p = add("check", help="test a model against a few new poses: valid, or which parameter group changed")
+    p.add_argument("--model", required=True, help="model folder")
+    p.add_argument("--data", required=True, help="a few new measured poses (x,y,z,q1..qN; any tracker set-up)")
+    p.add_argument("--json", default=None, help="write verdict, changed and the evidence to this JSON file")
+    p.add_argument("--report", default=None, metavar="DIR", help="write report.md and report.html into DIR")
+    p.set_defaults(func=_cmd_check)
+
+    p = add("compensate", help="correct the joint targets of a robot program offline with a model's compensator")
+    p.add_argument("--model", required=True, help="model folder")
+    p.add_argument("--targets", required=True, help="program CSV: q1..qN (deg), one target per row")
+    p.add_argument("--out", required=True, help="corrected CSV to write: q1..qN (deg), corrected, correction_deg, remaining_mm")
+    p.add_argument("--task", choices=["position", "pose"], default="position", help="as for export (default: position)")
+    p.add_argument("--iterations", type=int, default=None, help="Newton steps (default: as for export)")
+    p.add_argument("--tcp-mm", type=float, nargs=3, default=None, metavar=("X", "Y", "Z"),
+                   help="production TCP in the flange frame, mm, as for export (default: the flange)")
+    p.add_argument("--tcp-rpy-deg", type=float, nargs=3, default=None, metavar=("RX", "RY", "RZ"),
+                   help="orientation of the production TCP in the flange frame, fixed-axis XYZ deg")
+    p.add_argument("--allow-large-corrections", action="store_true",
+                   help="as for export: compensate even when the model's corrections exceed the export's limits")
+    p.set_defaults(func=_cmd_compensate)
 
     p = add("motion", help="joint trajectory of a TCP path through singularities (position first, within joint limits)")
     p.add_argument("--robot", required=True, help="robot YAML (MDH) or URDF; its velocity/acceleration limits apply")

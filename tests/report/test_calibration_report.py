@@ -112,3 +112,9 @@ def test_report_and_json_frames_are_the_whole_transform(reported):
     assert np.abs(np.array([frame[a] for a in "xyz"]) - truth["T_instrument_base"]["translation_mm"]).max() < 3.0
     tool = meta["frames"]["T_flange_tool"]
     assert np.abs(np.array([tool[a] for a in "xyz"]) - truth["tool_mm"]).max() < 2.0
+
+
+def test_fit_report_names_the_calibrated_robot_files_and_what_they_cannot_hold(reported):
+    md = (reported["model"] / "report.md").read_text()
+    section = md.split("## Calibrated robot files", 1)[1].split("\n## ", 1)[0]
+    assert "calibrated_robot.urdf" in section and "residual head" in section and "calibration.json" in section

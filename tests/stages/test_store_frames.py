@@ -101,3 +101,18 @@ def test_calibrated_yaml_names_joint_space_terms(tmp_path):
     header = " ".join(line[2:] for line in (folder / "calibrated_robot.yaml").read_text().splitlines()
                       if line.startswith("#"))
     assert "gravity compliance" in header and "not the model that was fitted" in header
+
+
+def test_folder_holds_a_calibrated_urdf_of_the_geometry(fitted, tmp_path):
+    """calibrated_robot.urdf (listed in checksums.json) reproduces the stored geometry's TCP in base."""
+    twin, folder = fitted
+    text = (folder / "calibrated_robot.urdf").read_text()
+    assert "calibrated_robot.urdf" in json.loads((folder / "checksums.json").read_text())["files"]
+    assert "residual head" in text and "instrument-to-base" in text
+    (tmp_path / "r.urdf").write_text(text)
+    calibrated = load_robot(tmp_path / "r.urdf", end_link="flange_calibrated_tcp")
+    stored = load_model(folder)
+    q = twin.robot.sample_joints(20, torch.Generator().manual_seed(4))
+    transform = stored.model.instrument_from_base(stored.x)
+    in_base = (stored.model.tcp_position(q, stored.x) - transform[:3, 3]) @ transform[:3, :3]
+    assert torch.allclose(calibrated.tcp_position(q), in_base, atol=1e-9)

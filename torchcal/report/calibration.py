@@ -35,7 +35,7 @@ from torchcal.stages.geometry import (
     nominal_errors,
     predict_positions,
 )
-from torchcal.stages.store import StoredModel, frame_entries
+from torchcal.stages.store import CALIBRATED_URDF, StoredModel, frame_entries, not_in_geometry
 
 #: Poses listed in the worst-poses table of each file.
 WORST = 10
@@ -508,6 +508,19 @@ def parameter_sections(stored: StoredModel, truth_x: torch.Tensor | None = None,
     ]
 
 
+def _robot_files(stored: StoredModel) -> Section | None:
+    """The calibrated robot files of the folder (YAML table, URDF) and what of the model they cannot hold."""
+    if not (stored.folder / CALIBRATED_URDF).is_file():
+        return None
+    source = "the robot's own URDF with only the moving joints' origins changed" if stored.robot.urdf is not None \
+        else "a URDF generated from the calibrated MDH table"
+    return Section("Calibrated robot files", [Paragraph(
+        f"calibrated_robot.yaml (the MDH table and tool, mm and deg) and {CALIBRATED_URDF} ({source}; the calibrated TCP "
+        f"is the added link '{stored.robot.end_link}_calibrated_tcp') hold the geometric stage. "
+        + " ".join(not_in_geometry(stored.metadata))
+        + " The instrument-to-base transform of the measurement is in calibration.json (frames).")])
+
+
 def _joint_terms(stored: StoredModel, pose_sets: list[PoseSet]) -> Section | None:
     terms = JointSpaceErrors.from_metadata(stored.metadata)
     if terms.empty:
@@ -576,6 +589,7 @@ def calibration_report(title: str, stored: StoredModel, pose_sets: list[PoseSet]
         _uncertainty(pose_sets, inputs),
         *parameter_sections(stored, inputs.truth_x, inputs.truth_note),
         _joint_terms(stored, pose_sets),
+        _robot_files(stored),
         _notes(stored, inputs),
         _convergence(stored),
     ]

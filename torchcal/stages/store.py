@@ -11,6 +11,8 @@ A model folder holds:
   ``base_*`` and ``tool_*`` parameters hold the same values; see :data:`FRAME_CONVENTION`);
 * ``calibrated_robot.yaml``: the calibrated MDH table in the contract's units, for people, with a
   header saying what of the model it leaves out;
+* ``calibrated_robot.urdf``: the robot's own URDF (or one generated from the MDH table) with the
+  calibrated joint origins and the TCP as an added link (:mod:`torchcal.kinematics.calibrated_urdf`);
 * optionally ``report.md`` + ``report.html`` (figures in ``figures/``): the calibration report;
 * optionally ``residual.safetensors`` + ``residual.json``: a learned residual head;
 * optionally ``model_selection.json``: the cross-validated comparison the fit chose by;
@@ -32,6 +34,7 @@ from torchcal.core.errors import ModelError
 from torchcal.core.folder import verify_folder, write_member, write_member_json, write_member_text
 from torchcal.identify.joint_errors import JointSpaceErrors
 from torchcal.kinematics import transforms as tf
+from torchcal.kinematics.calibrated_urdf import calibrated_urdf
 from torchcal.kinematics.error_model import ErrorModel
 from torchcal.kinematics.robot import RobotModel, load_robot, robot_to_yaml
 from torchcal.kinematics.transforms import matrix_to_euler_xyz
@@ -151,7 +154,38 @@ def save_model(
     tool = x[model.layout.tool_slice][:3].cpu()
     write_member_text(folder, "calibrated_robot.yaml",
                       calibrated_yaml_header(robot, meta) + robot_to_yaml(robot, table=model.table(x.cpu()), tool=tool))
+    urdf, _ = calibrated_urdf(robot, model.table(x.cpu()), model.flange_from_tool(x.cpu()).cpu(), urdf_notes(robot, meta))
+    write_member_text(folder, CALIBRATED_URDF, urdf)
     return folder
+
+
+#: The calibrated URDF of a model folder (:mod:`torchcal.kinematics.calibrated_urdf`).
+CALIBRATED_URDF = "calibrated_robot.urdf"
+
+
+def not_in_geometry(meta: dict) -> list[str]:
+    """What of a model a geometry file (calibrated YAML or URDF) cannot hold, one line each."""
+    lines = []
+    terms = [name for key, name in (("gravity_compliance", "gravity compliance"), ("joint_harmonics", "first joint harmonics"))
+             if meta.get(key)]
+    if terms:
+        lines.append(f"Not in this file: {' and '.join(terms)} (calibration.json), joint-space errors added to the commanded "
+                     "joints before this geometry; without them this file is not the model that was fitted.")
+    lines.append("Not in this file either: a learned residual head (residual.safetensors) or joint stiffness "
+                 "(stiffness.safetensors), where the folder has them.")
+    return lines
+
+
+def urdf_notes(robot: RobotModel, meta: dict) -> list[str]:
+    """The comment of ``calibrated_robot.urdf``: what changed and what the file cannot hold."""
+    data = meta.get("data") or {}
+    source = f" from {Path(str(data['file'])).name} ({data.get('n_poses')} poses)" if data.get("file") else ""
+    origin = "this robot's URDF" if robot.urdf is not None else "a URDF generated from the calibrated MDH table"
+    lines = [f"Calibrated by torchcal{source}: {origin} with only the origins of the moving joints changed",
+             "(joint zero offsets folded in). Links, visuals, collisions, inertials, limits and axes are as given.",
+             f"The calibrated tool point (TCP) is the origin of the added link '{robot.end_link}_calibrated_tcp'.",
+             "The instrument-to-base transform of the measurement is in calibration.json (frames), not here."]
+    return lines + not_in_geometry(meta)
 
 
 #: How ``calibration.json`` ``frames`` (and the ``base_*`` / ``tool_*`` parameters) write a transform.
@@ -213,12 +247,7 @@ def calibrated_yaml_header(robot: RobotModel, meta: dict) -> str:
     lines = [(f"calibrated by torchcal{source}: the geometric stage only, the identified MDH table and tool point "
              "(mm, deg). The instrument-to-base transform and every parameter's 1-sigma are in calibration.json "
              "(frames, parameters).")]
-    terms = [name for key, name in (("gravity_compliance", "gravity compliance"), ("joint_harmonics", "first joint harmonics"))
-             if meta.get(key)]
-    if terms:
-        lines.append(f"Not in this file: {' and '.join(terms)} (calibration.json), joint-space errors added to the commanded "
-                     "joints before this table; without them this table is not the model that was fitted.")
-    lines.append("Not in this file either: a learned residual head, where the folder has residual.safetensors.")
+    lines += not_in_geometry(meta)
     dropped = list((meta.get("identifiability") or {}).get("not_identifiable") or {})
     if dropped:
         lines.append(f"Not identified from the data, so at their nominal values: {', '.join(dropped)}.")

@@ -1,0 +1,138 @@
+"""torchcal compensate: a program's joint targets corrected offline by the export's compensator.
+
+Truth: the twin's true robot. A corrected command puts the true TCP (where the model is right)
+closer to the nominal target than the nominal command does; the written commands are the
+compensator's own; targets it cannot correct keep the nominal command and get a line.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from torchcal.cli import main
+from torchcal.compensate.export import build_graphs, compensator_of
+from torchcal.compensate.production_tcp import production_view, tcp_transform
+from torchcal.compensate.program import compensate_program, sidecar_path
+from torchcal.core.errors import TorchcalError
+from torchcal.stages.store import load_model
+
+
+def _program(path, q_rad: torch.Tensor, extra: str = "") -> None:
+    n = q_rad.shape[1]
+    rows = [",".join([f"q{j}" for j in range(1, n + 1)] + (["speed"] if extra else []))]
+    rows += [",".join([repr(v) for v in row] + ([extra] if extra else [])) for row in torch.rad2deg(q_rad).tolist()]
+    path.write_text("\n".join(rows) + "\n")
+
+
+def _read(path) -> dict[str, np.ndarray]:
+    lines = path.read_text().splitlines()
+    header = lines[0].split(",")
+    data = np.array([[float(v) for v in line.split(",")] for line in lines[1:]])
+    return {name: data[:, k] for k, name in enumerate(header)}
+
+
+@pytest.fixture(scope="module")
+def program(twin, model_dir, tmp_path_factory):
+    folder = tmp_path_factory.mktemp("program")
+    q = twin.robot.sample_joints(300, torch.Generator().manual_seed(21), margin=0.2)
+    _program(folder / "targets.csv", q, extra="250")
+    tool_mm = (load_model(model_dir).x[-6:-3] * 1e3).tolist()  # the fitted measured point: observable on the twin
+    outcome = compensate_program(model_dir, folder / "targets.csv", folder / "corrected.csv", tcp_mm=tool_mm)
+    return q, folder, outcome
+
+
+def test_written_commands_are_the_compensators(program, model_dir):
+    q, folder, outcome = program
+    stored = load_model(model_dir)
+    stored = production_view(stored, tcp_transform((stored.x[-6:-3] * 1e3).tolist(), None))
+    with torch.no_grad():
+        expected, residual = compensator_of(build_graphs(stored)).solve(q)
+    out = _read(folder / "corrected.csv")
+    got = torch.from_numpy(np.radians(np.stack([out[f"q{j}"] for j in range(1, q.shape[1] + 1)], 1)))
+    ok = torch.from_numpy(out["corrected"]).bool()
+    assert outcome.n_corrected == int(ok.sum()) >= 0.95 * len(q)
+    assert torch.allclose(got[ok], expected[ok], atol=1e-12)
+    assert outcome.largest_correction_deg > 0.1  # the twin's errors need real corrections: the check can fail
+    assert torch.allclose(got[~ok], q[~ok], atol=1e-12)
+    assert bool((residual[ok, 0] <= 1e-6).all())
+    assert len(outcome.not_corrected) == int((~ok).sum())
+
+
+def test_corrected_commands_bring_the_true_tcp_to_the_nominal_target(program, twin, model_dir):
+    """The twin's true measured point under the corrected commands lands on the nominal target far better.
+
+    Compared in the instrument frame (the base frame of a fit is defined only up to what row 1 and
+    the instrument frame share; the flange only up to d6 / tool_z, so the TCP is the fitted measured
+    point): the target is where the nominal robot puts that point, placed by the model's instrument frame.
+    """
+    q, folder, _ = program
+    out = _read(folder / "corrected.csv")
+    q_c = torch.from_numpy(np.radians(np.stack([out[f"q{j}"] for j in range(1, q.shape[1] + 1)], 1)))
+    stored = load_model(model_dir)
+    frame = stored.model.instrument_from_base(stored.x)
+    nominal = twin.robot.flange_pose(q)
+    target = nominal[:, :3, :3] @ stored.x[stored.model.layout.tool_slice][:3] + nominal[:, :3, 3]
+    target = target @ frame[:3, :3].T + frame[:3, 3]
+    before = (twin.true_positions(q) - target).norm(dim=-1)
+    after = (twin.true_positions(q_c) - target).norm(dim=-1)
+    assert float(after.square().mean().sqrt()) < 0.2 * float(before.square().mean().sqrt())
+
+
+def test_a_target_the_steps_do_not_solve_keeps_its_nominal_command(twin, model_dir, tmp_path):
+    """With one Newton step the model's TCP is not within 1 um of most targets: those keep the nominal command."""
+    q = twin.robot.sample_joints(20, torch.Generator().manual_seed(2), margin=0.3)
+    _program(tmp_path / "t.csv", q)
+    outcome = compensate_program(model_dir, tmp_path / "t.csv", tmp_path / "c.csv", iterations=1)
+    out = _read(tmp_path / "c.csv")
+    missed = np.flatnonzero(out["corrected"] == 0)
+    assert len(missed) > 0 and len(outcome.not_corrected) == len(missed)
+    assert outcome.not_corrected[0].startswith(f"{tmp_path / 't.csv'}: row {missed[0] + 2}: not corrected")
+    nominal = np.degrees(q.numpy())
+    assert np.allclose(np.stack([out[f"q{j}"] for j in range(1, 7)], 1)[missed], nominal[missed], atol=1e-12)
+    assert (out["remaining_mm"][missed] > 1e-3).all()
+
+
+def test_never_overwrites_a_file_torchcal_did_not_write(program, model_dir, tmp_path):
+    q, folder, _ = program
+    theirs = tmp_path / "program.csv"
+    theirs.write_text("q1\n1\n")
+    with pytest.raises(TorchcalError, match="not a corrected program torchcal wrote"):
+        compensate_program(model_dir, folder / "targets.csv", theirs)
+    assert theirs.read_text() == "q1\n1\n"
+    with pytest.raises(TorchcalError, match="is the targets file"):
+        compensate_program(model_dir, folder / "targets.csv", folder / "targets.csv")
+    # its own output, unchanged, may be rewritten; once edited, not any more
+    out = tmp_path / "mine.csv"
+    _program(folder / "few.csv", q[:3])
+    compensate_program(model_dir, folder / "few.csv", out)
+    assert json.loads(sidecar_path(out).read_text())["n_targets"] == 3
+    compensate_program(model_dir, folder / "few.csv", out)
+    out.write_text(out.read_text() + "\n")
+    with pytest.raises(TorchcalError, match="was changed since"):
+        compensate_program(model_dir, folder / "few.csv", out)
+
+
+@pytest.mark.parametrize("text, where", [
+    ("q1,q2,q3,q4,q5,q6\n0,0,0,0,abc,0\n", "row 2, column 'q5'"),
+    ("q1,q2,q3,q4,q5\n0,0,0,0,0\n", "row 1"),
+    ("q1,q2,q3,q4,q5,q6\n0,0,0,0,0,720\n", "row 2, column 'q6'"),
+])
+def test_bad_targets_are_one_line_naming_file_row_column(model_dir, tmp_path, capsys, text, where):
+    (tmp_path / "bad.csv").write_text(text)
+    code = main(["compensate", "--model", str(model_dir), "--targets", str(tmp_path / "bad.csv"),
+                 "--out", str(tmp_path / "o.csv")])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and len(err.splitlines()) == 1 and "bad.csv" in err and where in err
+    assert not (tmp_path / "o.csv").exists()
+
+
+def test_cli_prints_the_summary(program, model_dir, tmp_path, capsys):
+    _, folder, _ = program
+    code = main(["compensate", "--model", str(model_dir), "--targets", str(folder / "targets.csv"),
+                 "--out", str(tmp_path / "c.csv"), "--tcp-mm", "0", "0", "0"])
+    out = capsys.readouterr().out
+    assert code == 0 and "targets corrected" in out and "largest joint correction" in out

@@ -1,0 +1,207 @@
+"""Offline compensation of a robot program: joint targets in, corrected joint targets out.
+
+Most users apply a calibration without a PC in the control loop: the targets of a robot program
+are corrected once, offline, and loaded into the controller. This module runs the very
+compensator that ``torchcal export`` writes to ONNX (:class:`~torchcal.compensate.compensator.
+CompensatorGraph`, built by :func:`~torchcal.compensate.export.build_graphs`, float64) on the
+program's targets, with the same safety limits:
+
+* every step bounded and every command inside the joint limits (the graph's own);
+* where the steps end further from the target than the nominal command is (beyond reach or a joint
+  limit), the nominal command (the graph's own);
+* the export's refusal: a model whose median joint correction or tool orientation deviation over
+  its training poses exceeds the limits of :mod:`torchcal.compensate.production_tcp` is refused
+  unless ``allow_large_corrections`` (the same check, :func:`check_corrections`);
+* a target counts as corrected when the model's remaining TCP position error at the corrected
+  command is within :data:`SOLVED_WITHIN_M` (the export's convergence figure, 1 um). A target that
+  is not corrected keeps its nominal command in the output and gets one line saying why.
+
+Targets: ``q1..qN`` (deg), one row per target, the data contract's joint columns; other columns
+are ignored. Output: ``q1..qN`` (deg, the corrected command or, where not corrected, the nominal
+one), ``corrected`` (1/0), ``correction_deg`` (the largest joint move), ``remaining_mm`` (the
+model's remaining TCP error at the written command). It is written atomically with a sidecar
+``<out>.torchcal.json`` (model, targets and output SHA-256, the settings, the summary); an
+existing output is overwritten only when its sidecar says torchcal wrote it for this purpose and
+its content is unchanged since.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from torchcal.compensate.compensator import DEFAULT_TASK, TASKS
+from torchcal.compensate.export import _regular, build_graphs, compensator_of, has_wrench_input
+from torchcal.compensate.production_tcp import (
+    check_corrections,
+    correction_extent,
+    production_view,
+    tcp_transform,
+)
+from torchcal.core.errors import DataError, TorchcalError
+from torchcal.core.hashing import sha256_bytes
+from torchcal.core.io import atomic_write_json, atomic_write_text
+from torchcal.data.csv_table import check_joint_limits, joint_columns, read_csv_table
+from torchcal.stages.files import read_json_member
+from torchcal.stages.store import load_model
+
+#: A target is corrected when the model's remaining TCP position error is within this (m).
+SOLVED_WITHIN_M = 1e-6
+#: Targets solved per batch (bounds memory; the result does not depend on it).
+BATCH = 4096
+SIDECAR_SUFFIX = ".torchcal.json"
+SIDECAR_FORMAT = "torchcal-compensated-program/1"
+
+
+@dataclass
+class ProgramOutcome:
+    """What :func:`compensate_program` wrote and found."""
+
+    out: Path
+    n_targets: int
+    n_corrected: int
+    seconds: float
+    largest_correction_deg: float
+    largest_correction_joint: int
+    not_corrected: list[str] = field(default_factory=list)
+    tcp_note: str = ""
+    allowed: list[str] = field(default_factory=list)
+
+    def lines(self) -> list[str]:
+        """What the command prints: one line per target that was not corrected, then the summary."""
+        summary = (f"{self.out}: {self.n_corrected} of {self.n_targets} targets corrected in {self.seconds:.2f} s; "
+                   f"largest joint correction {self.largest_correction_deg:.4g} deg (joint {self.largest_correction_joint}); "
+                   f"{self.tcp_note}")
+        allowed = [f"warning: {line} (allowed by --allow-large-corrections)" for line in self.allowed]
+        return [*self.not_corrected, *allowed, summary]
+
+
+def sidecar_path(out: Path) -> Path:
+    return out.with_name(out.name + SIDECAR_SUFFIX)
+
+
+def check_program_output(out: Path, targets: Path) -> None:
+    """Refuse, before any work, an output that is the targets file or a file torchcal did not write for this.
+
+    Raises:
+        TorchcalError: one line naming the file.
+    """
+    if out.resolve() == targets.resolve():
+        raise TorchcalError(f"{out}: --out is the targets file; give another file name")
+    if out.is_dir():
+        raise TorchcalError(f"{out}: --out names an existing folder; give a file name (CORRECTED.csv)")
+    if not out.exists():
+        return
+    side = sidecar_path(out)
+    recorded = None
+    if side.is_file():
+        try:
+            doc = read_json_member(side)
+            recorded = doc.get("output_sha256") if doc.get("format") == SIDECAR_FORMAT else None
+        except TorchcalError:
+            recorded = None
+    if recorded is None or recorded != sha256_bytes(out.read_bytes()):
+        raise TorchcalError(f"{out}: exists and is not a corrected program torchcal wrote (or was changed since); "
+                            "give another --out or remove it")
+
+
+def read_targets(path: Path, robot) -> tuple[torch.Tensor, list[int]]:
+    """Joint targets ``(B, N)`` rad and their file lines; bad input is one :class:`DataError` naming file, row, column."""
+    table = read_csv_table(path)
+    if not table.rows:
+        raise DataError("no targets (only a header)", path=str(path))
+    columns = joint_columns(table.header, path, robot.dof, robot.name)
+    q_deg = np.stack([table.column(c) for c in columns], axis=1)
+    check_joint_limits(q_deg, "deg", robot.joint_limits.numpy(), path=path, lines=table.line_numbers, columns=columns,
+                       robot_name=robot.name)
+    return torch.from_numpy(np.radians(q_deg)), list(table.line_numbers)
+
+
+def _csv(q_deg: np.ndarray, corrected: np.ndarray, correction_deg: np.ndarray, remaining_mm: np.ndarray) -> str:
+    n = q_deg.shape[1]
+    lines = [",".join([f"q{j}" for j in range(1, n + 1)] + ["corrected", "correction_deg", "remaining_mm"])]
+    for row, ok, move, rest in zip(q_deg, corrected, correction_deg, remaining_mm):
+        lines.append(",".join([repr(float(v)) for v in row] + [str(int(ok)), f"{move:.6g}", f"{rest:.6g}"]))
+    return "\n".join(lines) + "\n"
+
+
+def compensate_program(
+    model_dir: str | Path,
+    targets: str | Path,
+    out: str | Path,
+    *,
+    task: str = DEFAULT_TASK,
+    iterations: int | None = None,
+    tcp_mm: list[float] | None = None,
+    tcp_rpy_deg: list[float] | None = None,
+    allow_large_corrections: bool = False,
+) -> ProgramOutcome:
+    """Correct the joint targets of ``targets`` with the compensator of ``model_dir`` into ``out``.
+
+    ``task``, ``iterations``, ``tcp_mm``, ``tcp_rpy_deg``: as ``torchcal export`` (the same
+    compensator; without a TCP, the flange, stated in the summary).
+    """
+    model_dir, targets, out = Path(model_dir), Path(targets), Path(out)
+    if task not in TASKS:
+        raise TorchcalError(f"task must be one of {list(TASKS)}, got {task!r}")
+    if iterations is not None and iterations < 1:
+        raise TorchcalError(f"iterations must be >= 1, got {iterations}")
+    check_program_output(out, targets)
+    stored = load_model(model_dir)
+    stored = production_view(stored, tcp_transform(tcp_mm, tcp_rpy_deg))  # as export: the flange by default
+    tcp_note = (f"targets of the TCP {tcp_mm or [0, 0, 0]} mm, {tcp_rpy_deg or [0, 0, 0]} deg in the flange frame"
+                + ("" if tcp_mm or tcp_rpy_deg else " (the flange; --tcp-mm sets the production TCP)"))
+    q, lines = read_targets(targets, stored.robot)
+    graphs = build_graphs(stored, task=task, iterations=iterations)
+    if has_wrench_input(graphs):
+        raise TorchcalError(f"{model_dir}: the model has a stiffness stage, whose compensator needs each target's "
+                            "expected wrench; compensate a program with the geometric model, or use the exported graphs")
+    graph = compensator_of(graphs)
+    extent = {}  # the export's check, on the poses it judges (training poses less the singular ones: _regular)
+    if stored.training_q is not None and len(_regular(stored.robot, stored.training_q)):
+        extent["training poses"] = correction_extent(graph, _regular(stored.robot, stored.training_q))
+    allowed = check_corrections(extent, allow_large_corrections)
+    start = time.perf_counter()
+    q_c, residual = [], []
+    with torch.no_grad():
+        for chunk in torch.split(q, BATCH):
+            a, b = graph.solve(chunk.to(torch.float64))
+            q_c.append(a)
+            residual.append(b)
+    seconds = time.perf_counter() - start
+    commands, rest = torch.cat(q_c), torch.cat(residual)
+    corrected = rest[:, 0] <= SOLVED_WITHIN_M
+    written = torch.where(corrected.unsqueeze(-1), commands, q)
+    remaining = rest[:, 0].clone()
+    if not bool(corrected.all()):  # the nominal command is written there: the model's error of that command
+        with torch.no_grad():
+            remaining[~corrected] = graphs["monitor"](q[~corrected]).norm(dim=-1)
+    remaining_mm = remaining * 1e3
+    failures = [f"{targets}: row {lines[k]}: not corrected, nominal command kept: the compensator's command leaves the "
+                f"model's TCP {float(rest[k, 0]) * 1e3:.3g} mm off the target (beyond reach, a joint limit or a singularity)"
+                for k in torch.nonzero(~corrected).flatten().tolist()]
+    applied = (written - q).abs()
+    worst = int(applied.amax(0).argmax()) if len(q) else 0
+    text = _csv(np.degrees(written.numpy()), corrected.numpy(), np.degrees(applied.amax(-1).numpy()),
+                remaining_mm.numpy())
+    outcome = ProgramOutcome(out=out, n_targets=len(q), n_corrected=int(corrected.sum()), seconds=seconds,
+                             largest_correction_deg=math.degrees(float(applied.max())) if len(q) else 0.0,
+                             largest_correction_joint=worst + 1, not_corrected=failures, tcp_note=tcp_note,
+                             allowed=allowed)
+    atomic_write_text(out, text)
+    atomic_write_json(sidecar_path(out), {
+        "format": SIDECAR_FORMAT,
+        "model": str(model_dir), "model_checksums_sha256": sha256_bytes((model_dir / "checksums.json").read_bytes()),
+        "targets": str(targets), "targets_sha256": sha256_bytes(targets.read_bytes()),
+        "output_sha256": sha256_bytes(text.encode()),
+        "task": graph.task, "iterations": graph.iterations, "tcp": tcp_note,
+        "limits": {"solved_within_mm": SOLVED_WITHIN_M * 1e3}, "corrections": {"extent": extent, "exceeded_but_allowed": allowed},
+        "n_targets": outcome.n_targets, "n_corrected": outcome.n_corrected,
+        "largest_correction_deg": outcome.largest_correction_deg, "seconds": seconds,
+    })
+    return outcome
