@@ -35,34 +35,20 @@ def _progress(status) -> Callable[[str], None]:
     return lambda text: status.update(text)
 
 
-def _check_output_file(path: str, what: str) -> None:
-    """Refuse, before any work, an output file path that names a folder or lies under a file."""
-    from torchcal.core.errors import TorchcalError
-
-    target = Path(path)
-    if target.is_dir():
-        raise TorchcalError(f"{target}: {what} names an existing folder; give a file name")
-    parent = target.parent
-    while not parent.exists():
-        parent = parent.parent
-    if not parent.is_dir():
-        raise TorchcalError(f"{parent}: a file stands where {what} needs a folder")
-
-
 def _cmd_simulate(args) -> int:
+    from torchcal.core.folder import staged_folder
     from torchcal.core.overrides import apply_overrides
     from torchcal.instruments.registry import get
 
     name, overrides = _split_instrument(args.overrides)
     twin = get(name).twin()
     config = apply_overrides(twin.config_factory(), overrides)
-    if Path(args.out).exists() and not Path(args.out).is_dir():
-        from torchcal.core.errors import TorchcalError
-
-        raise TorchcalError(f"{args.out}: --out names an existing file; give a folder")
-    paths = twin.write(Path(args.out), config)
+    out = Path(args.out)
+    # built in a staging sibling and swapped in whole: an interrupted simulate leaves the earlier case
+    with staged_folder(out, "--out", purpose="twin", sealed=False) as staging:
+        paths = twin.write(staging, config)
     for key, path in paths.items():
-        print(f"{key}: {path}")
+        print(f"{key}: {out / Path(path).relative_to(staging)}")
     return 0
 
 
@@ -90,17 +76,18 @@ def _cmd_fit(args) -> int:
 
 def _cmd_evaluate(args) -> int:
     from torchcal.core.io import atomic_write_json
+    from torchcal.core.outputs import JSON_KEY, claim_file, is_metrics_json
     from torchcal.instruments.base import EvaluateRequest, evaluate_reported
     from torchcal.instruments.registry import recognise
 
     if args.json:
-        _check_output_file(args.json, "--json")
+        claim_file(args.json, "metrics", "--json", is_metrics_json)
     instrument = recognise(args.data)
     outcome = evaluate_reported(instrument, EvaluateRequest(
         model=Path(args.model), data=Path(args.data), overrides=list(args.overrides), register=args.register,
         report=Path(args.report) if args.report else None))
     if args.json:
-        atomic_write_json(args.json, outcome.metrics)
+        atomic_write_json(args.json, {JSON_KEY: "metrics", **outcome.metrics})
     for line in outcome.lines:
         print(f"torchcal: {line}", file=sys.stderr)
     if outcome.report is not None:
@@ -282,10 +269,51 @@ def build_parser(with_options: bool = False) -> argparse.ArgumentParser:
     return parser
 
 
+#: Set when SIGTERM arrived (a job scheduler, ``systemctl stop``, ``kill``): the command ends as after Ctrl-C.
+_terminated = False
+
+
+def _on_sigterm(signum, frame) -> None:
+    """SIGTERM handled like Ctrl-C: raised as ``KeyboardInterrupt`` so staged outputs are cleaned up."""
+    global _terminated
+    _terminated = True
+    raise KeyboardInterrupt
+
+
+def _write_failure(exc: OSError) -> str | None:
+    """The one line of a write that the system refused for want of space, or ``None`` for other errors."""
+    import errno
+
+    where = exc.filename or "a file"
+    if exc.errno in (errno.ENOSPC, errno.EDQUOT):
+        return f"{where}: no space left on the device (or the quota is used up); free space there and run again"
+    if exc.errno == errno.EFBIG:
+        return (f"{where}: file larger than this process may write (the shell's `ulimit -f`, or the file "
+                "system's limit); raise the limit or free space and run again")
+    return None
+
+
 def main(argv: list[str] | None = None) -> int:
+    """The command line; every :class:`~torchcal.core.errors.TorchcalError` is one line and exit status 2."""
+    import signal
+    import threading
+
+    global _terminated
+    _terminated = False
+    in_main_thread = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGTERM, _on_sigterm) if in_main_thread else None
+    try:
+        return _main(argv)
+    finally:
+        if in_main_thread:
+            signal.signal(signal.SIGTERM, previous)
+
+
+def _main(argv: list[str] | None) -> int:
     import warnings
 
     from torchcal.core.errors import TorchcalError
+
 
     parser = build_parser(with_options=any(a in ("-h", "--help") for a in (argv if argv is not None else sys.argv[1:])))
     args, extra = parser.parse_known_args(argv)
@@ -305,9 +333,10 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     except KeyboardInterrupt:
         # output folders are staged and files written atomically: an interrupted command leaves what was there
-        print(f"torchcal: interrupted; nothing written ({args.command} leaves earlier outputs as they were)",
+        how = "terminated (SIGTERM)" if _terminated else "interrupted"
+        print(f"torchcal: {how}; nothing written ({args.command} leaves earlier outputs as they were)",
               file=sys.stderr)
-        return 130
+        return 143 if _terminated else 130
     except UnicodeDecodeError as exc:
         print(f"torchcal: error: a file is not UTF-8 text (byte {exc.start}: {exc.reason})", file=sys.stderr)
         return 2
@@ -322,6 +351,12 @@ def main(argv: list[str] | None = None) -> int:
         # goes to devnull so that the interpreter's final flush raises nothing either
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 0
+    except OSError as exc:
+        line = _write_failure(exc)
+        if line is None:
+            raise
+        print(f"torchcal: error: {line}; earlier outputs were left as they were", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

@@ -15,9 +15,10 @@ import torch
 from torchcal.compensate.export import export_and_check
 from torchcal.config import save_resolved_config
 from torchcal.config.schema import RunConfig
-from torchcal.core.folder import write_member_json
+from torchcal.core.folder import check_output_folder, write_member_json
 from torchcal.core.io import atomic_write_json
 from torchcal.core.metrics import position_metrics
+from torchcal.core.outputs import check_name, claim_folder, stamp_folder
 from torchcal.data.measurements import Measurements, load_measurements
 from torchcal.identify.calibrate import CalibrationResult
 from torchcal.identify.lm import LevenbergMarquardt
@@ -61,8 +62,13 @@ def run(config: RunConfig, console=None) -> dict:
     from rich.console import Console
 
     console = console or Console()
-    folder = Path(config.out) / config.name
+    folder = Path(config.out) / check_name(config.name, "name=")
+    claim_folder(folder, "run", "name=", within=("study",))  # a study refits its best run inside
+    if config.export:
+        check_output_folder(Path(config.export_dir) / config.name, "export_dir/name", purpose="export")
     started = time.perf_counter()
+    folder.mkdir(parents=True, exist_ok=True)
+    stamp_folder(folder, "run")
     save_resolved_config(folder / "config.yaml", config)
     with console.status("[bold]simulating the twin") as status:
         case = write_twin_case(folder / "case", config.twin)

@@ -397,9 +397,9 @@ def export_model(
     model_dir, out_dir = Path(model_dir), Path(out_dir)
     if out_dir.resolve() == model_dir.resolve():
         raise TorchcalError(f"{out_dir}: the export folder must lie outside the model folder {model_dir}")
-    check_output_folder(out_dir)
+    check_output_folder(out_dir, purpose="export")
     stored = load_model(model_dir)
-    with staged_folder(out_dir) as staging:
+    with staged_folder(out_dir, purpose="export") as staging:
         return _export_into(staging, model_dir, stored, wrench_frame=wrench_frame, iterations=iterations,
                             portable=portable, task=task)
 

@@ -19,6 +19,7 @@ from torchcal.app.pipeline import run
 from torchcal.compensate.export import export_model
 from torchcal.config import save_resolved_config
 from torchcal.core.errors import TorchcalError
+from torchcal.core.outputs import claim_folder, stamp_folder
 from torchcal.data.measurements import load_measurements
 from torchcal.instruments.base import EvaluateRequest
 from torchcal.instruments.registry import default
@@ -96,7 +97,9 @@ def run_study(base, config: StudyConfig, *, workers: int = 1, console=None) -> S
     """Create or resume the study, run ``workers`` local processes, refit the best, report."""
     config.validate()
     study_dir = study_folder(base, config)
+    claim_folder(study_dir, "study", "study.name")
     study_dir.mkdir(parents=True, exist_ok=True)
+    stamp_folder(study_dir, "study")
     save_resolved_config(study_dir / "config.yaml", base, study=config)
     study = open_study(config, study_dir)
     url = storage_url(config, study_dir)
