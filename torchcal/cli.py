@@ -142,14 +142,19 @@ def _cmd_study(args) -> int:
 
     from torchcal.config import compose_run_config
     from torchcal.config.compose import merge_section
+    from torchcal.core.errors import TorchcalError
     from torchcal.studies.runner import run_study
     from torchcal.studies.spec import StudyConfig
 
+    if args.workers < 1:
+        raise TorchcalError(f"--workers must be at least 1, got {args.workers}")
+    if args.n_trials is not None and args.n_trials < 1:
+        raise TorchcalError(f"--n-trials must be at least 1, got {args.n_trials}")
     base, sections = compose_run_config(args.overrides, config_name="study", extra_sections=("study",))
     study = merge_section(StudyConfig(), sections["study"])
     if args.storage:
         study.storage = args.storage
-    if args.n_trials:
+    if args.n_trials is not None:
         study.n_trials = args.n_trials
     outcome = run_study(base, study, workers=args.workers, console=Console(stderr=True))
     print(outcome.summary(study.name))

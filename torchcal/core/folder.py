@@ -135,10 +135,12 @@ def verify_folder(folder: str | Path) -> None:
                               "remove it or write the folder again")
 
 
-def check_output_folder(dest: str | Path, what: str = "--out", purpose: str = "model") -> None:
+def check_output_folder(dest: str | Path, what: str = "--out", purpose: str = "model",
+                        within: tuple[str, ...] = ()) -> None:
     """Refuse, before any work, an output folder torchcal may not write for ``purpose``
-    (:func:`torchcal.core.outputs.claim_folder`: absent, empty, or its own of the same purpose)."""
-    claim_folder(dest, purpose, what)
+    (:func:`torchcal.core.outputs.claim_folder`: absent, empty, or its own of the same purpose;
+    inside another torchcal output only where that one's purpose is in ``within``)."""
+    claim_folder(dest, purpose, what, within)
     dest = Path(dest)
     if purpose in ("model", "export") and (dest / CHECKSUMS).is_file():
         # a sealed folder lists every file torchcal wrote: one it does not list is the user's own
@@ -198,7 +200,8 @@ def _remove_dead_stagings(dest: Path) -> None:
 
 
 @contextmanager
-def staged_folder(dest: str | Path, what: str = "--out", purpose: str = "model", sealed: bool = True) -> Iterator[Path]:
+def staged_folder(dest: str | Path, what: str = "--out", purpose: str = "model", sealed: bool = True,
+                  within: tuple[str, ...] = ()) -> Iterator[Path]:
     """Build a folder in a hidden sibling of ``dest`` and swap it into place when the block ends.
 
     Yields the staging folder (stamped with ``purpose``, :mod:`torchcal.core.outputs`). On a normal
@@ -208,7 +211,7 @@ def staged_folder(dest: str | Path, what: str = "--out", purpose: str = "model",
     staging folder is deleted and ``dest`` is untouched.
     """
     dest = Path(dest)
-    check_output_folder(dest, what, purpose)
+    check_output_folder(dest, what, purpose, within)
     dest.parent.mkdir(parents=True, exist_ok=True)
     _remove_dead_stagings(dest)
     prefix = f".{dest.name}.staging-{os.getpid()}-"

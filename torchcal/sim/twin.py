@@ -69,7 +69,7 @@ class TwinConfig:
     def __post_init__(self) -> None:
         """Refuse counts below one and non-finite or negative sizes before anything is written."""
         for name in ("n_train", "n_test"):
-            check_range(self, name, low=1)
+            check_range(self, name, low=1, high=1_000_000)  # 10^6 poses: about 0.5 GB of float64 joints and Jacobians
         for name in ("length_error_mm", "angle_error_deg", "tool_error_mm", "tracker_sigma_mm", "repeatability_mm",
                      "gear_amplitude_deg", "margin_deg"):
             check_range(self, name, low=0.0)
