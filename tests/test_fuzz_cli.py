@@ -20,7 +20,14 @@ from pathlib import Path
 import pytest
 
 from torchcal.cli import main
-from torchcal.testing.fuzz_cases import CASES, Fixtures, make_fixtures, out_state_problem, snapshot
+from torchcal.testing.fuzz_cases import (
+    CASES,
+    Fixtures,
+    file_size_limit,
+    make_fixtures,
+    out_state_problem,
+    snapshot,
+)
 
 pytestmark = pytest.mark.slow
 
@@ -35,8 +42,8 @@ def test_bad_input_gets_one_line(name, fixtures, tmp_path, capfd):
     case = CASES[name](fixtures, tmp_path)
     before = snapshot(case.out)
     capfd.readouterr()
-    with warnings.catch_warnings(record=True) as caught:  # pytest takes warnings before the CLI prints them
-        warnings.simplefilter("always")
+    with warnings.catch_warnings(record=True) as caught, file_size_limit(case.extra.get("file_limit")):
+        warnings.simplefilter("always")  # pytest takes warnings before the CLI prints them
         rc = main(case.argv)
     err = capfd.readouterr().err + "".join(f"torchcal: warning: {w.message}\n" for w in caught)
     assert "Traceback" not in err
@@ -69,7 +76,8 @@ def _cli_process(argv: list[str]) -> subprocess.Popen:
                             preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
 
 
-def test_ctrl_c_leaves_the_earlier_model(fixtures, tmp_path):
+@pytest.mark.parametrize("sig, status, word", [(signal.SIGINT, 130, "interrupted"), (signal.SIGTERM, 143, "terminated")])
+def test_ctrl_c_or_sigterm_leaves_the_earlier_model(fixtures, tmp_path, sig, status, word):
     import shutil
 
     out = tmp_path / "model"
@@ -80,10 +88,10 @@ def test_ctrl_c_leaves_the_earlier_model(fixtures, tmp_path):
     while not any(p.name.startswith(".model.staging-") for p in tmp_path.iterdir()):  # the fit has begun writing
         assert proc.poll() is None and time.monotonic() < deadline
         time.sleep(0.05)
-    proc.send_signal(signal.SIGINT)
+    proc.send_signal(sig)
     _, err = proc.communicate(timeout=120)
-    assert proc.returncode == 130, err
-    assert "Traceback" not in err and "interrupted" in err
+    assert proc.returncode == status, err
+    assert "Traceback" not in err and word in err
     assert snapshot(out) == before
     assert not any(p.name.startswith(".model.staging-") for p in tmp_path.iterdir())
 

@@ -55,11 +55,10 @@ def _cmd_simulate(args) -> int:
 def _cmd_fit(args) -> int:
     from rich.console import Console
 
-    from torchcal.core.folder import check_output_folder
-    from torchcal.instruments.base import FitRequest, fit_committed
+    from torchcal.instruments.base import FitRequest, check_fit_paths, fit_committed
     from torchcal.instruments.registry import recognise
 
-    check_output_folder(args.out)
+    check_fit_paths(Path(args.out), Path(args.data), Path(args.robot))
     instrument = recognise(args.data)
     console = Console(stderr=True)
     with console.status(f"fitting {instrument.name} data") as status:

@@ -29,23 +29,7 @@ def apply_overrides(config: T, overrides: list[str]) -> T:
     bad = [o for o in overrides if "=" not in o]
     if bad:
         raise TorchcalError(f"override '{bad[0]}' is not of the form key=value")
-    for item in overrides:
-        key, _, value = item.partition("=")
-        if "${" in value:
-            raise TorchcalError(f"option {key.strip()}: '{value}' holds an interpolation ('${{...}}'); options take plain "
-                                "values")
-        if _is_bool_field(config, key.strip()) and value.strip().lower() not in _BOOLEAN_WORDS:
-            raise TorchcalError(f"option {key.strip()} is true or false, got {value.strip()!r}")
-        # every configuration's seed and device, checked once here rather than deep in numpy or torch
-        last = key.strip().rsplit(".", 1)[-1]
-        if last == "seed":
-            try:
-                seed = int(value.strip())
-            except ValueError:
-                raise TorchcalError(f"option {key.strip()} must be an integer in [0, 4294967295], got {value.strip()!r}") from None
-            check_seed(seed, f"option {key.strip()}")
-        elif last == "device":
-            check_device(value.strip(), f"option {key.strip()}")
+    check_values(config, overrides)
     base = OmegaConf.structured(config)
     try:
         merged = OmegaConf.merge(base, OmegaConf.from_dotlist(overrides))
@@ -54,6 +38,9 @@ def apply_overrides(config: T, overrides: list[str]) -> T:
         raise TorchcalError(f"invalid override: {msg}") from None
     return cast(T, OmegaConf.to_object(merged))  # the structured config's own dataclass
 
+
+#: The longest option value (Python refuses integers of more than 4300 digits deep inside OmegaConf).
+MAX_VALUE_CHARS = 4096
 
 #: What a boolean option accepts (OmegaConf would also take any integer, 2 as true).
 _BOOLEAN_WORDS = ("true", "false", "yes", "no", "on", "off", "1", "0")
@@ -97,6 +84,35 @@ def check_device(value: str, what: str = "device") -> None:
             raise TorchcalError(f"{what} {value!r}: this machine has {count} CUDA GPU(s) (cuda:0..cuda:{count - 1})")
         return
     raise TorchcalError(f"{what} {value!r}: torchcal computes on cpu or cuda, not {device.type}")
+
+
+def check_values(config: Any, overrides: list[str]) -> None:
+    """Refuse ``key=value`` items whose value would fail deep inside OmegaConf, numpy or torch.
+
+    Every override path calls this (:func:`apply_overrides` and the composed configurations):
+    ``${...}`` interpolations, a boolean field given anything but true/false (OmegaConf takes 2 as
+    true), a ``seed`` outside 32 bits, a ``device`` this machine cannot compute on.
+    ``config``: the configuration dataclass (instance) the items set, for field types.
+    """
+    for item in overrides:
+        key, _, value = item.partition("=")
+        key, value = key.strip(), value.strip()
+        if len(value) > MAX_VALUE_CHARS:
+            raise TorchcalError(f"option {key}: a value of {len(value)} characters (at most {MAX_VALUE_CHARS}); "
+                                "options are short values, file paths or short lists")
+        if "${" in value:
+            raise TorchcalError(f"option {key}: '{value}' holds an interpolation ('${{...}}'); options take plain values")
+        if _is_bool_field(config, key) and value.lower() not in _BOOLEAN_WORDS:
+            raise TorchcalError(f"option {key} is true or false, got {value!r}")
+        last = key.rsplit(".", 1)[-1]
+        if last == "seed":
+            try:
+                seed = int(value)
+            except ValueError:
+                raise TorchcalError(f"option {key} must be an integer in [0, 4294967295], got {value!r}") from None
+            check_seed(seed, f"option {key}")
+        elif last == "device":
+            check_device(value, f"option {key}")
 
 
 def field_names(config_class: Any) -> set[str]:

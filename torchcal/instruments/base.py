@@ -208,6 +208,16 @@ class Instrument(ABC):
         """The small known-truth case of the shared contract suite."""
 
 
+def check_fit_paths(out: Path, data: Path, robot: Path) -> None:
+    """Refuse, before any work, a fit whose ``--out`` folder holds its own input files, then an ``--out``
+    torchcal may not write (:func:`torchcal.core.folder.check_output_folder`)."""
+    for what, path in (("--data", data), ("--robot", robot)):
+        if Path(out).resolve() in Path(path).resolve().parents:
+            raise FolderError(f"{out}: --out holds the {what} file {path}; a fit replaces the whole folder, "
+                              "so give another --out")
+    check_output_folder(out)
+
+
 def fit_committed(instrument: Instrument, request: FitRequest) -> FitOutcome:
     """Run ``instrument.fit`` into a staging folder and swap it into ``request.out`` when it has finished.
 
@@ -217,10 +227,7 @@ def fit_committed(instrument: Instrument, request: FitRequest) -> FitOutcome:
     earlier result never mix with the new ones.
     """
     out = Path(request.out)
-    for what, path in (("--data", request.data), ("--robot", request.robot)):
-        if out.resolve() in Path(path).resolve().parents:
-            raise FolderError(f"{out}: --out holds the {what} file {path}; a fit replaces the whole folder, "
-                              "so give another --out")
+    check_fit_paths(out, Path(request.data), Path(request.robot))
     previous = out if out.is_dir() else None
     with staged_folder(out, purpose="model") as staging:
         outcome = instrument.fit(replace(request, out=staging, previous=previous))

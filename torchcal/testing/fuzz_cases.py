@@ -18,12 +18,13 @@ import csv
 import json
 import math
 import shutil
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from torchcal.core.errors import TorchcalError
-from torchcal.core.folder import seal, verify_folder
+from torchcal.core.folder import seal, verify_folder, write_member, write_member_json
 from torchcal.kinematics.robot import load_robot, mdh_to_urdf
 
 
@@ -413,6 +414,164 @@ def few_poses(fx: Fixtures, w: Path) -> Case:
     return Case(_fit(fx, data, w / "out"), 0, "per parameter", w / "out", "whole")
 
 
+# ------------------------------------------------ round 2: outputs, write failures, names, options
+
+
+def _export_folder(work: Path) -> Path:
+    """A sealed export folder (its manifest and a graph file), as ``torchcal export`` leaves one."""
+    folder = work / "export"
+    write_member_json(folder, "manifest.json", {"format": "torchcal-export/1", "files": {"compensator": "c.onnx"}})
+    write_member(folder, "c.onnx", b"onnx graph bytes")
+    return folder
+
+
+def fit_out_is_export(fx: Fixtures, w: Path) -> Case:
+    out = _export_folder(w)
+    return Case(_fit(fx, fx.train, out), 2, "names an export folder", out, "unchanged")
+
+
+def export_out_is_other_model(fx: Fixtures, w: Path) -> Case:
+    other = _copy_model(fx, w)
+    return Case(["export", "--model", str(fx.model), "--out", str(other)], 2, "names a model folder", other, "unchanged")
+
+
+def simulate_out_is_model(fx: Fixtures, w: Path) -> Case:
+    model = _copy_model(fx, w)
+    return Case(["simulate", "--out", str(model), "n_train=20"], 2, "names a model folder", model, "unchanged")
+
+
+def simulate_out_is_export(fx: Fixtures, w: Path) -> Case:
+    out = _export_folder(w)
+    return Case(["simulate", "--out", str(out), "n_train=20"], 2, "names an export folder", out, "unchanged")
+
+
+def json_into_model(fx: Fixtures, w: Path) -> Case:
+    model = _copy_model(fx, w)
+    return Case(_evaluate(fx.model, fx.test, "--json", str(model / "metrics.json")), 2, "inside a model folder",
+                model, "unchanged")
+
+
+def json_onto_checksums(fx: Fixtures, w: Path) -> Case:
+    model = _copy_model(fx, w)
+    return Case(_evaluate(fx.model, fx.test, "--json", str(model / "checksums.json")), 2, "inside a model folder",
+                model, "unchanged")
+
+
+def json_onto_user_file(fx: Fixtures, w: Path) -> Case:
+    mine = w / "results.json"
+    mine.write_text('{"my": "notes"}\n')
+    return Case(_evaluate(fx.model, fx.test, "--json", str(mine)), 2, "not a metrics file", mine, "unchanged")
+
+
+def report_into_model(fx: Fixtures, w: Path) -> Case:
+    model = _copy_model(fx, w)
+    return Case(_evaluate(fx.model, fx.test, "--report", str(model / "report")), 2, "inside a model folder",
+                model, "unchanged")
+
+
+def report_onto_export(fx: Fixtures, w: Path) -> Case:
+    out = _export_folder(w)
+    return Case(_evaluate(fx.model, fx.test, "--report", str(out)), 2, "names an export folder", out, "unchanged")
+
+
+def report_onto_user_folder(fx: Fixtures, w: Path) -> Case:
+    out = w / "docs"
+    out.mkdir()
+    (out / "thesis.md").write_text("keep me\n")
+    return Case(_evaluate(fx.model, fx.test, "--report", str(out)), 2, "not a torchcal output", out, "unchanged")
+
+
+def refit_over_user_file(fx: Fixtures, w: Path) -> Case:
+    model = _copy_model(fx, w)
+    (model / "notes.txt").write_text("measured on a Tuesday\n")
+    return Case(_fit(fx, fx.train, model), 2, "notes.txt", model, "unchanged")
+
+
+def export_out_inside_model(fx: Fixtures, w: Path) -> Case:
+    model = _copy_model(fx, w)
+    return Case(["export", "--model", str(fx.model), "--out", str(model / "onnx")], 2, "inside a model folder",
+                model, "unchanged")
+
+
+def fit_file_too_large(fx: Fixtures, w: Path) -> Case:
+    model = _copy_model(fx, w)
+    case = Case(_fit(fx, fx.train, model), 2, "ulimit -f", model, "unchanged")
+    case.extra["file_limit"] = 40_000  # bytes: the report's figures do not fit
+    return case
+
+
+def export_file_too_large(fx: Fixtures, w: Path) -> Case:
+    case = Case(["export", "--model", str(fx.model), "--out", str(w / "export")], 2, "ulimit -f", w / "export")
+    case.extra["file_limit"] = 40_000
+    return case
+
+
+def run_name_parent(fx: Fixtures, w: Path) -> Case:
+    return Case(["run", f"out={w / 'runs'}", "name=../escaped", "twin.n_train=20"], 2, "one folder name", w / "escaped")
+
+
+def run_name_slash(fx: Fixtures, w: Path) -> Case:
+    return Case(["run", f"out={w / 'runs'}", "name=a/b", "twin.n_train=20"], 2, "one folder name", w / "runs")
+
+
+def run_name_huge(fx: Fixtures, w: Path) -> Case:
+    return Case(["run", f"out={w / 'runs'}", "name=" + "9" * 5000, "twin.n_train=20"], 2, "a value of 5000 characters", w / "runs")
+
+
+def study_name_parent(fx: Fixtures, w: Path) -> Case:
+    return Case(["study", f"out={w / 'runs'}", "study.name=../../escaped", "study.n_trials=1"], 2, "one folder name",
+                w / "escaped")
+
+
+def seed_beyond_32_bits(fx: Fixtures, w: Path) -> Case:
+    return Case(_fit(fx, fx.train, w / "out", "seed=4294967296"), 2, "seed must be an integer", w / "out")
+
+
+def seed_negative(fx: Fixtures, w: Path) -> Case:
+    return Case(_fit(fx, fx.train, w / "out", "seed=-3"), 2, "seed must be an integer", w / "out")
+
+
+def device_meta(fx: Fixtures, w: Path) -> Case:
+    return Case(_fit(fx, fx.train, w / "out", "device=meta"), 2, "not meta", w / "out")
+
+
+def device_unknown(fx: Fixtures, w: Path) -> Case:
+    return Case(_fit(fx, fx.train, w / "out", "device=gpu0"), 2, "not a torch device", w / "out")
+
+
+def boolean_given_number(fx: Fixtures, w: Path) -> Case:
+    return Case(_fit(fx, fx.train, w / "out", "head_time_check=2"), 2, "true or false", w / "out")
+
+
+def evaluate_interpolation(fx: Fixtures, w: Path) -> Case:
+    return Case(_evaluate(fx.model, fx.test, "split=${oc.env:HOME}"), 2, "interpolation", None)
+
+
+def simulate_interpolation(fx: Fixtures, w: Path) -> Case:
+    return Case(["simulate", "--out", str(w / "sim"), "n_train=${n_test}"], 2, "interpolation", w / "sim")
+
+
+def study_workers_zero(fx: Fixtures, w: Path) -> Case:
+    return Case(["study", f"out={w / 'runs'}", "--workers", "0"], 2, "--workers", w / "runs")
+
+
+def study_trials_zero(fx: Fixtures, w: Path) -> Case:
+    return Case(["study", f"out={w / 'runs'}", "--n-trials", "0"], 2, "--n-trials", w / "runs")
+
+
+def export_iterations_huge(fx: Fixtures, w: Path) -> Case:
+    return Case(["export", "--model", str(fx.model), "--out", str(w / "export"), "--iterations", "100000"], 2,
+                "--iterations", w / "export")
+
+
+def hidden_units_huge(fx: Fixtures, w: Path) -> Case:
+    return Case(_fit(fx, fx.train, w / "out", "residual_hidden=50000000"), 2, "residual_hidden", w / "out")
+
+
+def simulate_huge(fx: Fixtures, w: Path) -> Case:
+    return Case(["simulate", "--out", str(w / "sim"), "n_train=300000000"], 2, "n_train", w / "sim")
+
+
 CASES: dict[str, Callable[[Fixtures, Path], Case]] = {f.__name__: f for f in (
     csv_latin1, csv_binary, csv_nul, csv_huge_field, csv_metres, csv_radians, csv_1e300, csv_underscore, csv_nan,
     csv_duplicate, csv_missing_column,
@@ -423,7 +582,57 @@ CASES: dict[str, Callable[[Fixtures, Path], Case]] = {f.__name__: f for f in (
     fit_out_is_file, fit_out_foreign_folder, fit_out_holds_data, evaluate_json_is_folder, export_out_is_file,
     export_out_is_model, simulate_zero, simulate_negative, threshold_negative, threshold_nan, residual_unknown,
     unknown_option, register_three_poses, evaluate_metres, few_poses,
+    fit_out_is_export, export_out_is_other_model, simulate_out_is_model, simulate_out_is_export, json_into_model,
+    json_onto_checksums, json_onto_user_file, report_into_model, report_onto_export, report_onto_user_folder,
+    refit_over_user_file, export_out_inside_model, fit_file_too_large, export_file_too_large, run_name_parent,
+    run_name_slash, run_name_huge, study_name_parent, seed_beyond_32_bits, seed_negative, device_meta,
+    device_unknown, boolean_given_number, evaluate_interpolation, simulate_interpolation, study_workers_zero,
+    study_trials_zero, export_iterations_huge, hidden_units_huge, simulate_huge,
 )}
+
+#: Cases by class (the reliability rounds' classes); every other case is a bad input file.
+_BY_CLASS: dict[str, tuple[str, ...]] = {
+    "outputs on other outputs": (
+        "fit_out_is_file", "fit_out_foreign_folder", "fit_out_holds_data", "evaluate_json_is_folder",
+        "export_out_is_file", "export_out_is_model", "fit_out_is_export", "export_out_is_other_model",
+        "simulate_out_is_model", "simulate_out_is_export", "json_into_model", "json_onto_checksums",
+        "json_onto_user_file", "report_into_model", "report_onto_export", "report_onto_user_folder",
+        "refit_over_user_file", "export_out_inside_model"),
+    "write failures": ("fit_file_too_large", "export_file_too_large"),
+    "names that escape": ("run_name_parent", "run_name_slash", "run_name_huge", "study_name_parent"),
+    "sealed but inconsistent folders": (
+        "model_json_invalid_sealed", "model_json_missing_key_sealed", "safetensors_bad_header_sealed",
+        "safetensors_nan_sealed", "safetensors_foreign_sealed", "robot_file_absolute", "robot_file_parent"),
+    "options that crash deep": (
+        "seed_beyond_32_bits", "seed_negative", "device_meta", "device_unknown", "boolean_given_number",
+        "evaluate_interpolation", "simulate_interpolation", "study_workers_zero", "study_trials_zero",
+        "threshold_negative", "threshold_nan", "residual_unknown", "unknown_option", "simulate_zero",
+        "simulate_negative"),
+    "hangs and unbounded memory": ("export_iterations_huge", "hidden_units_huge", "simulate_huge", "csv_huge_field"),
+}
+
+#: The class of each case, for counts by class.
+CLASSES: dict[str, str] = {name: next((c for c, names in _BY_CLASS.items() if name in names), "bad input files")
+                           for name in CASES}
+
+
+@contextmanager
+def file_size_limit(limit: int | None) -> Iterator[None]:
+    """The process's file-size limit (``ulimit -f``) lowered to ``limit`` bytes for the block (``None``: unchanged).
+
+    Python ignores SIGXFSZ, so a write beyond the limit raises ``OSError(EFBIG)`` as on a full disk.
+    """
+    if limit is None:
+        yield
+        return
+    import resource
+
+    soft, hard = resource.getrlimit(resource.RLIMIT_FSIZE)
+    resource.setrlimit(resource.RLIMIT_FSIZE, (limit, hard))
+    try:
+        yield
+    finally:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (soft, hard))
 
 
 def snapshot(path: Path | None) -> object:
