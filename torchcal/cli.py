@@ -203,12 +203,27 @@ def option_listing(command: str) -> str:
     return "\n\n".join(b for b in blocks if b)
 
 
-def build_parser(with_options: bool = False) -> argparse.ArgumentParser:
-    """The argument parser; ``with_options`` adds each command's ``key=value`` list to its help
-    (it imports the configuration classes, so only ``--help`` pays for it)."""
+def _version() -> str:
+    """The installed distribution's version (the source tree's when it is not installed)."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("torchcal")
+    except PackageNotFoundError:
+        return "(not installed)"
+
+
+def build_parser(with_options: bool | str = False) -> argparse.ArgumentParser:
+    """The argument parser; ``with_options`` adds each command's ``key=value`` list to its help, or
+    only that command's when it names one (it imports the configuration classes, so only
+    ``<command> --help`` pays for it)."""
     parser = argparse.ArgumentParser(prog="torchcal", description="Calibrate industrial robots: geometry, stiffness, learned residual, ONNX compensator.")
+    parser.add_argument("--version", action="version", version=f"torchcal {_version()}")
     sub = parser.add_subparsers(dest="command", required=True)
-    listing = option_listing if with_options else (lambda _command: None)
+    def listing(command: str) -> str | None:
+        if with_options is True or with_options == command:
+            return option_listing(command)
+        return None
 
     def add(name: str, **kwargs) -> argparse.ArgumentParser:
         return sub.add_parser(name, epilog=listing(name), formatter_class=argparse.RawDescriptionHelpFormatter, **kwargs)
@@ -220,7 +235,7 @@ def build_parser(with_options: bool = False) -> argparse.ArgumentParser:
     from torchcal.instruments.registry import names
 
     p = add("simulate", help=f"write a twin case (instrument={'|'.join(names())}): robot.yaml, data files, truth.json")
-    p.add_argument("--out", required=True)
+    p.add_argument("--out", required=True, metavar="DIR", help="twin case folder to write (new, empty, or an earlier twin case)")
     p.add_argument("overrides", nargs="*", help="key=value of the twin, e.g. gravity=true n_train=200")
     p.set_defaults(func=_cmd_simulate)
 
@@ -234,8 +249,8 @@ def build_parser(with_options: bool = False) -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_fit)
 
     p = add("evaluate", help="score a model on a measurement file")
-    p.add_argument("--model", required=True)
-    p.add_argument("--data", required=True)
+    p.add_argument("--model", required=True, metavar="DIR", help="model folder written by fit")
+    p.add_argument("--data", required=True, metavar="CSV", help="measurement CSV to score (poses the fit has not seen)")
     p.add_argument("--json", default=None, help="write the metrics to this JSON file")
     p.add_argument("--register", action="store_true", help="re-fit only the rigid instrument frame to the file first")
     p.add_argument("--report", default=None, metavar="DIR",
@@ -251,8 +266,9 @@ def build_parser(with_options: bool = False) -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_study)
 
     p = add("export", help="export the compensator to ONNX with a manifest")
-    p.add_argument("--model", required=True)
-    p.add_argument("--out", required=True)
+    p.add_argument("--model", required=True, metavar="DIR", help="model folder written by fit")
+    p.add_argument("--out", required=True, metavar="DIR",
+                   help="export folder to write (new, empty, or an earlier export; never the model folder)")
     p.add_argument("--task", choices=["position", "pose"], default="position",
                    help="position: TCP position exactly, orientation as far as the position leaves room (default); "
                         "pose: the full 6-D pose (partial near singularities)")
@@ -319,7 +335,11 @@ def _main(argv: list[str] | None) -> int:
     from torchcal.core.errors import TorchcalError
 
 
-    parser = build_parser(with_options=any(a in ("-h", "--help") for a in (argv if argv is not None else sys.argv[1:])))
+    given = argv if argv is not None else sys.argv[1:]
+    # only `<command> --help` lists that command's options; `torchcal --help` alone lists commands
+    asked = any(a in ("-h", "--help") for a in given)
+    command = next((a for a in given if not a.startswith("-")), None)
+    parser = build_parser(with_options=command if asked and command else False)
     args, extra = parser.parse_known_args(argv)
     # key=value overrides may come before and after the options (`simulate instrument=x --out D n=3`)
     if extra and hasattr(args, "overrides") and all("=" in e and not e.startswith("-") for e in extra):
