@@ -30,6 +30,15 @@ def _split_instrument(overrides: list[str]) -> tuple[str, list[str]]:
     return instrument, rest
 
 
+def _console(stderr: bool = True):
+    """A rich console; piped into a file or another program, its tables keep 160 columns instead of
+    rich's 80 (they would wrap mid-row in a log)."""
+    from rich.console import Console
+
+    stream = sys.stderr if stderr else sys.stdout
+    return Console(stderr=stderr, width=None if stream.isatty() else 160)
+
+
 def _progress(status) -> Callable[[str], None]:
     """A progress callback that shows a step's text on a rich status spinner."""
     return lambda text: status.update(text)
@@ -53,14 +62,13 @@ def _cmd_simulate(args) -> int:
 
 
 def _cmd_fit(args) -> int:
-    from rich.console import Console
 
     from torchcal.instruments.base import FitRequest, check_fit_paths, fit_committed
     from torchcal.instruments.registry import recognise
 
     check_fit_paths(Path(args.out), Path(args.data), Path(args.robot))
     instrument = recognise(args.data)
-    console = Console(stderr=True)
+    console = _console()
     with console.status(f"fitting {instrument.name} data") as status:
         outcome = fit_committed(instrument, FitRequest(
             robot=Path(args.robot), data=Path(args.data), out=Path(args.out), overrides=list(args.overrides),
@@ -128,7 +136,7 @@ def _cmd_run(args) -> int:
     from torchcal.config import compose_run_config
 
     config, _ = compose_run_config(args.overrides)
-    summary = run(config)
+    summary = run(config, console=_console(stderr=False))
     final = summary["test"][summary["final_stage"]]
     print(f"{summary['name']}: held-out RMS {final['position_rms_mm']:.4f} mm on {final['n_poses']} new twin poses "
           f"({summary['model']}, chosen by grouped CV on the training poses); "
@@ -137,7 +145,6 @@ def _cmd_run(args) -> int:
 
 
 def _cmd_study(args) -> int:
-    from rich.console import Console
 
     from torchcal.config import compose_run_config
     from torchcal.config.compose import merge_section
@@ -155,7 +162,7 @@ def _cmd_study(args) -> int:
         study.storage = args.storage
     if args.n_trials is not None:
         study.n_trials = args.n_trials
-    outcome = run_study(base, study, workers=args.workers, console=Console(stderr=True))
+    outcome = run_study(base, study, workers=args.workers, console=_console())
     print(outcome.summary(study.name))
     return 0
 

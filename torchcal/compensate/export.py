@@ -356,7 +356,22 @@ def _held_out_metrics(model_dir: Path, meta: dict) -> dict | None:
     path = model_dir / "metrics.json"
     if path.is_file():
         return json.loads(path.read_text())
-    return None
+    return _cross_validated_metrics(model_dir)
+
+
+def _cross_validated_metrics(model_dir: Path) -> dict | None:
+    """Without held-out figures in the model folder: the fit's own grouped cross-validation of the
+    chosen model (out-of-fold poses, the protocol stated), from ``model_selection.json``."""
+    path = model_dir / "model_selection.json"
+    if not path.is_file():
+        return None
+    selection = json.loads(path.read_text())
+    chosen = next((c for c in selection.get("candidates", []) if c.get("name") == selection.get("chosen")), None)
+    if chosen is None:
+        return None
+    return {"position_rms_mm": chosen["cv_rms_mm"], "model": selection["chosen"],
+            "protocol": f"cross-validated in the fit: {selection.get('protocol', '')}",
+            "note": "out-of-fold poses of the training file; `torchcal evaluate` on new poses measures the model itself"}
 
 
 def _expected_accuracy(stored) -> dict | None:

@@ -183,6 +183,12 @@ def csv_missing_column(fx: Fixtures, w: Path) -> Case:
     return Case(_fit(fx, data, w / "out"), 2, "q1..q6", w / "out")
 
 
+def csv_semicolon(fx: Fixtures, w: Path) -> Case:
+    data = w / "train.csv"
+    data.write_text("\n".join(line.replace(",", ";").replace(".", ",") for line in fx.train.read_text().splitlines()) + "\n")
+    return Case(_fit(fx, data, w / "out"), 2, "separated by semicolons", w / "out")
+
+
 def yaml_latin1(fx: Fixtures, w: Path) -> Case:
     robot = w / "robot.yaml"
     robot.write_bytes(fx.robot.read_bytes().replace(b"name: twin-kr6", b"name: twin-kr6-\xe9"))
@@ -574,7 +580,7 @@ def simulate_huge(fx: Fixtures, w: Path) -> Case:
 
 CASES: dict[str, Callable[[Fixtures, Path], Case]] = {f.__name__: f for f in (
     csv_latin1, csv_binary, csv_nul, csv_huge_field, csv_metres, csv_radians, csv_1e300, csv_underscore, csv_nan,
-    csv_duplicate, csv_missing_column,
+    csv_duplicate, csv_missing_column, csv_semicolon,
     yaml_latin1, yaml_binary, yaml_alias_bomb, yaml_python_tag, yaml_wrong_sign, urdf_nan_origin, urdf_zero_axis,
     model_json_truncated, model_json_invalid_sealed, model_json_missing_key_sealed, safetensors_bitflip,
     safetensors_bad_header_sealed, safetensors_nan_sealed, safetensors_foreign_sealed, model_stale_residual,
