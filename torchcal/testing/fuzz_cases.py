@@ -420,6 +420,32 @@ def few_poses(fx: Fixtures, w: Path) -> Case:
     return Case(_fit(fx, data, w / "out"), 0, "per parameter", w / "out", "whole")
 
 
+def _points_of_other_poses(src: Path, dst: Path) -> Path:
+    """The file with each row's x, y, z taken from another row (joints and points of different poses)."""
+    header, rows = _rows(src)
+    cols = [header.index(c) for c in "xyz"]
+    shifted = rows[7:] + rows[:7]
+    return _write_rows(dst, header, [[(shifted[k][i] if i in cols else v) for i, v in enumerate(r)]
+                                     for k, r in enumerate(rows)])
+
+
+def fit_points_of_other_poses(fx: Fixtures, w: Path) -> Case:
+    data = _points_of_other_poses(fx.train, w / "train.csv")
+    return Case(_fit(fx, data, w / "out"), 2, "still misses the measured points", w / "out")
+
+
+def evaluate_points_of_other_poses(fx: Fixtures, w: Path) -> Case:
+    data = _points_of_other_poses(fx.test, w / "test.csv")
+    return Case(_evaluate(fx.model, data, "--json", str(w / "m.json")), 2, "another robot", w / "m.json")
+
+
+def evaluate_instrument_moved(fx: Fixtures, w: Path) -> Case:
+    def edit(h, k, r):
+        r[h.index("x")] = repr(float(r[h.index("x")]) + 400.0)
+        return r
+    return Case(_evaluate(fx.model, _edit_csv(fx.test, w / "test.csv", edit)), 2, "add --register", None)
+
+
 # ------------------------------------------------ round 2: outputs, write failures, names, options
 
 
@@ -593,7 +619,8 @@ CASES: dict[str, Callable[[Fixtures, Path], Case]] = {f.__name__: f for f in (
     refit_over_user_file, export_out_inside_model, fit_file_too_large, export_file_too_large, run_name_parent,
     run_name_slash, run_name_huge, study_name_parent, seed_beyond_32_bits, seed_negative, device_meta,
     device_unknown, boolean_given_number, evaluate_interpolation, simulate_interpolation, study_workers_zero,
-    study_trials_zero, export_iterations_huge, hidden_units_huge, simulate_huge,
+    study_trials_zero, export_iterations_huge, hidden_units_huge, simulate_huge, fit_points_of_other_poses,
+    evaluate_points_of_other_poses, evaluate_instrument_moved,
 )}
 
 #: Cases by class (the reliability rounds' classes); every other case is a bad input file.
@@ -614,6 +641,8 @@ _BY_CLASS: dict[str, tuple[str, ...]] = {
         "evaluate_interpolation", "simulate_interpolation", "study_workers_zero", "study_trials_zero",
         "threshold_negative", "threshold_nan", "residual_unknown", "unknown_option", "simulate_zero",
         "simulate_negative"),
+    "a file of another robot or set-up": ("fit_points_of_other_poses", "evaluate_points_of_other_poses",
+                                          "evaluate_instrument_moved"),
     "hangs and unbounded memory": ("export_iterations_huge", "hidden_units_huge", "simulate_huge", "csv_huge_field"),
 }
 

@@ -7,9 +7,11 @@ residual head kept only where it helps on new poses (:mod:`torchcal.stages.resid
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Any, ClassVar
 
+from torchcal.core.errors import DataError
 from torchcal.instruments.base import (
     ContractCase,
     EvaluateOutcome,
@@ -56,6 +58,7 @@ class TrackerInstrument(Instrument):
                                     "nominal": before, "geometry_stage": after}}
 
         run = fit_model(request.out, robot, data, config, metadata=fit_metrics, progress=request.progress)
+        refuse_implausible_fit(run.result, robot.name, str(request.data))
         lines = run.lines()
         request.progress("writing the report")
         lines.append(_write_fit_report(run.folder, data, run.structure, lines, config))
@@ -119,6 +122,25 @@ class TrackerInstrument(Instrument):
             metric="position_rms_mm",
             bound=0.05,
         )
+
+
+#: A calibrated model that still misses its own training points by this much (RMS, mm) does not
+#: describe the measured robot: real arms calibrate to 0.02-0.5 mm, deflections add a few mm at most.
+IMPLAUSIBLE_FIT_RMS_MM = 10.0
+
+
+def refuse_implausible_fit(result: Any, robot_name: str, data_file: str) -> None:
+    """Refuse a fit whose calibrated geometry still misses the measured points by centimetres.
+
+    Raises:
+        DataError: naming the residual and the likely causes (nothing is written: the fit runs staged).
+    """
+    rms_mm = math.sqrt(3.0) * float(result.sigma_residual_m) * 1e3
+    if rms_mm > IMPLAUSIBLE_FIT_RMS_MM:
+        raise DataError(f"after calibration the model of {robot_name} still misses the measured points by "
+                        f"{rms_mm:.1f} mm RMS (a calibrated arm: well under 1 mm): the robot file is likely not "
+                        "this robot's (another model, joint signs or zeros, a mirrored frame), or the joint "
+                        "columns and the points are not the same poses; nothing was written", path=data_file)
 
 
 def _selection(folder: Path) -> dict | None:
