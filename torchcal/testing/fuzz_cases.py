@@ -242,6 +242,21 @@ def urdf_zero_axis(fx: Fixtures, w: Path) -> Case:
     return Case(_fit(fx, fx.train, w / "out", robot=robot), 2, "axis", w / "out")
 
 
+def urdf_nan_limit(fx: Fixtures, w: Path) -> Case:
+    text = _urdf(fx)
+    i = text.index('<limit lower="')
+    j = text.index('"', i + 14)
+    robot = w / "robot.urdf"
+    robot.write_text(text[:i] + '<limit lower="nan' + text[j:])
+    return Case(_fit(fx, fx.train, w / "out", robot=robot), 2, "must be finite numbers", w / "out")
+
+
+def yaml_deeply_nested(fx: Fixtures, w: Path) -> Case:
+    robot = w / "robot.yaml"
+    robot.write_text("name: " + "[" * 20000 + "]" * 20000 + "\n" + fx.robot.read_text().split("\n", 1)[1])
+    return Case(_fit(fx, fx.train, w / "out", robot=robot), 2, "robot.yaml", w / "out")
+
+
 def model_json_truncated(fx: Fixtures, w: Path) -> Case:
     model = _copy_model(fx, w)
     path = model / "calibration.json"
@@ -608,6 +623,7 @@ CASES: dict[str, Callable[[Fixtures, Path], Case]] = {f.__name__: f for f in (
     csv_latin1, csv_binary, csv_nul, csv_huge_field, csv_metres, csv_radians, csv_1e300, csv_underscore, csv_nan,
     csv_duplicate, csv_missing_column, csv_semicolon,
     yaml_latin1, yaml_binary, yaml_alias_bomb, yaml_python_tag, yaml_wrong_sign, urdf_nan_origin, urdf_zero_axis,
+    urdf_nan_limit, yaml_deeply_nested,
     model_json_truncated, model_json_invalid_sealed, model_json_missing_key_sealed, safetensors_bitflip,
     safetensors_bad_header_sealed, safetensors_nan_sealed, safetensors_foreign_sealed, model_stale_residual,
     model_no_checksums, robot_file_absolute, robot_file_parent,
