@@ -189,6 +189,21 @@ def csv_semicolon(fx: Fixtures, w: Path) -> Case:
     return Case(_fit(fx, data, w / "out"), 2, "separated by semicolons", w / "out")
 
 
+def csv_wide_header(fx: Fixtures, w: Path) -> Case:
+    header, rows = _rows(fx.train)
+    extra = [f"c{i}" for i in range(200_000)]
+    data = _write_rows(w / "train.csv", header + extra, [r + ["0"] * len(extra) for r in rows[:3]])
+    return Case(_fit(fx, data, w / "out"), 2, "200009 columns", w / "out")
+
+
+def csv_million_rows(fx: Fixtures, w: Path) -> Case:
+    header, rows = _rows(fx.train)
+    data = w / "train.csv"
+    line = ",".join(rows[0]) + "\n"
+    data.write_text(",".join(header) + "\n" + line * 600_000)
+    return Case(_fit(fx, data, w / "out"), 2, "at most 500000 poses", w / "out")
+
+
 def yaml_latin1(fx: Fixtures, w: Path) -> Case:
     robot = w / "robot.yaml"
     robot.write_bytes(fx.robot.read_bytes().replace(b"name: twin-kr6", b"name: twin-kr6-\xe9"))
@@ -621,7 +636,7 @@ def simulate_huge(fx: Fixtures, w: Path) -> Case:
 
 CASES: dict[str, Callable[[Fixtures, Path], Case]] = {f.__name__: f for f in (
     csv_latin1, csv_binary, csv_nul, csv_huge_field, csv_metres, csv_radians, csv_1e300, csv_underscore, csv_nan,
-    csv_duplicate, csv_missing_column, csv_semicolon,
+    csv_duplicate, csv_missing_column, csv_semicolon, csv_wide_header, csv_million_rows,
     yaml_latin1, yaml_binary, yaml_alias_bomb, yaml_python_tag, yaml_wrong_sign, urdf_nan_origin, urdf_zero_axis,
     urdf_nan_limit, yaml_deeply_nested,
     model_json_truncated, model_json_invalid_sealed, model_json_missing_key_sealed, safetensors_bitflip,
@@ -659,7 +674,8 @@ _BY_CLASS: dict[str, tuple[str, ...]] = {
         "simulate_negative"),
     "a file of another robot or set-up": ("fit_points_of_other_poses", "evaluate_points_of_other_poses",
                                           "evaluate_instrument_moved"),
-    "hangs and unbounded memory": ("export_iterations_huge", "hidden_units_huge", "simulate_huge", "csv_huge_field"),
+    "hangs and unbounded memory": ("export_iterations_huge", "hidden_units_huge", "simulate_huge", "csv_huge_field",
+                                   "csv_wide_header", "csv_million_rows"),
 }
 
 #: The class of each case, for counts by class.
