@@ -357,6 +357,14 @@ def _robot_file(fx: Fixtures, w: Path, value: str) -> Path:
     return model
 
 
+def robot_file_of_another_model_sealed(fx: Fixtures, w: Path) -> Case:
+    model = _copy_model(fx, w)
+    path = model / "robot.yaml"
+    path.write_text(path.read_text().replace("a: 455", "a: 480"))
+    _reseal(model)
+    return Case(_evaluate(model, fx.test), 2, "not the robot file this model was fitted with", model, "unchanged")
+
+
 def robot_file_absolute(fx: Fixtures, w: Path) -> Case:
     model = _robot_file(fx, w, "/etc/passwd")
     return Case(_evaluate(model, fx.test), 2, "inside the model folder", model, "unchanged")
@@ -641,7 +649,7 @@ CASES: dict[str, Callable[[Fixtures, Path], Case]] = {f.__name__: f for f in (
     urdf_nan_limit, yaml_deeply_nested,
     model_json_truncated, model_json_invalid_sealed, model_json_missing_key_sealed, safetensors_bitflip,
     safetensors_bad_header_sealed, safetensors_nan_sealed, safetensors_foreign_sealed, model_stale_residual,
-    model_no_checksums, robot_file_absolute, robot_file_parent,
+    model_no_checksums, robot_file_absolute, robot_file_parent, robot_file_of_another_model_sealed,
     fit_out_is_file, fit_out_foreign_folder, fit_out_holds_data, evaluate_json_is_folder, export_out_is_file,
     export_out_is_model, simulate_zero, simulate_negative, threshold_negative, threshold_nan, residual_unknown,
     unknown_option, register_three_poses, evaluate_metres, few_poses,
@@ -666,7 +674,8 @@ _BY_CLASS: dict[str, tuple[str, ...]] = {
     "names that escape": ("run_name_parent", "run_name_slash", "run_name_huge", "study_name_parent"),
     "sealed but inconsistent folders": (
         "model_json_invalid_sealed", "model_json_missing_key_sealed", "safetensors_bad_header_sealed",
-        "safetensors_nan_sealed", "safetensors_foreign_sealed", "robot_file_absolute", "robot_file_parent"),
+        "safetensors_nan_sealed", "safetensors_foreign_sealed", "robot_file_absolute", "robot_file_parent",
+        "robot_file_of_another_model_sealed"),
     "options that crash deep": (
         "seed_beyond_32_bits", "seed_negative", "device_meta", "device_unknown", "boolean_given_number",
         "evaluate_interpolation", "simulate_interpolation", "study_workers_zero", "study_trials_zero",
