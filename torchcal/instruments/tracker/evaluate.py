@@ -15,7 +15,7 @@ from torchcal.core.errors import DataError
 from torchcal.core.metrics import iso9283_repeated, position_metrics
 from torchcal.data.measurements import Measurements, load_measurements
 from torchcal.model_selection.leakage import leakage_report
-from torchcal.stages.geometry import held_out_errors
+from torchcal.stages.geometry import NOMINAL_PROTOCOL, held_out_errors, nominal_errors
 from torchcal.stages.prediction_uncertainty import score as score_uncertainty
 from torchcal.stages.prediction_uncertainty import stored_prediction
 from torchcal.stages.store import StoredModel, load_model
@@ -85,6 +85,10 @@ def score(stored: StoredModel, data: Measurements, *, register: bool = False, le
     refuse_foreign_file(errors, stored, data, register)
     metrics: dict[str, Any] = position_metrics(errors)
     metrics.update({"model": str(stored.folder), "data": str(data.source), "registered": register})
+    # the fair 'before' on the same poses: what the uncalibrated robot misses them by
+    before = position_metrics(nominal_errors(stored.robot, data))
+    metrics["nominal"] = {**before, "protocol": NOMINAL_PROTOCOL}
+    metrics["nominal_position_rms_mm"] = before["position_rms_mm"]
     prediction = stored_prediction(stored, data.q)
     if prediction is not None:
         uncertainty = score_uncertainty(prediction, errors,

@@ -77,7 +77,8 @@ class TrackerInstrument(Instrument):
         data = load_measurements(request.data, stored.robot, joint_unit=config.joint_unit, length_unit=config.length_unit)
         scored = score(stored, data, register=request.register)
         metrics = scored.metrics
-        lines = []
+        lines = [f"{len(data)} poses: the model misses them by {metrics['position_rms_mm']:.4f} mm RMS, the nominal robot "
+                 f"by {metrics['nominal_position_rms_mm']:.4f} mm ({metrics['nominal']['protocol']})"]
         if "leakage" in metrics:
             leakage = LeakageReport(**metrics["leakage"])
             lines.append(f"{'warning: ' if leakage.warning else ''}{leakage.summary()}")
@@ -99,7 +100,7 @@ class TrackerInstrument(Instrument):
 
     def shown_metrics(self, metrics: dict) -> dict:
         # the point figures; leakage, uncertainty and the compensator are in the lines printed above
-        return {k: v for k, v in metrics.items() if k.startswith(("n_", "position_"))}
+        return {k: v for k, v in metrics.items() if k.startswith(("n_", "position_", "nominal_position_"))}
 
     def options(self) -> type:
         from torchcal.config.schema import FitConfig
