@@ -484,6 +484,24 @@ def evaluate_instrument_moved(fx: Fixtures, w: Path) -> Case:
     return Case(_evaluate(fx.model, _edit_csv(fx.test, w / "test.csv", edit)), 2, "add --register", None)
 
 
+def rows_with_mistyped_angle(fx: Fixtures, w: Path) -> Case:
+    def edit(h, k, r):
+        if k in (5, 23):  # two of forty rows: a joint angle typed with a slipped digit
+            r[h.index("q2")] = repr(float(r[h.index("q2")]) + 9.0)
+        return r
+    return Case(_fit(fx, _edit_csv(fx.train, w / "train.csv", edit), w / "out"), 0, "line 7", w / "out", "whole")
+
+
+def rows_in_metres(fx: Fixtures, w: Path) -> Case:
+    def edit(h, k, r):
+        if k < 12:  # twelve of forty rows in metres: the file mixes units
+            for c in "xyz":
+                r[h.index(c)] = repr(float(r[h.index(c)]) / 1000)
+        return r
+    return Case(_fit(fx, _edit_csv(fx.train, w / "train.csv", edit), w / "out"), 2, "a typo or a wrong value",
+                w / "out")
+
+
 # ------------------------------------------------ round 2: outputs, write failures, names, options
 
 
@@ -659,7 +677,7 @@ CASES: dict[str, Callable[[Fixtures, Path], Case]] = {f.__name__: f for f in (
     run_name_slash, run_name_huge, study_name_parent, seed_beyond_32_bits, seed_negative, device_meta,
     device_unknown, boolean_given_number, evaluate_interpolation, simulate_interpolation, study_workers_zero,
     study_trials_zero, export_iterations_huge, hidden_units_huge, simulate_huge, fit_points_of_other_poses,
-    evaluate_points_of_other_poses, evaluate_instrument_moved,
+    evaluate_points_of_other_poses, evaluate_instrument_moved, rows_with_mistyped_angle, rows_in_metres,
 )}
 
 #: Cases by class (the reliability rounds' classes); every other case is a bad input file.
@@ -681,6 +699,8 @@ _BY_CLASS: dict[str, tuple[str, ...]] = {
         "evaluate_interpolation", "simulate_interpolation", "study_workers_zero", "study_trials_zero",
         "threshold_negative", "threshold_nan", "residual_unknown", "unknown_option", "simulate_zero",
         "simulate_negative"),
+    "bad rows and contradictory inputs": ("rows_with_mistyped_angle", "rows_in_metres", "csv_semicolon",
+                                          "urdf_nan_limit", "yaml_deeply_nested"),
     "a file of another robot or set-up": ("fit_points_of_other_poses", "evaluate_points_of_other_poses",
                                           "evaluate_instrument_moved"),
     "hangs and unbounded memory": ("export_iterations_huge", "hidden_units_huge", "simulate_huge", "csv_huge_field",

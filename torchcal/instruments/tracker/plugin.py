@@ -8,6 +8,7 @@ residual head kept only where it helps on new poses (:mod:`torchcal.stages.resid
 from __future__ import annotations
 
 import math
+import warnings
 from pathlib import Path
 from typing import Any, ClassVar
 
@@ -42,6 +43,7 @@ class TrackerInstrument(Instrument):
         from torchcal.config.compose import compose_fit_config
         from torchcal.core.metrics import position_metrics
         from torchcal.identify.joint_fit import predicted_positions
+        from torchcal.identify.outliers import find_outlier_rows
         from torchcal.kinematics.robot import load_robot
         from torchcal.stages.geometry import NOMINAL_PROTOCOL, nominal_errors, with_tool
         from torchcal.stages.pipeline import fit_model
@@ -49,13 +51,21 @@ class TrackerInstrument(Instrument):
         config = compose_fit_config(request.overrides)
         robot = with_tool(load_robot(request.robot, base_link=request.base_link, end_link=request.end_link), config)
         data = self.load(request.data, robot, request.overrides)
+        request.progress(f"checking {len(data)} poses for rows the geometry cannot explain")
+        outliers = find_outlier_rows(robot, data, parallel_threshold_deg=config.parallel_threshold_deg)
+        set_aside: dict = {}
+        if outliers is not None:
+            warnings.warn(outliers.message(str(request.data)), stacklevel=2)
+            data = data.subset([i for i in range(len(data)) if i not in set(outliers.index)])
+            set_aside = {"rows_left_out": {"file_lines": list(outliers.lines), "errors_mm": list(outliers.errors_mm),
+                                           "median_mm_of_the_others": outliers.median_mm}}
         request.progress(f"identifying {robot.name} from {len(data)} poses")
 
         def fit_metrics(result: Any) -> dict:
             before = position_metrics(nominal_errors(robot, data))
             after = position_metrics(data.position - predicted_positions(result, data.q))
             return {"fit_metrics": {"protocol": f"training poses, optimistic; nominal: {NOMINAL_PROTOCOL}",
-                                    "nominal": before, "geometry_stage": after}}
+                                    "nominal": before, "geometry_stage": after}, **set_aside}
 
         run = fit_model(request.out, robot, data, config, metadata=fit_metrics, progress=request.progress)
         refuse_implausible_fit(run.result, robot.name, str(request.data))
@@ -77,8 +87,8 @@ class TrackerInstrument(Instrument):
         data = load_measurements(request.data, stored.robot, joint_unit=config.joint_unit, length_unit=config.length_unit)
         scored = score(stored, data, register=request.register)
         metrics = scored.metrics
-        lines = [f"{len(data)} poses: the model misses them by {metrics['position_rms_mm']:.4f} mm RMS, the nominal robot "
-                 f"by {metrics['nominal_position_rms_mm']:.4f} mm ({metrics['nominal']['protocol']})"]
+        lines = [(f"{len(data)} poses: the model misses them by {metrics['position_rms_mm']:.4f} mm RMS, the nominal robot "
+                  f"by {metrics['nominal_position_rms_mm']:.4f} mm ({metrics['nominal']['protocol']})")]
         if "leakage" in metrics:
             leakage = LeakageReport(**metrics["leakage"])
             lines.append(f"{'warning: ' if leakage.warning else ''}{leakage.summary()}")
