@@ -611,6 +611,21 @@ def study_name_parent(fx: Fixtures, w: Path) -> Case:
                 w / "escaped")
 
 
+def simulate_negative_mass(fx: Fixtures, w: Path) -> Case:
+    return Case(["simulate", "--out", str(w / "sim"), "gravity=true", "link_masses_kg=[25,-15,10]"], 2,
+                "link_masses_kg", w / "sim")
+
+
+def simulate_zero_stiffness(fx: Fixtures, w: Path) -> Case:
+    return Case(["simulate", "--out", str(w / "sim"), "gravity=true", "joint_stiffness_nm_per_rad=[0]"], 2,
+                "joint_stiffness_nm_per_rad", w / "sim")
+
+
+def simulate_sockets_touching(fx: Fixtures, w: Path) -> Case:
+    return Case(["simulate", "instrument=sockets", "--out", str(w / "sim"), "distance_mm=0"], 2, "distance_mm",
+                w / "sim")
+
+
 def seed_beyond_32_bits(fx: Fixtures, w: Path) -> Case:
     return Case(_fit(fx, fx.train, w / "out", "seed=4294967296"), 2, "seed must be an integer", w / "out")
 
@@ -678,6 +693,7 @@ CASES: dict[str, Callable[[Fixtures, Path], Case]] = {f.__name__: f for f in (
     device_unknown, boolean_given_number, evaluate_interpolation, simulate_interpolation, study_workers_zero,
     study_trials_zero, export_iterations_huge, hidden_units_huge, simulate_huge, fit_points_of_other_poses,
     evaluate_points_of_other_poses, evaluate_instrument_moved, rows_with_mistyped_angle, rows_in_metres,
+    simulate_negative_mass, simulate_zero_stiffness, simulate_sockets_touching,
 )}
 
 #: Cases by class (the reliability rounds' classes); every other case is a bad input file.
@@ -700,7 +716,8 @@ _BY_CLASS: dict[str, tuple[str, ...]] = {
         "threshold_negative", "threshold_nan", "residual_unknown", "unknown_option", "simulate_zero",
         "simulate_negative"),
     "bad rows and contradictory inputs": ("rows_with_mistyped_angle", "rows_in_metres", "csv_semicolon",
-                                          "urdf_nan_limit", "yaml_deeply_nested"),
+                                          "urdf_nan_limit", "yaml_deeply_nested", "simulate_negative_mass",
+                                          "simulate_zero_stiffness", "simulate_sockets_touching"),
     "a file of another robot or set-up": ("fit_points_of_other_poses", "evaluate_points_of_other_poses",
                                           "evaluate_instrument_moved"),
     "hangs and unbounded memory": ("export_iterations_huge", "hidden_units_huge", "simulate_huge", "csv_huge_field",
