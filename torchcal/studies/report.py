@@ -117,7 +117,13 @@ def write_study_report(study, config: StudyConfig, study_dir: Path, best_run: di
                          f"test RMS {_mm(d.user_attrs.get('test_rms_mm'))}; the best trial is "
                          f"{100 * (1 - best.values[0] / d.values[0]):.1f} % lower on validation." if d.values[0] > 0 else "")
             lines.append("")
-        if len(complete) >= 3 and len(best.params) >= 1:
+        values = [t.values[0] for t in complete]
+        spread = max(values) - min(values) if values else 0.0
+        if len(complete) >= 3 and len(best.params) >= 1 and spread <= 1e-9 * max(1.0, abs(max(values))):
+            # fANOVA splits zero variance evenly (0.5 / 0.5): a ranking there would be invented
+            lines += ["## Parameter importances", "", f"Not ranked: the {len(complete)} complete trials give the same "
+                      f"{config.objectives[0]} ({values[0]:.6g}), so no parameter explains any of its variance.", ""]
+        elif len(complete) >= 3 and len(best.params) >= 1:
             try:
                 importances = optuna.importance.get_param_importances(study)
             except (RuntimeError, ValueError):
