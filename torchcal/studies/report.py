@@ -121,8 +121,9 @@ def write_study_report(study, config: StudyConfig, study_dir: Path, best_run: di
         spread = max(values) - min(values) if values else 0.0
         if len(complete) >= 3 and len(best.params) >= 1 and spread <= 1e-9 * max(1.0, abs(max(values))):
             # fANOVA splits zero variance evenly (0.5 / 0.5): a ranking there would be invented
-            lines += ["## Parameter importances", "", f"Not ranked: the {len(complete)} complete trials give the same "
-                      f"{config.objectives[0]} ({values[0]:.6g}), so no parameter explains any of its variance.", ""]
+            note = (f"Not ranked: the {len(complete)} complete trials give the same {config.objectives[0]} "
+                    f"({values[0]:.6g}), so no parameter explains any of its variance.")
+            lines += ["## Parameter importances", "", note, ""]
         elif len(complete) >= 3 and len(best.params) >= 1:
             try:
                 importances = optuna.importance.get_param_importances(study)
