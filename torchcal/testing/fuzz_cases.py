@@ -23,9 +23,13 @@ from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import torch
+
 from torchcal.core.errors import TorchcalError
 from torchcal.core.folder import seal, verify_folder, write_member, write_member_json
+from torchcal.data.measurements import write_measurements_csv
 from torchcal.kinematics.robot import load_robot, mdh_to_urdf
+from torchcal.sim.twin import Twin, TwinConfig
 
 
 @dataclass
@@ -492,6 +496,15 @@ def rows_with_mistyped_angle(fx: Fixtures, w: Path) -> Case:
     return Case(_fit(fx, _edit_csv(fx.train, w / "train.csv", edit), w / "out"), 0, "line 7", w / "out", "whole")
 
 
+def joint_never_moves(fx: Fixtures, w: Path) -> Case:
+    twin = Twin.create(TwinConfig(n_train=60))
+    q = twin.robot.sample_joints(60, torch.Generator().manual_seed(5))
+    q[:, 2] = 0.3  # joint 3 held still while the others move
+    data = w / "train.csv"
+    write_measurements_csv(data, q, twin.model.tcp_position(q, twin.x_true))
+    return Case(_fit(fx, data, w / "out"), 0, "spans only 0.000 deg", w / "out", "whole")
+
+
 def rows_in_metres(fx: Fixtures, w: Path) -> Case:
     def edit(h, k, r):
         if k < 12:  # twelve of forty rows in metres: the file mixes units
@@ -693,6 +706,7 @@ CASES: dict[str, Callable[[Fixtures, Path], Case]] = {f.__name__: f for f in (
     device_unknown, boolean_given_number, evaluate_interpolation, simulate_interpolation, study_workers_zero,
     study_trials_zero, export_iterations_huge, hidden_units_huge, simulate_huge, fit_points_of_other_poses,
     evaluate_points_of_other_poses, evaluate_instrument_moved, rows_with_mistyped_angle, rows_in_metres,
+    joint_never_moves,
     simulate_negative_mass, simulate_zero_stiffness, simulate_sockets_touching,
 )}
 
@@ -715,7 +729,7 @@ _BY_CLASS: dict[str, tuple[str, ...]] = {
         "evaluate_interpolation", "simulate_interpolation", "study_workers_zero", "study_trials_zero",
         "threshold_negative", "threshold_nan", "residual_unknown", "unknown_option", "simulate_zero",
         "simulate_negative"),
-    "bad rows and contradictory inputs": ("rows_with_mistyped_angle", "rows_in_metres", "csv_semicolon",
+    "bad rows and contradictory inputs": ("rows_with_mistyped_angle", "rows_in_metres", "csv_semicolon", "joint_never_moves",
                                           "urdf_nan_limit", "yaml_deeply_nested", "simulate_negative_mass",
                                           "simulate_zero_stiffness", "simulate_sockets_touching"),
     "a file of another robot or set-up": ("fit_points_of_other_poses", "evaluate_points_of_other_poses",

@@ -51,14 +51,17 @@ class TrackerInstrument(Instrument):
         config = compose_fit_config(request.overrides)
         robot = with_tool(load_robot(request.robot, base_link=request.base_link, end_link=request.end_link), config)
         data = self.load(request.data, robot, request.overrides)
+        still = still_joints(data, robot.joint_names)
+        for line in still:
+            warnings.warn(f"{request.data}: {line}", stacklevel=2)
         request.progress(f"checking {len(data)} poses for rows the geometry cannot explain")
         outliers = find_outlier_rows(robot, data, parallel_threshold_deg=config.parallel_threshold_deg)
-        set_aside: dict = {}
+        set_aside: dict = {"joints_not_moved": still} if still else {}
         if outliers is not None:
             warnings.warn(outliers.message(str(request.data)), stacklevel=2)
             data = data.subset([i for i in range(len(data)) if i not in set(outliers.index)])
-            set_aside = {"rows_left_out": {"file_lines": list(outliers.lines), "errors_mm": list(outliers.errors_mm),
-                                           "median_mm_of_the_others": outliers.median_mm}}
+            set_aside["rows_left_out"] = {"file_lines": list(outliers.lines), "errors_mm": list(outliers.errors_mm),
+                                           "median_mm_of_the_others": outliers.median_mm}
         request.progress(f"identifying {robot.name} from {len(data)} poses")
 
         def fit_metrics(result: Any) -> dict:
@@ -133,6 +136,20 @@ class TrackerInstrument(Instrument):
             metric="position_rms_mm",
             bound=0.05,
         )
+
+
+#: A joint whose angles span less than this (deg) in a file is taken as not moving.
+STILL_JOINT_DEG = 1.0
+
+
+def still_joints(data: Any, joint_names: tuple[str, ...]) -> list[str]:
+    """One line per joint that (nearly) never moves in ``data``: what a model says elsewhere is extrapolation."""
+    q_deg = data.q.detach().cpu().double() * (180.0 / math.pi)
+    span = q_deg.max(dim=0).values - q_deg.min(dim=0).values
+    return [f"{name} (q{j + 1}) spans only {float(span[j]):.3f} deg in this file (around {float(q_deg[:, j].median()):.2f} "
+            f"deg): its parameters are seen at that angle only, and what the model predicts at other {name} "
+            "angles is extrapolation; measure poses that move it"
+            for j, name in enumerate(joint_names) if float(span[j]) < STILL_JOINT_DEG]
 
 
 #: A calibrated model that still misses its own training points by this much (RMS, mm) does not
