@@ -133,3 +133,11 @@ def test_profile_fit_into_a_model_folder_keeps_the_model(fixtures, tmp_path):
     assert (out / "sensor.json").is_file()
     verify_folder(out)
     assert load_model(out).x.equal(load_model(fixtures.model).x)
+
+
+def test_every_classed_case_exists():
+    """The counts by class (scripts/fuzz_count.py) name only cases that exist."""
+    from torchcal.testing.fuzz_cases import _BY_CLASS, CLASSES
+
+    assert all(name in CASES for names in _BY_CLASS.values() for name in names)
+    assert set(CLASSES) == set(CASES)

@@ -84,3 +84,33 @@ def find_outlier_rows(robot: RobotModel, data: Measurements, *, parallel_thresho
                         f"row error ({found.median_mm:.3f} mm): the file mixes set-ups, robots or units (a share of "
                         f"rows in metres?); e.g. {', '.join(f'line {x}' for x in lines[:5])}", path=data.source)
     return found
+
+
+#: With the orientation columns the position fit may lose this factor before they are taken as inconsistent.
+ORIENTATION_RATIO = 3.0
+
+
+def check_orientation_columns(robot: RobotModel, data: Measurements, *, parallel_threshold_deg: float,
+                              ratio: float = ORIENTATION_RATIO, floor_mm: float = 0.2) -> None:
+    """Refuse ``rx, ry, rz`` columns that contradict the positions.
+
+    Two geometry fits, with and without the orientation rows: consistent columns cost the positions
+    little; columns of another convention, another tool or garbage pull the model away from the
+    points (``ratio`` times the position-only RMS and more than ``floor_mm``).
+
+    Raises:
+        DataError: naming both RMS and the likely causes.
+    """
+    if data.rotation is None:
+        return
+    rms = {}
+    for use in (False, True):
+        result = calibrate(robot, data, identifier=LevenbergMarquardt(max_iterations=30), use_orientation=use,
+                           parallel_threshold_deg=parallel_threshold_deg)
+        errors = (data.position - result.model.tcp_position(data.q, result.x)).norm(dim=-1)
+        rms[use] = float(errors.pow(2).mean().sqrt()) * 1e3
+    if rms[True] > ratio * rms[False] and rms[True] > floor_mm:
+        raise DataError(f"the orientation columns rx, ry, rz contradict the positions: fitted with them the model "
+                        f"misses the points by {rms[True]:.3f} mm RMS, without them by {rms[False]:.3f} mm; check "
+                        "their convention (fixed-axis XYZ in deg, R = Rz(rz) Ry(ry) Rx(rx), tool in the instrument "
+                        "frame) or remove the columns to fit positions only", path=data.source)

@@ -505,6 +505,13 @@ def joint_never_moves(fx: Fixtures, w: Path) -> Case:
     return Case(_fit(fx, data, w / "out"), 0, "spans only 0.000 deg", w / "out", "whole")
 
 
+def orientation_garbage(fx: Fixtures, w: Path) -> Case:
+    header, rows = _rows(fx.train)
+    angles = [[f"{(k * 37 + 11 * c) % 360 - 180:.1f}" for c in range(3)] for k in range(len(rows))]
+    data = _write_rows(w / "train.csv", [*header, "rx", "ry", "rz"], [r + a for r, a in zip(rows, angles)])
+    return Case(_fit(fx, data, w / "out"), 2, "contradict the positions", w / "out")
+
+
 def rows_in_metres(fx: Fixtures, w: Path) -> Case:
     def edit(h, k, r):
         if k < 12:  # twelve of forty rows in metres: the file mixes units
@@ -706,8 +713,7 @@ CASES: dict[str, Callable[[Fixtures, Path], Case]] = {f.__name__: f for f in (
     device_unknown, boolean_given_number, evaluate_interpolation, simulate_interpolation, study_workers_zero,
     study_trials_zero, export_iterations_huge, hidden_units_huge, simulate_huge, fit_points_of_other_poses,
     evaluate_points_of_other_poses, evaluate_instrument_moved, rows_with_mistyped_angle, rows_in_metres,
-    joint_never_moves,
-    simulate_negative_mass, simulate_zero_stiffness, simulate_sockets_touching,
+    joint_never_moves, orientation_garbage, simulate_negative_mass, simulate_zero_stiffness, simulate_sockets_touching,
 )}
 
 #: Cases by class (the reliability rounds' classes); every other case is a bad input file.
@@ -729,8 +735,8 @@ _BY_CLASS: dict[str, tuple[str, ...]] = {
         "evaluate_interpolation", "simulate_interpolation", "study_workers_zero", "study_trials_zero",
         "threshold_negative", "threshold_nan", "residual_unknown", "unknown_option", "simulate_zero",
         "simulate_negative"),
-    "bad rows and contradictory inputs": ("rows_with_mistyped_angle", "rows_in_metres", "csv_semicolon", "joint_never_moves",
-                                          "urdf_nan_limit", "yaml_deeply_nested", "simulate_negative_mass",
+    "bad rows and contradictory inputs": ("rows_with_mistyped_angle", "rows_in_metres", "csv_semicolon",
+                                          "joint_never_moves", "orientation_garbage", "urdf_nan_limit", "yaml_deeply_nested", "simulate_negative_mass",
                                           "simulate_zero_stiffness", "simulate_sockets_touching"),
     "a file of another robot or set-up": ("fit_points_of_other_poses", "evaluate_points_of_other_poses",
                                           "evaluate_instrument_moved"),

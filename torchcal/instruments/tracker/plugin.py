@@ -43,7 +43,7 @@ class TrackerInstrument(Instrument):
         from torchcal.config.compose import compose_fit_config
         from torchcal.core.metrics import position_metrics
         from torchcal.identify.joint_fit import predicted_positions
-        from torchcal.identify.outliers import find_outlier_rows
+        from torchcal.identify.outliers import check_orientation_columns, find_outlier_rows
         from torchcal.kinematics.robot import load_robot
         from torchcal.stages.geometry import NOMINAL_PROTOCOL, nominal_errors, with_tool
         from torchcal.stages.pipeline import fit_model
@@ -56,6 +56,7 @@ class TrackerInstrument(Instrument):
             warnings.warn(f"{request.data}: {line}", stacklevel=2)
         request.progress(f"checking {len(data)} poses for rows the geometry cannot explain")
         outliers = find_outlier_rows(robot, data, parallel_threshold_deg=config.parallel_threshold_deg)
+        check_orientation_columns(robot, data, parallel_threshold_deg=config.parallel_threshold_deg)
         set_aside: dict = {"joints_not_moved": still} if still else {}
         if outliers is not None:
             warnings.warn(outliers.message(str(request.data)), stacklevel=2)
