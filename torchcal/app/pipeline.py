@@ -20,6 +20,7 @@ from torchcal.core.folder import check_output_folder, staged_folder, write_membe
 from torchcal.core.io import atomic_write_json
 from torchcal.core.metrics import position_metrics
 from torchcal.core.outputs import check_name
+from torchcal.core.threads import fit_threads
 from torchcal.data.measurements import Measurements, load_measurements
 from torchcal.identify.calibrate import CalibrationResult
 from torchcal.identify.lm import LevenbergMarquardt
@@ -59,7 +60,16 @@ def projected_truth(twin: Twin, result: CalibrationResult, n: int = 2000) -> tup
 
 
 def run(config: RunConfig, console=None) -> dict:
-    """End to end on the twin; returns the summary also written to ``metrics.json``."""
+    """End to end on the twin; returns the summary also written to ``metrics.json``.
+
+    Every step runs on :data:`~torchcal.core.threads.FIT_THREADS` torch threads (small solves,
+    :mod:`torchcal.core.threads`).
+    """
+    with fit_threads():
+        return _run(config, console)
+
+
+def _run(config: RunConfig, console=None) -> dict:
     from rich.console import Console
 
     console = console or Console()

@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from torchcal.config.compose import save_resolved_config
+from torchcal.core.threads import fit_threads
 from torchcal.data.measurements import Measurements
 from torchcal.identify.calibrate import CalibrationResult
 from torchcal.kinematics.robot import RobotModel
@@ -84,8 +85,15 @@ def fit_model(
     them, for entries computed from it); ``fitted``: the ``(result, structure)`` of
     :func:`fit_with_selection` already computed on ``data`` with these options (a study reuses it
     across trials that differ only in their heads); ``progress(text)``: called before long steps;
-    ``residual_progress``: the residual stage's per-fold lines (default ``progress``).
+    ``residual_progress``: the residual stage's per-fold lines (default ``progress``). Runs on
+    :data:`~torchcal.core.threads.FIT_THREADS` torch threads (:mod:`torchcal.core.threads`).
     """
+    with fit_threads():
+        return _fit_model(Path(folder), robot, data, config, metadata, fitted, progress, residual_progress)
+
+
+def _fit_model(folder: Path, robot: RobotModel, data: Measurements, config: Any, metadata, fitted, progress,
+               residual_progress) -> FitRun:
     result, structure = fitted if fitted is not None else fit_with_selection(robot, data, config, progress=progress)
     extra = metadata(result) if callable(metadata) else dict(metadata or {})
     folder = save_fit(Path(folder), robot, data, result, extra, structure=structure, uncertainty=config.uncertainty)
