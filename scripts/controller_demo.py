@@ -1,6 +1,6 @@
 """Controller-side use of an exported compensator, without torch.
 
-Usage: python scripts/controller_demo.py EXPORT_DIR [--deg]
+Usage: python scripts/controller_demo.py EXPORT_DIR [--precision float64|float32]
 
 Reads the manifest, corrects a few joint commands in the middle of the joint range, prints the
 corrections and the predicted TCP errors, and finally whether torch was imported (it must not

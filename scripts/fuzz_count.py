@@ -25,7 +25,7 @@ import sys
 from collections import Counter
 from pathlib import Path
 
-from torchcal.testing.fuzz_cases import CASES, make_fixtures, out_state_problem, snapshot
+from torchcal.testing.fuzz_cases import CASES, CLASSES, make_fixtures, out_state_problem, snapshot
 
 HERE = Path(__file__).resolve().parents[1]
 
@@ -50,9 +50,14 @@ def main() -> int:
     args.work = args.work.resolve()
     env = {**os.environ, "PYTHONPATH": str(args.checkout.resolve())}
 
-    def run(argv: list[str]) -> subprocess.CompletedProcess:
+    def run(argv: list[str], file_limit: int | None = None) -> subprocess.CompletedProcess:
+        def limit() -> None:
+            if file_limit is not None:
+                import resource
+
+                resource.setrlimit(resource.RLIMIT_FSIZE, (file_limit, resource.getrlimit(resource.RLIMIT_FSIZE)[1]))
         return subprocess.run([sys.executable, "-m", "torchcal.cli", *argv], capture_output=True, text=True, env=env, cwd=args.work,
-                              timeout=args.timeout)
+                              timeout=args.timeout, preexec_fn=limit)
 
     shutil.rmtree(args.work, ignore_errors=True)
     args.work.mkdir(parents=True)
@@ -60,6 +65,7 @@ def main() -> int:
 
     fixtures = make_fixtures(args.work / "fixtures", lambda argv: here_main(argv))
     classes: Counter[str] = Counter()
+    by_class: dict[str, Counter[str]] = {}
     expected = 0
     for name in [n for n in args.only or sorted(CASES) if n in CASES]:
         work = args.work / name
@@ -67,7 +73,7 @@ def main() -> int:
         case = CASES[name](fixtures, work)
         before = snapshot(case.out)
         try:
-            proc = run(case.argv)
+            proc = run(case.argv, case.extra.get("file_limit"))
         except subprocess.TimeoutExpired:
             classes["timeout"] += 1
             print(f"{name:32s} rc=-   timeout   NOT as expected | still running after {args.timeout:g} s", flush=True)
@@ -90,6 +96,9 @@ def main() -> int:
               and (any(case.message in e for e in errors) if case.rc else bool(warned)))
         expected += ok
         classes[kind] += 1
+        tally = by_class.setdefault(CLASSES.get(name, "bad input files"), Counter())
+        tally["cases"] += 1
+        tally["as expected"] += ok
         print_case(name, proc.returncode, kind, ok, (errors or _nonblank(err) or [""])[-1], state)
     if args.only is None or "ctrl_c" in args.only:
         # Ctrl-C into a refit over an earlier model folder at 25, 50 and 75 % of an uninterrupted
@@ -102,25 +111,31 @@ def main() -> int:
         started = time.perf_counter()
         subprocess.run([*refit, str(args.work / "ctrl_c_timing")], capture_output=True, env=env, cwd=args.work, check=True)
         duration = time.perf_counter() - started
-        for share in (0.25, 0.5, 0.75):
-            name = f"ctrl_c@{share:.0%}"
-            out = args.work / name / "model"
-            shutil.copytree(fixtures.model, out)
-            before = snapshot(out)
-            proc = subprocess.Popen([*refit, str(out)], stderr=subprocess.PIPE, stdout=subprocess.DEVNULL,
-                                    text=True, env=env, cwd=args.work,
-                                    # a shell without job control starts background commands with SIGINT ignored
-                                    preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
-            time.sleep(share * duration)
-            proc.send_signal(signal.SIGINT)
-            err = proc.communicate(timeout=600)[1]
-            # a process that ends by the signal itself (-2: within a second of its start) shows status 130 in a shell too
-            stopped = proc.returncode in (130, -signal.SIGINT)
-            kind = "traceback" if "Traceback" in err else "one line" if stopped else "other"
-            ok = stopped and "interrupted" in err and snapshot(out) == before
-            expected += ok
-            classes[kind] += 1
-            print_case(name, proc.returncode, kind, ok, (_nonblank(err) or [""])[-1])
+        for sig, status, word in ((signal.SIGINT, 130, "interrupted"), (signal.SIGTERM, 143, "terminated")):
+            for share in (0.25, 0.5, 0.75):
+                name = f"{signal.Signals(sig).name}@{share:.0%}"
+                out = args.work / name / "model"
+                shutil.copytree(fixtures.model, out)
+                before = snapshot(out)
+                proc = subprocess.Popen([*refit, str(out)], stderr=subprocess.PIPE, stdout=subprocess.DEVNULL,
+                                        text=True, env=env, cwd=args.work,
+                                        # a shell without job control starts background commands with SIGINT ignored
+                                        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+                time.sleep(share * duration)
+                proc.send_signal(sig)
+                err = proc.communicate(timeout=600)[1]
+                # a process that ends by the signal itself (within a second of its start) shows 128 + signal in a shell too
+                stopped = proc.returncode in (status, -sig)
+                kind = "traceback" if "Traceback" in err else "one line" if stopped else "other"
+                ok = stopped and (word in err or proc.returncode == -sig) and snapshot(out) == before
+                expected += ok
+                classes[kind] += 1
+                tally = by_class.setdefault("termination", Counter())
+                tally["cases"] += 1
+                tally["as expected"] += ok
+                print_case(name, proc.returncode, kind, ok, (_nonblank(err) or [""])[-1])
+    for cls, tally in sorted(by_class.items()):
+        print(f"  {cls}: {tally['as expected']} of {tally['cases']} as expected")
     total = sum(classes.values())
     print(f"{total} cases: " + ", ".join(f"{k} {v}" for k, v in sorted(classes.items()))
           + f"; as expected (status, text, output state) {expected} of {total}")

@@ -30,52 +30,45 @@ def _split_instrument(overrides: list[str]) -> tuple[str, list[str]]:
     return instrument, rest
 
 
+def _console(stderr: bool = True):
+    """A rich console; piped into a file or another program, its tables keep 160 columns instead of
+    rich's 80 (they would wrap mid-row in a log)."""
+    from rich.console import Console
+
+    stream = sys.stderr if stderr else sys.stdout
+    return Console(stderr=stderr, width=None if stream.isatty() else 160)
+
+
 def _progress(status) -> Callable[[str], None]:
     """A progress callback that shows a step's text on a rich status spinner."""
     return lambda text: status.update(text)
 
 
-def _check_output_file(path: str, what: str) -> None:
-    """Refuse, before any work, an output file path that names a folder or lies under a file."""
-    from torchcal.core.errors import TorchcalError
-
-    target = Path(path)
-    if target.is_dir():
-        raise TorchcalError(f"{target}: {what} names an existing folder; give a file name")
-    parent = target.parent
-    while not parent.exists():
-        parent = parent.parent
-    if not parent.is_dir():
-        raise TorchcalError(f"{parent}: a file stands where {what} needs a folder")
-
-
 def _cmd_simulate(args) -> int:
+    from torchcal.core.folder import staged_folder
     from torchcal.core.overrides import apply_overrides
     from torchcal.instruments.registry import get
 
     name, overrides = _split_instrument(args.overrides)
     twin = get(name).twin()
     config = apply_overrides(twin.config_factory(), overrides)
-    if Path(args.out).exists() and not Path(args.out).is_dir():
-        from torchcal.core.errors import TorchcalError
-
-        raise TorchcalError(f"{args.out}: --out names an existing file; give a folder")
-    paths = twin.write(Path(args.out), config)
+    out = Path(args.out)
+    # built in a staging sibling and swapped in whole: an interrupted simulate leaves the earlier case
+    with staged_folder(out, "--out", purpose="twin", sealed=False) as staging:
+        paths = twin.write(staging, config)
     for key, path in paths.items():
-        print(f"{key}: {path}")
+        print(f"{key}: {out / Path(path).relative_to(staging)}")
     return 0
 
 
 def _cmd_fit(args) -> int:
-    from rich.console import Console
 
-    from torchcal.core.folder import check_output_folder
-    from torchcal.instruments.base import FitRequest, fit_committed
+    from torchcal.instruments.base import FitRequest, check_fit_paths, fit_committed
     from torchcal.instruments.registry import recognise
 
-    check_output_folder(args.out)
+    check_fit_paths(Path(args.out), Path(args.data), Path(args.robot))
     instrument = recognise(args.data)
-    console = Console(stderr=True)
+    console = _console()
     with console.status(f"fitting {instrument.name} data") as status:
         outcome = fit_committed(instrument, FitRequest(
             robot=Path(args.robot), data=Path(args.data), out=Path(args.out), overrides=list(args.overrides),
@@ -90,17 +83,18 @@ def _cmd_fit(args) -> int:
 
 def _cmd_evaluate(args) -> int:
     from torchcal.core.io import atomic_write_json
+    from torchcal.core.outputs import JSON_KEY, claim_file, is_metrics_json
     from torchcal.instruments.base import EvaluateRequest, evaluate_reported
     from torchcal.instruments.registry import recognise
 
     if args.json:
-        _check_output_file(args.json, "--json")
+        claim_file(args.json, "metrics", "--json", is_metrics_json)
     instrument = recognise(args.data)
     outcome = evaluate_reported(instrument, EvaluateRequest(
         model=Path(args.model), data=Path(args.data), overrides=list(args.overrides), register=args.register,
         report=Path(args.report) if args.report else None))
     if args.json:
-        atomic_write_json(args.json, outcome.metrics)
+        atomic_write_json(args.json, {JSON_KEY: "metrics", **outcome.metrics})
     for line in outcome.lines:
         print(f"torchcal: {line}", file=sys.stderr)
     if outcome.report is not None:
@@ -149,20 +143,21 @@ def _cmd_compensate(args) -> int:
 
 def _cmd_check(args) -> int:
     from torchcal.app.check import check_model, check_report
+    from torchcal.core.folder import check_output_folder, staged_folder
     from torchcal.core.io import atomic_write_json
+    from torchcal.core.outputs import JSON_KEY, claim_file, json_of
     from torchcal.report.document import write_report
 
     if args.json:
-        _check_output_file(args.json, "--json")
-    if args.report and Path(args.report).exists() and not Path(args.report).is_dir():
-        from torchcal.core.errors import TorchcalError
-
-        raise TorchcalError(f"{args.report}: --report names an existing file; give a folder")
+        claim_file(args.json, "check", "--json", json_of("check"))
+    if args.report:
+        check_output_folder(args.report, "--report", purpose="report")
     result = check_model(args.model, args.data)
     if args.json:
-        atomic_write_json(args.json, result.to_dict())
+        atomic_write_json(args.json, {JSON_KEY: "check", **result.to_dict()})
     if args.report:
-        write_report(args.report, check_report(result, args.model))
+        with staged_folder(args.report, "--report", purpose="report", sealed=False) as staging:
+            write_report(staging, check_report(result, args.model))
     for line in result.lines():
         print(line)
     return 0
@@ -184,7 +179,7 @@ def _cmd_run(args) -> int:
     from torchcal.config import compose_run_config
 
     config, _ = compose_run_config(args.overrides)
-    summary = run(config)
+    summary = run(config, console=_console(stderr=False))
     final = summary["test"][summary["final_stage"]]
     print(f"{summary['name']}: held-out RMS {final['position_rms_mm']:.4f} mm on {final['n_poses']} new twin poses "
           f"({summary['model']}, chosen by grouped CV on the training poses); "
@@ -193,20 +188,24 @@ def _cmd_run(args) -> int:
 
 
 def _cmd_study(args) -> int:
-    from rich.console import Console
 
     from torchcal.config import compose_run_config
     from torchcal.config.compose import merge_section
+    from torchcal.core.errors import TorchcalError
     from torchcal.studies.runner import run_study
     from torchcal.studies.spec import StudyConfig
 
+    if args.workers < 1:
+        raise TorchcalError(f"--workers must be at least 1, got {args.workers}")
+    if args.n_trials is not None and args.n_trials < 1:
+        raise TorchcalError(f"--n-trials must be at least 1, got {args.n_trials}")
     base, sections = compose_run_config(args.overrides, config_name="study", extra_sections=("study",))
     study = merge_section(StudyConfig(), sections["study"])
     if args.storage:
         study.storage = args.storage
-    if args.n_trials:
+    if args.n_trials is not None:
         study.n_trials = args.n_trials
-    outcome = run_study(base, study, workers=args.workers, console=Console(stderr=True))
+    outcome = run_study(base, study, workers=args.workers, console=_console())
     print(outcome.summary(study.name))
     return 0
 
@@ -254,12 +253,27 @@ def option_listing(command: str) -> str:
     return "\n\n".join(b for b in blocks if b)
 
 
-def build_parser(with_options: bool = False) -> argparse.ArgumentParser:
-    """The argument parser; ``with_options`` adds each command's ``key=value`` list to its help
-    (it imports the configuration classes, so only ``--help`` pays for it)."""
+def _version() -> str:
+    """The installed distribution's version (the source tree's when it is not installed)."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("torchcal")
+    except PackageNotFoundError:
+        return "(not installed)"
+
+
+def build_parser(with_options: bool | str = False) -> argparse.ArgumentParser:
+    """The argument parser; ``with_options`` adds each command's ``key=value`` list to its help, or
+    only that command's when it names one (it imports the configuration classes, so only
+    ``<command> --help`` pays for it)."""
     parser = argparse.ArgumentParser(prog="torchcal", description="Calibrate industrial robots: geometry, stiffness, learned residual, ONNX compensator.")
+    parser.add_argument("--version", action="version", version=f"torchcal {_version()}")
     sub = parser.add_subparsers(dest="command", required=True)
-    listing = option_listing if with_options else (lambda _command: None)
+    def listing(command: str) -> str | None:
+        if with_options is True or with_options == command:
+            return option_listing(command)
+        return None
 
     def add(name: str, **kwargs) -> argparse.ArgumentParser:
         return sub.add_parser(name, epilog=listing(name), formatter_class=argparse.RawDescriptionHelpFormatter, **kwargs)
@@ -271,7 +285,7 @@ def build_parser(with_options: bool = False) -> argparse.ArgumentParser:
     from torchcal.instruments.registry import names
 
     p = add("simulate", help=f"write a twin case (instrument={'|'.join(names())}): robot.yaml, data files, truth.json")
-    p.add_argument("--out", required=True)
+    p.add_argument("--out", required=True, metavar="DIR", help="twin case folder to write (new, empty, or an earlier twin case)")
     p.add_argument("overrides", nargs="*", help="key=value of the twin, e.g. gravity=true n_train=200")
     p.set_defaults(func=_cmd_simulate)
 
@@ -285,8 +299,8 @@ def build_parser(with_options: bool = False) -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_fit)
 
     p = add("evaluate", help="score a model on a measurement file")
-    p.add_argument("--model", required=True)
-    p.add_argument("--data", required=True)
+    p.add_argument("--model", required=True, metavar="DIR", help="model folder written by fit")
+    p.add_argument("--data", required=True, metavar="CSV", help="measurement CSV to score (poses the fit has not seen)")
     p.add_argument("--json", default=None, help="write the metrics to this JSON file")
     p.add_argument("--register", action="store_true", help="re-fit only the rigid instrument frame to the file first")
     p.add_argument("--report", default=None, metavar="DIR",
@@ -302,8 +316,9 @@ def build_parser(with_options: bool = False) -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_study)
 
     p = add("export", help="export the compensator to ONNX with a manifest")
-    p.add_argument("--model", required=True)
-    p.add_argument("--out", required=True)
+    p.add_argument("--model", required=True, metavar="DIR", help="model folder written by fit")
+    p.add_argument("--out", required=True, metavar="DIR",
+                   help="export folder to write (new, empty, or an earlier export; never the model folder)")
     p.add_argument("--task", choices=["position", "pose"], default="position",
                    help="position: TCP position exactly, orientation as far as the position leaves room (default); "
                         "pose: the full 6-D pose (partial near singularities)")
@@ -352,12 +367,57 @@ def build_parser(with_options: bool = False) -> argparse.ArgumentParser:
     return parser
 
 
+#: Set when SIGTERM arrived (a job scheduler, ``systemctl stop``, ``kill``): the command ends as after Ctrl-C.
+_terminated = False
+
+
+def _on_sigterm(signum, frame) -> None:
+    """SIGTERM handled like Ctrl-C: raised as ``KeyboardInterrupt`` so staged outputs are cleaned up."""
+    global _terminated
+    _terminated = True
+    raise KeyboardInterrupt
+
+
+def _write_failure(exc: OSError) -> str | None:
+    """The one line of a write that the system refused for want of space, or ``None`` for other errors."""
+    import errno
+
+    where = exc.filename or "a file"
+    if exc.errno in (errno.ENOSPC, errno.EDQUOT):
+        return f"{where}: no space left on the device (or the quota is used up); free space there and run again"
+    if exc.errno == errno.EFBIG:
+        return (f"{where}: file larger than this process may write (the shell's `ulimit -f`, or the file "
+                "system's limit); raise the limit or free space and run again")
+    return None
+
+
 def main(argv: list[str] | None = None) -> int:
+    """The command line; every :class:`~torchcal.core.errors.TorchcalError` is one line and exit status 2."""
+    import signal
+    import threading
+
+    global _terminated
+    _terminated = False
+    in_main_thread = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGTERM, _on_sigterm) if in_main_thread else None
+    try:
+        return _main(argv)
+    finally:
+        if in_main_thread:
+            signal.signal(signal.SIGTERM, previous)
+
+
+def _main(argv: list[str] | None) -> int:
     import warnings
 
     from torchcal.core.errors import TorchcalError
 
-    parser = build_parser(with_options=any(a in ("-h", "--help") for a in (argv if argv is not None else sys.argv[1:])))
+
+    given = argv if argv is not None else sys.argv[1:]
+    # only `<command> --help` lists that command's options; `torchcal --help` alone lists commands
+    asked = any(a in ("-h", "--help") for a in given)
+    command = next((a for a in given if not a.startswith("-")), None)
+    parser = build_parser(with_options=command if asked and command else False)
     args, extra = parser.parse_known_args(argv)
     # key=value overrides may come before and after the options (`simulate instrument=x --out D n=3`)
     if extra and hasattr(args, "overrides") and all("=" in e and not e.startswith("-") for e in extra):
@@ -375,9 +435,10 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     except KeyboardInterrupt:
         # output folders are staged and files written atomically: an interrupted command leaves what was there
-        print(f"torchcal: interrupted; nothing written ({args.command} leaves earlier outputs as they were)",
+        how = "terminated (SIGTERM)" if _terminated else "interrupted"
+        print(f"torchcal: {how}; nothing written ({args.command} leaves earlier outputs as they were)",
               file=sys.stderr)
-        return 130
+        return 143 if _terminated else 130
     except UnicodeDecodeError as exc:
         print(f"torchcal: error: a file is not UTF-8 text (byte {exc.start}: {exc.reason})", file=sys.stderr)
         return 2
@@ -392,6 +453,12 @@ def main(argv: list[str] | None = None) -> int:
         # goes to devnull so that the interpreter's final flush raises nothing either
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 0
+    except OSError as exc:
+        line = _write_failure(exc)
+        if line is None:
+            raise
+        print(f"torchcal: error: {line}; earlier outputs were left as they were", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

@@ -16,6 +16,7 @@ from torchcal.core.folder import (
     write_member_json,
     write_member_text,
 )
+from torchcal.core.outputs import STAMP, OutputClaimError
 
 
 def _folder(path, **files):
@@ -59,7 +60,7 @@ def test_staged_folder_replaces_whole(tmp_path):
     with staged_folder(dest) as staging:
         write_member_json(staging, "calibration.json", {"new": True})
         assert not dest.joinpath("calibration.json").read_text().startswith('{\n  "new"')
-    assert sorted(p.name for p in dest.iterdir()) == ["calibration.json", CHECKSUMS]  # no old residual.json
+    assert sorted(p.name for p in dest.iterdir()) == [STAMP, "calibration.json", CHECKSUMS]  # no old residual.json
     verify_folder(dest)
     assert [p.name for p in tmp_path.iterdir()] == ["m"]  # no staging folder left
 
@@ -112,13 +113,13 @@ def test_staged_folder_creates_a_new_one_and_seals_unrecorded_files(tmp_path):
 
 def test_output_paths_checked_before_work(tmp_path):
     (tmp_path / "file").write_text("x")
-    with pytest.raises(FolderError, match="existing file"):
+    with pytest.raises(OutputClaimError, match="existing file"):
         check_output_folder(tmp_path / "file")
     (tmp_path / "data").mkdir()
     (tmp_path / "data" / "train.csv").write_text("q1\n")
-    with pytest.raises(FolderError, match="other files"):
+    with pytest.raises(OutputClaimError, match="other files"):
         check_output_folder(tmp_path / "data")
-    with pytest.raises(FolderError, match="a file stands"):
+    with pytest.raises(OutputClaimError, match="a file stands"):
         check_output_folder(tmp_path / "file" / "out")
     check_output_folder(tmp_path / "new" / "out")
     (tmp_path / "empty").mkdir()

@@ -47,8 +47,18 @@ def test_options_cover_every_field_with_defaults_as_an_override_writes_them():
     options = {o.key: o for o in list_options(_Settings)}
     assert list(options) == ["low", "high", "flag", "inner.steps", "items"]
     assert [options[k].default for k in options] == ["0.5", "2", "false", "4", "[1,2]"]
-    assert options["low"].help == "the range, mm"
-    assert options["inner.steps"].help == "iterations (at most max; see solve)"
+    # the whole description: every choice of an option stays readable in --help
+    assert options["low"].help == "the range, mm; the second sentence is left out."
+    assert options["inner.steps"].help.startswith("iterations (at most max; see solve)")
+
+
+def test_help_blocks_wrap_long_descriptions_without_cutting_them():
+    from torchcal.core.options import Option, format_options
+
+    text = "choices: " + ", ".join(f"choice{i} (what it does)" for i in range(30))
+    block = format_options("title", [Option("key", "auto", text)], width=90)
+    assert all(len(line) <= 90 for line in block.splitlines())
+    assert "choice29 (what it does)" in block and "..." not in block
 
 
 def test_an_instance_lists_its_own_values():

@@ -44,3 +44,39 @@ def test_keys_of_another_command_are_dropped_with_one_warning():
     with pytest.warns(UserWarning, match=r"ignored for a test file: method=gn, method\.x=1"):
         kept = split_foreign_keys(["rate=1", "method=gn", "method.x=1", "speed=2"], _Own, _Other, what="a test file")
     assert kept == ["rate=1", "speed=2"]  # shared keys and unknown keys stay (unknown ones fail in apply_overrides)
+
+
+@dataclass
+class _Run:
+    flag: bool = True
+    seed: int = 0
+    device: str = "cpu"
+    name: str = "a"
+    inner: _Inner = field(default_factory=_Inner)
+
+
+@pytest.mark.parametrize("item, message", [
+    ("flag=2", "flag is true or false"), ("flag=maybe", "flag is true or false"),
+    ("seed=4294967296", r"seed must be an integer in \[0, 4294967295\]"), ("seed=-1", "seed must be an integer"),
+    ("seed=1.5", "seed must be an integer"), ("device=meta", "cpu or cuda, not meta"),
+    ("device=banana", "not a torch device"), ("name=${oc.env:HOME}", "interpolation"),
+])
+def test_options_that_would_fail_deep_are_refused_where_they_are_parsed(item, message):
+    with pytest.raises(TorchcalError, match=message):
+        apply_overrides(_Run(), [item])
+
+
+def test_cuda_is_refused_where_there_is_none():
+    import torch
+
+    if torch.cuda.is_available():
+        assert apply_overrides(_Run(), ["device=cuda"]).device == "cuda"
+    else:
+        with pytest.raises(TorchcalError, match="no CUDA GPU"):
+            apply_overrides(_Run(), ["device=cuda"])
+
+
+def test_plain_boolean_words_and_edge_seeds_pass():
+    config = apply_overrides(_Run(), ["flag=false", "seed=4294967295", "device=cpu"])
+    assert (config.flag, config.seed, config.device) == (False, 4294967295, "cpu")
+    assert apply_overrides(_Run(), ["flag=yes"]).flag is True

@@ -161,3 +161,15 @@ def test_a_trial_failed_by_another_worker_is_left_to_its_retry(tmp_path):
     assert len(retries) == 1 and retries[0].state == TrialState.COMPLETE
     assert retries[0].params == trials[taken[0]].params
     assert sum(t.state == TrialState.COMPLETE for t in trials) == 2
+
+
+def test_a_study_is_not_resumed_with_another_search_space(tmp_path):
+    """Trials of two questions never mix: the same name with another space is refused before any trial."""
+    from torchcal.core.errors import TorchcalError
+
+    base = _base(tmp_path)
+    first = run_study(base, _study("space", 1))
+    other = {"fit.residual_hidden": {"type": "int", "low": 10, "high": 30}}
+    with pytest.raises(TorchcalError, match="another search space"):
+        run_study(base, _study("space", 2, space=other))
+    assert len(_trials(first, "space")) == 1

@@ -18,6 +18,7 @@ import torch
 
 from torchcal.core.errors import ModelError, TorchcalError
 from torchcal.core.io import atomic_write_json, atomic_write_text
+from torchcal.core.outputs import claim_file, claim_folder, csv_with_header, stamp_folder
 from torchcal.core.overrides import apply_overrides
 from torchcal.kinematics.error_model import ErrorModel
 from torchcal.kinematics.robot import RobotModel, load_robot
@@ -86,13 +87,15 @@ def trajectory_csv(planned: PlannedMotion) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _is_trajectory(header: list[str]) -> bool:
+    """The header :func:`trajectory_csv` writes: ``t, q1..qN``."""
+    return len(header) > 1 and header[0] == "t" and header[1:] == [f"q{j}" for j in range(1, len(header))]
+
+
 def _check_outputs(out: Path, report: Path) -> None:
-    if out.is_dir():
-        raise TorchcalError(f"{out}: --out names an existing folder; give a file name (TRAJ.csv)")
-    if report.exists() and not report.is_dir():
-        raise TorchcalError(f"{report}: the report folder's name is taken by a file")
-    if report.is_dir() and any(report.iterdir()) and not (report / "motion.json").is_file():
-        raise TorchcalError(f"{report}: exists and is not a motion report folder; give another --report")
+    """The trajectory file and the report folder, refused before any work where torchcal may not write them."""
+    claim_file(out, "trajectory", "--out", csv_with_header(_is_trajectory))
+    claim_folder(report, "report", "--report")
 
 
 def run_motion(robot_file: Path, path_file: Path, out: Path, overrides: list[str], *, model_dir: Path | None = None,
@@ -169,6 +172,7 @@ def run_motion(robot_file: Path, path_file: Path, out: Path, overrides: list[str
                             "position_eps": options.position_eps})
     write_report(report_dir, report)
     atomic_write_json(report_dir / "motion.json", metrics)
+    stamp_folder(report_dir, "report")
     if failures:
         raise TorchcalError(f"{'; '.join(failures)}; report in {report_dir / 'report.md'}; {out} not written")
     atomic_write_text(out, trajectory_csv(planned))

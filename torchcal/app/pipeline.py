@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import time
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -15,9 +16,10 @@ import torch
 from torchcal.compensate.export import export_and_check
 from torchcal.config import save_resolved_config
 from torchcal.config.schema import RunConfig
-from torchcal.core.folder import write_member_json
+from torchcal.core.folder import check_output_folder, staged_folder, write_member_json
 from torchcal.core.io import atomic_write_json
 from torchcal.core.metrics import position_metrics
+from torchcal.core.outputs import check_name
 from torchcal.core.threads import fit_threads
 from torchcal.data.measurements import Measurements, load_measurements
 from torchcal.identify.calibrate import CalibrationResult
@@ -71,14 +73,24 @@ def _run(config: RunConfig, console=None) -> dict:
     from rich.console import Console
 
     console = console or Console()
-    folder = Path(config.out) / config.name
+    final = Path(config.out) / check_name(config.name, "name=")
+    within = ("study",)  # a study refits its best run inside its own folder
+    if config.export:
+        check_output_folder(Path(config.export_dir) / config.name, "export_dir/name", purpose="export")
+    # the run is built in a staging sibling and swapped in whole: an interrupted run leaves the earlier one
+    with staged_folder(final, "name=", purpose="run", sealed=False, within=within) as folder:
+        return _run_into(folder, final, config, console)
+
+
+def _run_into(folder: Path, destination: Path, config: RunConfig, console) -> dict:
+    """The run's steps, writing into ``folder`` (staging); recorded paths name ``destination``, where it will be."""
     started = time.perf_counter()
     save_resolved_config(folder / "config.yaml", config)
     with console.status("[bold]simulating the twin") as status:
         case = write_twin_case(folder / "case", config.twin)
         robot = load_robot(case["robot.yaml"])
-        train = load_measurements(case["train.csv"], robot)
-        test = load_measurements(case["test.csv"], robot)
+        train = replace(load_measurements(case["train.csv"], robot), source=str(destination / "case" / "train.csv"))
+        test = replace(load_measurements(case["test.csv"], robot), source=str(destination / "case" / "test.csv"))
         console.log(f"twin: {len(train)} training and {len(test)} test poses, noise floor {config.twin.noise_floor_rms_mm:.4f} mm RMS")
         status.update("[bold]identifying geometry")
         twin = Twin.create(config.twin)
@@ -132,24 +144,24 @@ def _run(config: RunConfig, console=None) -> dict:
         summary["export"] = export_and_check(model_dir, export_dir, test, true_tcp_positions=twin.true_tcp_positions)
         console.log(summary["export"]["summary"])
         _log_compensation_on_twin(summary["export"]["compensation_on_true_robot"], console)
-    report = _write_report(folder, stored, train, test, structure, summary, truth_x)
+    report = _write_report(folder, stored, train, test, structure, summary, truth_x, case["test.csv"])
     final = summary["test"][summary["final_stage"]]
     # the model as chosen (structure and head), not the stage key: "geometric" also holds joint-space terms
-    console.log(f"report: {report}; final held-out RMS {final['position_rms_mm']:.4f} mm ({summary['model']})")
+    console.log(f"report: {destination / report.relative_to(folder)}; final held-out RMS {final['position_rms_mm']:.4f} mm ({summary['model']})")
     summary["elapsed_s"] = time.perf_counter() - started
     atomic_write_json(folder / "metrics.json", summary)
     return summary
 
 
 def _write_report(folder: Path, stored, train: Measurements, test: Measurements, structure, summary: dict,
-                  truth_x: torch.Tensor) -> Path:
+                  truth_x: torch.Tensor, test_file: Path) -> Path:
     """The run's report (the one report builder of ``fit`` and ``evaluate``): training and held-out file, truth."""
     cv = cross_validated_stage(stored, structure)
     extra = [cv] if cv is not None else []
     pose_sets = [score_pose_set(stored, train, held_out=False, extra=extra, focus_extra=bool(extra)),
                  score_pose_set(stored, test, held_out=True)]
     # the held-out file scored as `torchcal evaluate` scores it: leakage, uncertainty, compensator
-    scored = default().evaluate(EvaluateRequest(model=stored.folder, data=Path(test.source)))
+    scored = default().evaluate(EvaluateRequest(model=stored.folder, data=Path(test_file)))
     floor = summary["noise_floor_rms_mm"]
     final = summary["test"][summary["final_stage"]]["position_rms_mm"]
     ratio = final / floor

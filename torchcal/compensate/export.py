@@ -365,7 +365,22 @@ def _held_out_metrics(model_dir: Path, meta: dict) -> dict | None:
     path = model_dir / "metrics.json"
     if path.is_file():
         return json.loads(path.read_text())
-    return None
+    return _cross_validated_metrics(model_dir)
+
+
+def _cross_validated_metrics(model_dir: Path) -> dict | None:
+    """Without held-out figures in the model folder: the fit's own grouped cross-validation of the
+    chosen model (out-of-fold poses, the protocol stated), from ``model_selection.json``."""
+    path = model_dir / "model_selection.json"
+    if not path.is_file():
+        return None
+    selection = json.loads(path.read_text())
+    chosen = next((c for c in selection.get("candidates", []) if c.get("name") == selection.get("chosen")), None)
+    if chosen is None:
+        return None
+    return {"position_rms_mm": chosen["cv_rms_mm"], "model": selection["chosen"],
+            "protocol": f"cross-validated in the fit: {selection.get('protocol', '')}",
+            "note": "out-of-fold poses of the training file; `torchcal evaluate` on new poses measures the model itself"}
 
 
 def _expected_accuracy(stored) -> dict | None:
@@ -379,6 +394,10 @@ def _expected_accuracy(stored) -> dict | None:
             "protocol": f"calibrated on the out-of-fold errors of {calibration.protocol}",
             "where": "poses like the training poses (the same workspace and configurations); the accuracy the "
                      "compensated robot reaches adds the compensator's own error (float32_error_budget)"}
+
+
+#: The most Newton steps an export unrolls (each adds its nodes to the graph; 6 solve 99.5 % of poses).
+MAX_ITERATIONS = 50
 
 
 def export_model(
@@ -408,19 +427,20 @@ def export_model(
     the manifest's ``convergence`` shows what they reach). ``portable``: standard ONNX operators
     only.
     """
-    if iterations is not None and iterations < 1:
-        raise TorchcalError(f"iterations must be >= 1, got {iterations}")
+    if iterations is not None and not 1 <= iterations <= MAX_ITERATIONS:
+        raise TorchcalError(f"--iterations must be in [1, {MAX_ITERATIONS}] (Newton steps unrolled into the graph), "
+                            f"got {iterations}")
     if task not in TASKS:
         raise TorchcalError(f"task must be one of {list(TASKS)}, got {task!r}")
     model_dir, out_dir = Path(model_dir), Path(out_dir)
     if out_dir.resolve() == model_dir.resolve():
         raise TorchcalError(f"{out_dir}: the export folder must lie outside the model folder {model_dir}")
-    check_output_folder(out_dir)
+    check_output_folder(out_dir, purpose="export")
     stored = load_model(model_dir)
     T_tcp = tcp_transform(tcp_mm, tcp_rpy_deg)
     tcp = tcp_entry(T_tcp, tcp_mm, tcp_rpy_deg, stored)
     stored = production_view(stored, T_tcp)
-    with staged_folder(out_dir) as staging:
+    with staged_folder(out_dir, purpose="export") as staging:
         return _export_into(staging, model_dir, stored, wrench_frame=wrench_frame, iterations=iterations,
                             portable=portable, task=task, tcp=tcp, allow_large_corrections=allow_large_corrections)
 

@@ -18,6 +18,7 @@ from torchcal.config.schema import FitConfig, RunConfig
 from torchcal.core.errors import TorchcalError
 from torchcal.core.folder import CHECKSUMS, write_member_text
 from torchcal.core.io import atomic_write_text
+from torchcal.core.overrides import check_values
 
 GROUPS = ("robot", "measurement", "model", "experiment", "study")
 CONFIG_DIR_ENV = "TORCHCAL_CONFIG_DIR"
@@ -104,6 +105,7 @@ def compose_run_config(overrides: list[str], config_name: str = "config", extra_
     for name in extra_sections:
         node = composed.pop(name, None) if name in composed else None
         sections[name] = (node, field_by_section[name])
+    check_values(RunConfig(), run_fields)
     try:
         dotlist = OmegaConf.from_dotlist(run_fields)
     except Exception as exc:  # noqa: BLE001 (omegaconf raises yaml, grammar and value errors: no common base)
@@ -118,6 +120,7 @@ def merge_section(schema: Any, section: tuple[Any, list[str]]):
 
     node, fields = section
     stripped = [item.split(".", 1)[1] for item in fields if "." in item.split("=", 1)[0]]
+    check_values(schema, stripped)
     nodes = [node] if node is not None else []
     return _merge(schema, *nodes, OmegaConf.from_dotlist(stripped))
 
@@ -153,6 +156,7 @@ def compose_fit_config(overrides: list[str]):
     if group_overrides:
         composed = _compose_yaml("config", group_overrides)
         nodes.append(composed.get("fit", OmegaConf.create({})))
+    check_values(FitConfig(), field_overrides)
     try:
         nodes.append(OmegaConf.from_dotlist(field_overrides))
     except Exception as exc:  # noqa: BLE001 (omegaconf raises yaml, grammar and value errors: no common base)

@@ -110,6 +110,11 @@ class FitConfig:
             check_range(self, name, low=2)
         for name in ("cv_groups", "residual_hidden", "mayfly_population", "mayfly_iterations"):
             check_range(self, name, low=1)
+        # upper bounds where memory or time would run away long before a better fit
+        check_range(self, "residual_hidden", high=20000)
+        check_range(self, "mayfly_population", high=10000)
+        check_range(self, "mayfly_iterations", high=100000)
+        check_range(self, "cv_folds", high=100)
         if self.joint_unit not in ("deg", "rad"):
             raise TorchcalError(f"joint_unit must be 'deg' or 'rad', got {self.joint_unit!r}")
         if self.length_unit not in ("mm", "m"):

@@ -29,6 +29,7 @@ from typing import Any
 from torchcal.core.errors import TorchcalError
 from torchcal.core.hashing import sha256_bytes, sha256_file
 from torchcal.core.io import atomic_write_bytes, atomic_write_json
+from torchcal.core.outputs import claim_folder, stamp_folder
 
 #: The list of a folder's files and their SHA-256 (hex).
 CHECKSUMS = "checksums.json"
@@ -36,6 +37,9 @@ CHECKSUMS_FORMAT = "torchcal-checksums/1"
 
 #: Files that mark a folder as torchcal output (one that a new result may replace).
 MARKERS = (CHECKSUMS, "calibration.json", "sensor.json", "manifest.json")
+
+#: Folder (next to ``report.md``) of the PNG figures a report links; a model folder does not list them.
+FIGURES = "figures"
 
 #: Suffixes of files that carry model content; such a file not listed in ``checksums.json`` is refused.
 MEMBER_SUFFIXES = (".safetensors", ".json", ".yaml", ".yml", ".urdf", ".xml", ".onnx")
@@ -131,21 +135,22 @@ def verify_folder(folder: str | Path) -> None:
                               "remove it or write the folder again")
 
 
-def check_output_folder(dest: str | Path, what: str = "--out") -> None:
-    """Refuse, before any work, an output path that names a file or a folder that is not torchcal output."""
+def check_output_folder(dest: str | Path, what: str = "--out", purpose: str = "model",
+                        within: tuple[str, ...] = ()) -> None:
+    """Refuse, before any work, an output folder torchcal may not write for ``purpose``
+    (:func:`torchcal.core.outputs.claim_folder`: absent, empty, or its own of the same purpose;
+    inside another torchcal output only where that one's purpose is in ``within``)."""
+    claim_folder(dest, purpose, what, within)
     dest = Path(dest)
-    if dest.exists() and not dest.is_dir():
-        raise FolderError(f"{dest}: {what} names an existing file; give a folder")
-    if dest.is_dir() and any(dest.iterdir()) and not any((dest / m).is_file() for m in MARKERS):
-        raise FolderError(f"{dest}: {what} names a folder that holds other files (not a torchcal output); "
-                          "give a new or empty folder")
-    parent = dest.parent
-    while not parent.exists():
-        parent = parent.parent
-    if not parent.is_dir():
-        raise FolderError(f"{parent}: a file stands where {what} needs a folder")
-    if not os.access(parent, os.W_OK):
-        raise FolderError(f"{parent}: not writable")
+    if purpose in ("model", "export") and (dest / CHECKSUMS).is_file():
+        # a sealed folder lists every file torchcal wrote: one it does not list is the user's own
+        listed = _read_checksums(dest)
+        foreign = sorted(p.name for p in dest.iterdir() if not p.name.startswith(".") and p.name != CHECKSUMS
+                         and p.name not in listed and not (p.is_dir() and p.name == FIGURES))
+        if foreign:
+            raise FolderError(f"{dest / foreign[0]}: {what} would replace this folder, and torchcal did not write "
+                              f"{', '.join(foreign[:3])}{' ...' if len(foreign) > 3 else ''}; move "
+                              f"{'it' if len(foreign) == 1 else 'them'} out or give another folder")
 
 
 def _exchange(a: Path, b: Path) -> bool:
@@ -195,16 +200,18 @@ def _remove_dead_stagings(dest: Path) -> None:
 
 
 @contextmanager
-def staged_folder(dest: str | Path, what: str = "--out") -> Iterator[Path]:
+def staged_folder(dest: str | Path, what: str = "--out", purpose: str = "model", sealed: bool = True,
+                  within: tuple[str, ...] = ()) -> Iterator[Path]:
     """Build a folder in a hidden sibling of ``dest`` and swap it into place when the block ends.
 
-    Yields the staging folder (empty). On a normal exit its files are sealed (:func:`seal` of
-    files no writer recorded), flushed to disk and the folder replaces ``dest`` atomically (the
+    Yields the staging folder (stamped with ``purpose``, :mod:`torchcal.core.outputs`). On a normal
+    exit its files are sealed (:func:`seal` of files no writer recorded; not when ``sealed`` is
+    false: a report or twin folder has no checksum list), flushed to disk and the folder replaces ``dest`` atomically (the
     earlier ``dest`` is then deleted). On an exception, ``KeyboardInterrupt`` included, the
     staging folder is deleted and ``dest`` is untouched.
     """
     dest = Path(dest)
-    check_output_folder(dest, what)
+    check_output_folder(dest, what, purpose, within)
     dest.parent.mkdir(parents=True, exist_ok=True)
     _remove_dead_stagings(dest)
     prefix = f".{dest.name}.staging-{os.getpid()}-"
@@ -212,11 +219,14 @@ def staged_folder(dest: str | Path, what: str = "--out") -> Iterator[Path]:
         # made inside the try: a Ctrl-C that lands just after mkdtemp is cleaned up below too
         staging = Path(tempfile.mkdtemp(dir=dest.parent, prefix=prefix))
         os.chmod(staging, 0o755)
+        stamp_folder(staging, purpose)
         yield staging
-        listed = _read_checksums(staging)
-        unlisted = [p for p in staging.iterdir() if p.is_file() and p.name != CHECKSUMS and p.name not in listed]
-        if unlisted or not listed:
-            seal(staging)
+        if sealed:
+            listed = _read_checksums(staging)
+            unlisted = [p for p in staging.iterdir() if p.is_file() and not p.name.startswith(".")
+                        and p.name != CHECKSUMS and p.name not in listed]
+            if unlisted or not listed:
+                seal(staging)
         _fsync_tree(staging)
         if dest.is_dir() and _exchange(staging, dest):
             _fsync_dir(dest.parent)

@@ -11,6 +11,8 @@ import dataclasses
 import inspect
 import json
 import re
+import shutil
+import textwrap
 from dataclasses import dataclass
 from typing import Any
 
@@ -67,16 +69,9 @@ def _plain(text: str) -> str:
     return text.replace("``", "")
 
 
-def _first_sentence(text: str, limit: int = 110) -> str:
-    """Up to the first '. ' or '; ' outside parentheses, at most ``limit`` characters."""
-    depth, end = 0, len(text)
-    for i, char in enumerate(text):
-        depth += {"(": 1, ")": -1}.get(char, 0)
-        if depth == 0 and char in ".;" and (i + 1 == len(text) or text[i + 1] == " "):
-            end = i
-            break
-    sentence = _plain(text[:end]).strip()
-    return sentence if len(sentence) <= limit else sentence[: limit - 3].rstrip() + "..."
+def _description(text: str) -> str:
+    """The whole attribute description as plain text (every choice of an option must stay readable)."""
+    return " ".join(_plain(text).split())
 
 
 def _default(field: dataclasses.Field) -> Any:
@@ -114,18 +109,26 @@ def list_options(config: Any, prefix: str = "") -> list[Option]:
         if dataclasses.is_dataclass(value):
             out += list_options(value, prefix=f"{key}.")
             continue
-        out.append(Option(key, _render(value), _first_sentence(docs.get(field.name, ""))))
+        out.append(Option(key, _render(value), _description(docs.get(field.name, ""))))
     return out
 
 
-def format_options(title: str, options: list[Option]) -> str:
-    """A help block: ``title`` and one line per option, ``key=default  help``."""
+def format_options(title: str, options: list[Option], width: int | None = None) -> str:
+    """A help block: ``title`` and per option ``key=default  help``, the help wrapped to ``width``
+    columns (default: the terminal's, at least 80) under its own column."""
     if not options:
         return ""
+    width = width or max(80, shutil.get_terminal_size((100, 24)).columns)
     keys = [f"{o.key}={o.default}" for o in options]
     pad = min(max(len(k) for k in keys), 44) + 2
+    indent = " " * (pad + 2)
     lines = [title]
     for key, option in zip(keys, options):
-        head = f"  {key}".ljust(pad + 2) if len(key) <= pad - 2 else f"  {key}\n" + " " * (pad + 2)
-        lines.append((head + option.help).rstrip())
+        if len(key) <= pad - 2:
+            lines.append(textwrap.fill(option.help, width=width, initial_indent=f"  {key}".ljust(pad + 2),
+                                       subsequent_indent=indent) if option.help else f"  {key}")
+        else:
+            lines.append(f"  {key}")
+            if option.help:
+                lines.append(textwrap.fill(option.help, width=width, initial_indent=indent, subsequent_indent=indent))
     return "\n".join(lines)

@@ -29,6 +29,7 @@ def apply_overrides(config: T, overrides: list[str]) -> T:
     bad = [o for o in overrides if "=" not in o]
     if bad:
         raise TorchcalError(f"override '{bad[0]}' is not of the form key=value")
+    check_values(config, overrides)
     base = OmegaConf.structured(config)
     try:
         merged = OmegaConf.merge(base, OmegaConf.from_dotlist(overrides))
@@ -36,6 +37,82 @@ def apply_overrides(config: T, overrides: list[str]) -> T:
         msg = str(exc).splitlines()[0]
         raise TorchcalError(f"invalid override: {msg}") from None
     return cast(T, OmegaConf.to_object(merged))  # the structured config's own dataclass
+
+
+#: The longest option value (Python refuses integers of more than 4300 digits deep inside OmegaConf).
+MAX_VALUE_CHARS = 4096
+
+#: What a boolean option accepts (OmegaConf would also take any integer, 2 as true).
+_BOOLEAN_WORDS = ("true", "false", "yes", "no", "on", "off", "1", "0")
+
+
+def _is_bool_field(config: Any, dotted: str) -> bool:
+    """Whether ``dotted`` names a ``bool`` field of the configuration dataclass ``config``."""
+    target = config
+    *parents, name = dotted.split(".")
+    for part in parents:
+        target = getattr(target, part, None)
+        if target is None or not is_dataclass(target):
+            return False
+    if not is_dataclass(target):
+        return False
+    kinds = {f.name: f.type for f in fields(target)}
+    return kinds.get(name) in (bool, "bool")
+
+
+def check_seed(value: Any, what: str = "seed") -> None:
+    """Refuse a seed that numpy and scikit-learn cannot take (an integer in [0, 2**32 - 1])."""
+    if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= 2**32 - 1:
+        raise TorchcalError(f"{what} must be an integer in [0, 4294967295], got {value!r}")
+
+
+def check_device(value: str, what: str = "device") -> None:
+    """Refuse a torch device this machine cannot compute on (``meta``, an absent GPU, a typo)."""
+    import torch  # here, not at the top: option parsing also serves --help, which should not load torch
+
+    try:
+        device = torch.device(value)
+    except (RuntimeError, TypeError) as exc:
+        raise TorchcalError(f"{what} {value!r} is not a torch device ({str(exc).splitlines()[0]}); use cpu or cuda") from None
+    if device.type == "cpu":
+        return
+    if device.type == "cuda":
+        count = torch.cuda.device_count() if torch.cuda.is_available() else 0
+        if count == 0:
+            raise TorchcalError(f"{what} {value!r}: this torch build or machine has no CUDA GPU; use device=cpu")
+        if device.index is not None and device.index >= count:
+            raise TorchcalError(f"{what} {value!r}: this machine has {count} CUDA GPU(s) (cuda:0..cuda:{count - 1})")
+        return
+    raise TorchcalError(f"{what} {value!r}: torchcal computes on cpu or cuda, not {device.type}")
+
+
+def check_values(config: Any, overrides: list[str]) -> None:
+    """Refuse ``key=value`` items whose value would fail deep inside OmegaConf, numpy or torch.
+
+    Every override path calls this (:func:`apply_overrides` and the composed configurations):
+    ``${...}`` interpolations, a boolean field given anything but true/false (OmegaConf takes 2 as
+    true), a ``seed`` outside 32 bits, a ``device`` this machine cannot compute on.
+    ``config``: the configuration dataclass (instance) the items set, for field types.
+    """
+    for item in overrides:
+        key, _, value = item.partition("=")
+        key, value = key.strip(), value.strip()
+        if len(value) > MAX_VALUE_CHARS:
+            raise TorchcalError(f"option {key}: a value of {len(value)} characters (at most {MAX_VALUE_CHARS}); "
+                                "options are short values, file paths or short lists")
+        if "${" in value:
+            raise TorchcalError(f"option {key}: '{value}' holds an interpolation ('${{...}}'); options take plain values")
+        if _is_bool_field(config, key) and value.lower() not in _BOOLEAN_WORDS:
+            raise TorchcalError(f"option {key} is true or false, got {value!r}")
+        last = key.rsplit(".", 1)[-1]
+        if last == "seed":
+            try:
+                seed = int(value)
+            except ValueError:
+                raise TorchcalError(f"option {key} must be an integer in [0, 4294967295], got {value!r}") from None
+            check_seed(seed, f"option {key}")
+        elif last == "device":
+            check_device(value, f"option {key}")
 
 
 def field_names(config_class: Any) -> set[str]:

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import csv
 import math
+from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -48,6 +49,12 @@ class CsvTable:
         return out
 
 
+#: The most data rows and columns a measurement file may have (memory stays bounded; real files
+#: have hundreds to a few thousand poses and tens of columns).
+MAX_ROWS = 500_000
+MAX_COLUMNS = 1000
+
+
 def read_csv_table(path: str | Path) -> CsvTable:
     """Read a comma-separated file with a header row; blank lines are skipped."""
     path = Path(path)
@@ -59,6 +66,10 @@ def read_csv_table(path: str | Path) -> CsvTable:
         raise DataError("not a UTF-8 text file", path=str(path)) from None
     if "\x00" in text:
         raise DataError("not a text file (holds NUL bytes)", path=str(path))
+    n_lines = text.count("\n") + 1
+    if n_lines > MAX_ROWS + 1:
+        raise DataError(f"has {n_lines} lines; torchcal reads at most {MAX_ROWS} poses per file (a calibration uses "
+                        "hundreds to a few thousand): subsample or split the file", path=str(path))
     reader = csv.reader(text.splitlines())
     header: tuple[str, ...] | None = None
     rows: list[list[str]] = []
@@ -68,9 +79,12 @@ def read_csv_table(path: str | Path) -> CsvTable:
             continue
         if header is None:
             header = tuple(c.strip() for c in row)
+            if len(header) > MAX_COLUMNS:
+                raise DataError(f"header has {len(header)} columns; a measurement file has tens (at most "
+                                f"{MAX_COLUMNS}): is this the right file?", path=str(path), row=line_no)
             if any(not h for h in header):
                 raise DataError("header has an empty column name", path=str(path), row=line_no)
-            dupes = sorted({h for h in header if header.count(h) > 1})
+            dupes = sorted(h for h, n in Counter(header).items() if n > 1)
             if dupes:
                 raise DataError(f"header repeats column(s) {dupes}", path=str(path), row=line_no, column=dupes[0])
             continue

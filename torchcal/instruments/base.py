@@ -26,7 +26,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, ClassVar
 
-from torchcal.core.folder import FolderError, staged_folder
+from torchcal.core.folder import FolderError, check_output_folder, staged_folder
 from torchcal.report.document import FIGURES, write_report
 
 #: Model stages an instrument's fit can add to a model folder.
@@ -208,6 +208,16 @@ class Instrument(ABC):
         """The small known-truth case of the shared contract suite."""
 
 
+def check_fit_paths(out: Path, data: Path, robot: Path) -> None:
+    """Refuse, before any work, a fit whose ``--out`` folder holds its own input files, then an ``--out``
+    torchcal may not write (:func:`torchcal.core.folder.check_output_folder`)."""
+    for what, path in (("--data", data), ("--robot", robot)):
+        if Path(out).resolve() in Path(path).resolve().parents:
+            raise FolderError(f"{out}: --out holds the {what} file {path}; a fit replaces the whole folder, "
+                              "so give another --out")
+    check_output_folder(out)
+
+
 def fit_committed(instrument: Instrument, request: FitRequest) -> FitOutcome:
     """Run ``instrument.fit`` into a staging folder and swap it into ``request.out`` when it has finished.
 
@@ -217,12 +227,9 @@ def fit_committed(instrument: Instrument, request: FitRequest) -> FitOutcome:
     earlier result never mix with the new ones.
     """
     out = Path(request.out)
-    for what, path in (("--data", request.data), ("--robot", request.robot)):
-        if out.resolve() in Path(path).resolve().parents:
-            raise FolderError(f"{out}: --out holds the {what} file {path}; a fit replaces the whole folder, "
-                              "so give another --out")
+    check_fit_paths(out, Path(request.data), Path(request.robot))
     previous = out if out.is_dir() else None
-    with staged_folder(out) as staging:
+    with staged_folder(out, purpose="model") as staging:
         outcome = instrument.fit(replace(request, out=staging, previous=previous))
         if outcome.report is None:  # none of its own: the shared one, replacing any copied from an earlier model
             shutil.rmtree(staging / FIGURES, ignore_errors=True)
@@ -247,29 +254,29 @@ def write_summary_report(target: Path, title: str, lines: list[str], *, metrics:
 
 
 def check_report_folder(report: Path, model: Path) -> None:
-    """Refuse, before any work, an ``evaluate --report`` folder that is a file or the model folder itself."""
+    """Refuse, before any work, an ``evaluate --report`` folder torchcal may not write: a file, the
+    model folder itself, a folder inside another torchcal output, or one that is not a report of its own."""
     report = Path(report)
-    if report.exists() and not report.is_dir():
-        raise FolderError(f"{report}: --report names an existing file; give a folder")
     if report.resolve() == Path(model).resolve():
         raise FolderError(f"{report}: --report names the model folder, whose report.md is the fit's; give another folder")
-    parent = report
-    while not parent.exists():
-        parent = parent.parent
-    if not parent.is_dir():
-        raise FolderError(f"{parent}: a file stands where --report needs a folder")
+    check_output_folder(report, "--report", purpose="report")
 
 
 def evaluate_reported(instrument: Instrument, request: EvaluateRequest) -> EvaluateOutcome:
-    """``instrument.evaluate``, then, with ``request.report``, the shared summary report where it wrote none."""
-    if request.report is not None:
-        check_report_folder(request.report, request.model)
-    outcome = instrument.evaluate(request)
+    """``instrument.evaluate``, then, with ``request.report``, the shared summary report where it wrote none.
+
+    The report folder is built in a staging sibling and swapped into place when it is complete
+    (:func:`torchcal.core.folder.staged_folder`): an interrupted evaluation leaves the earlier report, whole.
+    """
     if request.report is None:
-        return outcome
-    report = outcome.report
-    if report is None:
-        report = write_summary_report(Path(request.report), f"torchcal evaluate: {instrument.name} file "
-                                      f"{Path(request.data).name} on {Path(request.model).name}", outcome.lines,
-                                      metrics=outcome.metrics, folder=Path(request.model), kind=instrument.name)
-    return replace(outcome, report=report)
+        return instrument.evaluate(request)
+    final = Path(request.report)
+    check_report_folder(final, request.model)
+    with staged_folder(final, "--report", purpose="report", sealed=False) as staging:
+        outcome = instrument.evaluate(replace(request, report=staging))
+        name = REPORT if outcome.report is None else outcome.report.name
+        if outcome.report is None:
+            write_summary_report(staging, f"torchcal evaluate: {instrument.name} file "
+                                 f"{Path(request.data).name} on {Path(request.model).name}", outcome.lines,
+                                 metrics=outcome.metrics, folder=Path(request.model), kind=instrument.name)
+    return replace(outcome, report=final / name)

@@ -69,8 +69,14 @@ def recognise(path: str | Path) -> Instrument:
     Raises:
         DataError: no instrument recognises the columns (the message lists what each expects).
     """
-    columns = set(read_header(path))
+    header = read_header(path)
+    columns = set(header)
     matches = [inst for inst in map(get, names()) if inst.recognises(columns)]
+    if not matches and len(header) == 1 and any(sep in header[0] for sep in ";\t"):
+        sep = "semicolons" if ";" in header[0] else "tabs"
+        raise DataError(f"the header is one column separated by {sep} ({header[0][:60]!r}): torchcal reads "
+                        "comma-separated files with decimal points; save the file as CSV with ',' between "
+                        "columns and '.' as the decimal mark", path=str(path), row=1)
     if not matches:
         expected = "; ".join(f"{', '.join(sorted(get(n).required_columns))} ({n})" for n in names())
         raise DataError(f"cannot tell the measurement kind from the header: expected {expected}",

@@ -156,6 +156,8 @@ def robot_from_yaml(path: str | Path) -> RobotModel:
     except yaml.YAMLError as exc:
         detail = str(exc).splitlines()[0] if "aliases" in str(exc) else exc.__class__.__name__
         raise ModelError(f"{path}: not valid YAML ({detail})") from None
+    except RecursionError:
+        raise ModelError(f"{path}: not a robot file (YAML nested too deeply to read)") from None
     if not isinstance(doc, dict) or not isinstance(doc.get("kinematics"), dict):
         raise ModelError(f"{path}: expected a mapping with a 'kinematics' section")
     kin = doc["kinematics"]
@@ -377,6 +379,11 @@ def robot_from_urdf(
     limits = []
     for joint in frames:
         lim = joint.limits
+        if lim is not None and not (math.isfinite(float(lim[0])) and math.isfinite(float(lim[1]))
+                                    and float(lim[0]) < float(lim[1])):
+            # a NaN limit would switch every range check off without a word
+            raise ModelError(f"{path}: joint '{joint.name}': <limit lower/upper> must be finite numbers with "
+                             f"lower < upper, got {float(lim[0])!r}, {float(lim[1])!r}")
         limits.append([float(lim[0]), float(lim[1])] if lim is not None else [-math.pi, math.pi])
     return RobotModel(
         name=path.stem,

@@ -13,11 +13,8 @@ import html
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from torchcal.core.folder import write_member_text
+from torchcal.core.folder import FIGURES, write_member_text
 from torchcal.core.io import atomic_write_bytes, atomic_write_text
-
-#: Folder (next to ``report.md``) of the PNG figures the Markdown links.
-FIGURES = "figures"
 
 
 @dataclass(frozen=True)

@@ -20,6 +20,7 @@ from pathlib import Path
 
 import torch
 
+from torchcal.core.errors import TorchcalError
 from torchcal.core.io import atomic_write_json, atomic_write_text
 from torchcal.core.overrides import check_range
 from torchcal.data.measurements import Measurements, write_measurements_csv
@@ -69,11 +70,18 @@ class TwinConfig:
     def __post_init__(self) -> None:
         """Refuse counts below one and non-finite or negative sizes before anything is written."""
         for name in ("n_train", "n_test"):
-            check_range(self, name, low=1)
+            check_range(self, name, low=1, high=1_000_000)  # 10^6 poses: about 0.5 GB of float64 joints and Jacobians
         for name in ("length_error_mm", "angle_error_deg", "tool_error_mm", "tracker_sigma_mm", "repeatability_mm",
                      "gear_amplitude_deg", "margin_deg"):
             check_range(self, name, low=0.0)
         check_range(self, "instrument_distance_mm", low=0.0, low_open=True)
+        # physics that cannot be: a negative mass, a zero or negative stiffness (a division by it writes NaN)
+        if not self.link_masses_kg or any(not math.isfinite(m) or m < 0 for m in self.link_masses_kg):
+            raise TorchcalError(f"link_masses_kg needs finite masses >= 0 (kg), got {list(self.link_masses_kg)}")
+        if not self.joint_stiffness_nm_per_rad or any(not math.isfinite(k) or k <= 0
+                                                      for k in self.joint_stiffness_nm_per_rad):
+            raise TorchcalError(f"joint_stiffness_nm_per_rad needs finite values > 0 (N m/rad), got "
+                                f"{list(self.joint_stiffness_nm_per_rad)}")
 
     @property
     def noise_floor_rms_mm(self) -> float:

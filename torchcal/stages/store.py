@@ -32,6 +32,7 @@ import torch
 
 from torchcal.core.errors import ModelError
 from torchcal.core.folder import verify_folder, write_member, write_member_json, write_member_text
+from torchcal.core.hashing import sha256_bytes, sha256_file
 from torchcal.identify.joint_errors import JointSpaceErrors
 from torchcal.kinematics import transforms as tf
 from torchcal.kinematics.calibrated_urdf import calibrated_urdf
@@ -110,10 +111,11 @@ def save_model(
     folder.mkdir(parents=True, exist_ok=True)
     if robot.source and Path(robot.source).suffix.lower() in (".urdf", ".xml"):
         robot_file = folder / "robot.urdf"
-        write_member_text(folder, robot_file.name, robot.urdf or Path(robot.source).read_text())
+        robot_text = robot.urdf or Path(robot.source).read_text()
     else:
         robot_file = folder / "robot.yaml"
-        write_member_text(folder, robot_file.name, robot_to_yaml(robot))
+        robot_text = robot_to_yaml(robot)
+    write_member_text(folder, robot_file.name, robot_text)
     tensors = {
         "x": x.detach().cpu().contiguous(),
         "T_reference": model.T_reference.detach().cpu().contiguous(),
@@ -138,6 +140,7 @@ def save_model(
     meta = {
         "format": "torchcal-model/1",
         "robot_file": robot_file.name,
+        "robot_sha256": sha256_bytes(robot_text.encode("utf-8")),
         "robot_name": robot.name,
         "base_link": robot.base_link,
         "end_link": robot.end_link,
@@ -286,6 +289,11 @@ def load_model(folder: str | Path, device: str | torch.device = "cpu") -> Stored
     if not isinstance(names, list):
         raise ModelError(f"{meta_path}: no parameter_names list")
     robot_path = _member_path(folder, meta.get("robot_file"), "robot_file")
+    recorded = meta.get("robot_sha256")
+    if recorded is not None and sha256_file(robot_path) != recorded:
+        # the checksums were recomputed over a robot file of another model: its parameters would not fit it
+        raise ModelError(f"{robot_path}: not the robot file this model was fitted with (SHA-256 differs from "
+                         f"calibration.json robot_sha256); restore the model folder as it was written")
     tool = meta.get("nominal_tool_mm")  # a URDF has no tool: the one the fit was given is kept here
     robot = load_robot(robot_path, base_link=meta.get("base_link"), end_link=meta.get("end_link"),
                        tool=None if tool is None else (float(tool[0]) * 1e-3, float(tool[1]) * 1e-3, float(tool[2]) * 1e-3))

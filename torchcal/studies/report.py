@@ -117,7 +117,14 @@ def write_study_report(study, config: StudyConfig, study_dir: Path, best_run: di
                          f"test RMS {_mm(d.user_attrs.get('test_rms_mm'))}; the best trial is "
                          f"{100 * (1 - best.values[0] / d.values[0]):.1f} % lower on validation." if d.values[0] > 0 else "")
             lines.append("")
-        if len(complete) >= 3 and len(best.params) >= 1:
+        scores = [t.values[0] for t in complete]
+        spread = max(scores) - min(scores)
+        if len(complete) >= 3 and len(best.params) >= 1 and spread <= 1e-9 * max(1.0, abs(max(scores))):
+            # fANOVA splits zero variance evenly (0.5 / 0.5): a ranking there would be invented
+            note = (f"Not ranked: the {len(complete)} complete trials give the same {config.objectives[0]} "
+                    f"({scores[0]:.6g}), so no parameter explains any of its variance.")
+            lines += ["## Parameter importances", "", note, ""]
+        elif len(complete) >= 3 and len(best.params) >= 1:
             try:
                 importances = optuna.importance.get_param_importances(study)
             except (RuntimeError, ValueError):

@@ -9,6 +9,7 @@ when a study ends short of its budget.
 
 from __future__ import annotations
 
+import json
 import multiprocessing
 import os
 import sys
@@ -19,6 +20,7 @@ from torchcal.app.pipeline import run
 from torchcal.compensate.export import export_model
 from torchcal.config import save_resolved_config
 from torchcal.core.errors import TorchcalError
+from torchcal.core.outputs import claim_folder, stamp_folder
 from torchcal.data.measurements import load_measurements
 from torchcal.instruments.base import EvaluateRequest
 from torchcal.instruments.registry import default
@@ -92,13 +94,29 @@ class StudyOutcome:
         return line
 
 
+def _check_same_space(study, config: StudyConfig) -> None:
+    """Refuse to resume a study under the same name with another search space or objectives (its
+    trials would mix two questions); a new study records its own, in the storage, so every machine sees it."""
+    space = json.dumps({"search_space": config.search_space, "objectives": list(config.objectives)},
+                       sort_keys=True, default=str)
+    stored = study.user_attrs.get("search_space")
+    if stored is None:
+        study.set_user_attr("search_space", space)
+    elif stored != space:
+        raise TorchcalError(f"study '{config.name}' already exists with another search space or objectives "
+                            f"({stored[:120]}...); give another study.name, or the same study=... as before")
+
+
 def run_study(base, config: StudyConfig, *, workers: int = 1, console=None) -> StudyOutcome:
     """Create or resume the study, run ``workers`` local processes, refit the best, report."""
     config.validate()
     study_dir = study_folder(base, config)
+    claim_folder(study_dir, "study", "study.name")
     study_dir.mkdir(parents=True, exist_ok=True)
-    save_resolved_config(study_dir / "config.yaml", base, study=config)
+    stamp_folder(study_dir, "study")
     study = open_study(config, study_dir)
+    _check_same_space(study, config)
+    save_resolved_config(study_dir / "config.yaml", base, study=config)
     url = storage_url(config, study_dir)
     with StudyLock(url, config.name, study_dir):
         _enqueue_default(study, base, config)

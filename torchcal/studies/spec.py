@@ -6,6 +6,7 @@ from dataclasses import dataclass, field
 from typing import Any, Literal
 
 from torchcal.core.errors import TorchcalError
+from torchcal.core.outputs import check_name
 
 Direction = Literal["minimize", "maximize"]
 OBJECTIVES: dict[str, Direction] = {"validation_rms_mm": "minimize", "model_size": "minimize", "fit_seconds": "minimize"}
@@ -70,6 +71,7 @@ class StudyConfig:
     holdout_register: bool = False
 
     def validate(self) -> None:
+        check_name(self.name, "study.name")
         unknown = [o for o in self.objectives if o not in OBJECTIVES]
         if not self.objectives or unknown:
             raise TorchcalError(f"study.objectives: unknown {unknown or 'empty list'}; choose from {sorted(OBJECTIVES)}")

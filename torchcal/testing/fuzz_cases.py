@@ -18,13 +18,18 @@ import csv
 import json
 import math
 import shutil
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import torch
+
 from torchcal.core.errors import TorchcalError
-from torchcal.core.folder import seal, verify_folder
+from torchcal.core.folder import seal, verify_folder, write_member, write_member_json
+from torchcal.data.measurements import write_measurements_csv
 from torchcal.kinematics.robot import load_robot, mdh_to_urdf
+from torchcal.sim.twin import Twin, TwinConfig
 
 
 @dataclass
@@ -182,6 +187,27 @@ def csv_missing_column(fx: Fixtures, w: Path) -> Case:
     return Case(_fit(fx, data, w / "out"), 2, "q1..q6", w / "out")
 
 
+def csv_semicolon(fx: Fixtures, w: Path) -> Case:
+    data = w / "train.csv"
+    data.write_text("\n".join(line.replace(",", ";").replace(".", ",") for line in fx.train.read_text().splitlines()) + "\n")
+    return Case(_fit(fx, data, w / "out"), 2, "separated by semicolons", w / "out")
+
+
+def csv_wide_header(fx: Fixtures, w: Path) -> Case:
+    header, rows = _rows(fx.train)
+    extra = [f"c{i}" for i in range(200_000)]
+    data = _write_rows(w / "train.csv", header + extra, [r + ["0"] * len(extra) for r in rows[:3]])
+    return Case(_fit(fx, data, w / "out"), 2, "200009 columns", w / "out")
+
+
+def csv_million_rows(fx: Fixtures, w: Path) -> Case:
+    header, rows = _rows(fx.train)
+    data = w / "train.csv"
+    line = ",".join(rows[0]) + "\n"
+    data.write_text(",".join(header) + "\n" + line * 600_000)
+    return Case(_fit(fx, data, w / "out"), 2, "at most 500000 poses", w / "out")
+
+
 def yaml_latin1(fx: Fixtures, w: Path) -> Case:
     robot = w / "robot.yaml"
     robot.write_bytes(fx.robot.read_bytes().replace(b"name: twin-kr6", b"name: twin-kr6-\xe9"))
@@ -211,7 +237,7 @@ def yaml_python_tag(fx: Fixtures, w: Path) -> Case:
 def yaml_wrong_sign(fx: Fixtures, w: Path) -> Case:
     robot = w / "robot.yaml"
     robot.write_text(fx.robot.read_text().replace("a: 455", "a: -455"))
-    return Case(_fit(fx, fx.train, w / "out", robot=robot), 0, "manufacturing tolerances", w / "out", "whole")
+    return Case(_fit(fx, fx.train, w / "out", robot=robot), 2, "still misses the measured points", w / "out")
 
 
 def _urdf(fx: Fixtures) -> str:
@@ -233,6 +259,21 @@ def urdf_zero_axis(fx: Fixtures, w: Path) -> Case:
     robot = w / "robot.urdf"
     robot.write_text(text[:i] + '<axis xyz="0 0 0' + text[j:])
     return Case(_fit(fx, fx.train, w / "out", robot=robot), 2, "axis", w / "out")
+
+
+def urdf_nan_limit(fx: Fixtures, w: Path) -> Case:
+    text = _urdf(fx)
+    i = text.index('<limit lower="')
+    j = text.index('"', i + 14)
+    robot = w / "robot.urdf"
+    robot.write_text(text[:i] + '<limit lower="nan' + text[j:])
+    return Case(_fit(fx, fx.train, w / "out", robot=robot), 2, "must be finite numbers", w / "out")
+
+
+def yaml_deeply_nested(fx: Fixtures, w: Path) -> Case:
+    robot = w / "robot.yaml"
+    robot.write_text("name: " + "[" * 20000 + "]" * 20000 + "\n" + fx.robot.read_text().split("\n", 1)[1])
+    return Case(_fit(fx, fx.train, w / "out", robot=robot), 2, "robot.yaml", w / "out")
 
 
 def model_json_truncated(fx: Fixtures, w: Path) -> Case:
@@ -318,6 +359,14 @@ def _robot_file(fx: Fixtures, w: Path, value: str) -> Path:
     (model / "calibration.json").write_text(json.dumps(meta))
     _reseal(model)
     return model
+
+
+def robot_file_of_another_model_sealed(fx: Fixtures, w: Path) -> Case:
+    model = _copy_model(fx, w)
+    path = model / "robot.yaml"
+    path.write_text(path.read_text().replace("a: 455", "a: 480"))
+    _reseal(model)
+    return Case(_evaluate(model, fx.test), 2, "not the robot file this model was fitted with", model, "unchanged")
 
 
 def robot_file_absolute(fx: Fixtures, w: Path) -> Case:
@@ -413,17 +462,310 @@ def few_poses(fx: Fixtures, w: Path) -> Case:
     return Case(_fit(fx, data, w / "out"), 0, "per parameter", w / "out", "whole")
 
 
+def _points_of_other_poses(src: Path, dst: Path) -> Path:
+    """The file with each row's x, y, z taken from another row (joints and points of different poses)."""
+    header, rows = _rows(src)
+    cols = [header.index(c) for c in "xyz"]
+    shifted = rows[7:] + rows[:7]
+    return _write_rows(dst, header, [[(shifted[k][i] if i in cols else v) for i, v in enumerate(r)]
+                                     for k, r in enumerate(rows)])
+
+
+def fit_points_of_other_poses(fx: Fixtures, w: Path) -> Case:
+    data = _points_of_other_poses(fx.train, w / "train.csv")
+    return Case(_fit(fx, data, w / "out"), 2, "still misses the measured points", w / "out")
+
+
+def evaluate_points_of_other_poses(fx: Fixtures, w: Path) -> Case:
+    data = _points_of_other_poses(fx.test, w / "test.csv")
+    return Case(_evaluate(fx.model, data, "--json", str(w / "m.json")), 2, "another robot", w / "m.json")
+
+
+def evaluate_instrument_moved(fx: Fixtures, w: Path) -> Case:
+    def edit(h, k, r):
+        r[h.index("x")] = repr(float(r[h.index("x")]) + 400.0)
+        return r
+    return Case(_evaluate(fx.model, _edit_csv(fx.test, w / "test.csv", edit)), 2, "add --register", None)
+
+
+def rows_with_mistyped_angle(fx: Fixtures, w: Path) -> Case:
+    def edit(h, k, r):
+        if k in (5, 23):  # two of forty rows: a joint angle typed with a slipped digit
+            r[h.index("q2")] = repr(float(r[h.index("q2")]) + 9.0)
+        return r
+    return Case(_fit(fx, _edit_csv(fx.train, w / "train.csv", edit), w / "out"), 0, "line 7", w / "out", "whole")
+
+
+def joint_never_moves(fx: Fixtures, w: Path) -> Case:
+    twin = Twin.create(TwinConfig(n_train=60))
+    q = twin.robot.sample_joints(60, torch.Generator().manual_seed(5))
+    q[:, 2] = 0.3  # joint 3 held still while the others move
+    data = w / "train.csv"
+    write_measurements_csv(data, q, twin.model.tcp_position(q, twin.x_true))
+    return Case(_fit(fx, data, w / "out"), 0, "spans only 0.000 deg", w / "out", "whole")
+
+
+def orientation_garbage(fx: Fixtures, w: Path) -> Case:
+    header, rows = _rows(fx.train)
+    angles = [[f"{(k * 37 + 11 * c) % 360 - 180:.1f}" for c in range(3)] for k in range(len(rows))]
+    data = _write_rows(w / "train.csv", [*header, "rx", "ry", "rz"], [r + a for r, a in zip(rows, angles)])
+    return Case(_fit(fx, data, w / "out"), 2, "contradict the positions", w / "out")
+
+
+def rows_in_metres(fx: Fixtures, w: Path) -> Case:
+    def edit(h, k, r):
+        if k < 12:  # twelve of forty rows in metres: the file mixes units
+            for c in "xyz":
+                r[h.index(c)] = repr(float(r[h.index(c)]) / 1000)
+        return r
+    return Case(_fit(fx, _edit_csv(fx.train, w / "train.csv", edit), w / "out"), 2, "a typo or a wrong value",
+                w / "out")
+
+
+# ------------------------------------------------ round 2: outputs, write failures, names, options
+
+
+def _export_folder(work: Path) -> Path:
+    """A sealed export folder (its manifest and a graph file), as ``torchcal export`` leaves one."""
+    folder = work / "export"
+    write_member_json(folder, "manifest.json", {"format": "torchcal-export/1", "files": {"compensator": "c.onnx"}})
+    write_member(folder, "c.onnx", b"onnx graph bytes")
+    return folder
+
+
+def fit_out_is_export(fx: Fixtures, w: Path) -> Case:
+    out = _export_folder(w)
+    return Case(_fit(fx, fx.train, out), 2, "names an export folder", out, "unchanged")
+
+
+def export_out_is_other_model(fx: Fixtures, w: Path) -> Case:
+    other = _copy_model(fx, w)
+    return Case(["export", "--model", str(fx.model), "--out", str(other)], 2, "names a model folder", other, "unchanged")
+
+
+def simulate_out_is_model(fx: Fixtures, w: Path) -> Case:
+    model = _copy_model(fx, w)
+    return Case(["simulate", "--out", str(model), "n_train=20"], 2, "names a model folder", model, "unchanged")
+
+
+def simulate_out_is_export(fx: Fixtures, w: Path) -> Case:
+    out = _export_folder(w)
+    return Case(["simulate", "--out", str(out), "n_train=20"], 2, "names an export folder", out, "unchanged")
+
+
+def json_into_model(fx: Fixtures, w: Path) -> Case:
+    model = _copy_model(fx, w)
+    return Case(_evaluate(fx.model, fx.test, "--json", str(model / "metrics.json")), 2, "inside a model folder",
+                model, "unchanged")
+
+
+def json_onto_checksums(fx: Fixtures, w: Path) -> Case:
+    model = _copy_model(fx, w)
+    return Case(_evaluate(fx.model, fx.test, "--json", str(model / "checksums.json")), 2, "inside a model folder",
+                model, "unchanged")
+
+
+def json_onto_user_file(fx: Fixtures, w: Path) -> Case:
+    mine = w / "results.json"
+    mine.write_text('{"my": "notes"}\n')
+    return Case(_evaluate(fx.model, fx.test, "--json", str(mine)), 2, "not a metrics file", mine, "unchanged")
+
+
+def report_into_model(fx: Fixtures, w: Path) -> Case:
+    model = _copy_model(fx, w)
+    return Case(_evaluate(fx.model, fx.test, "--report", str(model / "report")), 2, "inside a model folder",
+                model, "unchanged")
+
+
+def report_onto_export(fx: Fixtures, w: Path) -> Case:
+    out = _export_folder(w)
+    return Case(_evaluate(fx.model, fx.test, "--report", str(out)), 2, "names an export folder", out, "unchanged")
+
+
+def report_onto_user_folder(fx: Fixtures, w: Path) -> Case:
+    out = w / "docs"
+    out.mkdir()
+    (out / "thesis.md").write_text("keep me\n")
+    return Case(_evaluate(fx.model, fx.test, "--report", str(out)), 2, "not a torchcal output", out, "unchanged")
+
+
+def refit_over_user_file(fx: Fixtures, w: Path) -> Case:
+    model = _copy_model(fx, w)
+    (model / "notes.txt").write_text("measured on a Tuesday\n")
+    return Case(_fit(fx, fx.train, model), 2, "notes.txt", model, "unchanged")
+
+
+def export_out_inside_model(fx: Fixtures, w: Path) -> Case:
+    model = _copy_model(fx, w)
+    return Case(["export", "--model", str(fx.model), "--out", str(model / "onnx")], 2, "inside a model folder",
+                model, "unchanged")
+
+
+def fit_file_too_large(fx: Fixtures, w: Path) -> Case:
+    model = _copy_model(fx, w)
+    case = Case(_fit(fx, fx.train, model), 2, "ulimit -f", model, "unchanged")
+    case.extra["file_limit"] = 40_000  # bytes: the report's figures do not fit
+    return case
+
+
+def export_file_too_large(fx: Fixtures, w: Path) -> Case:
+    case = Case(["export", "--model", str(fx.model), "--out", str(w / "export")], 2, "ulimit -f", w / "export")
+    case.extra["file_limit"] = 40_000
+    return case
+
+
+def run_name_parent(fx: Fixtures, w: Path) -> Case:
+    return Case(["run", f"out={w / 'runs'}", "name=../escaped", "twin.n_train=20"], 2, "one folder name", w / "escaped")
+
+
+def run_name_slash(fx: Fixtures, w: Path) -> Case:
+    return Case(["run", f"out={w / 'runs'}", "name=a/b", "twin.n_train=20"], 2, "one folder name", w / "runs")
+
+
+def run_name_huge(fx: Fixtures, w: Path) -> Case:
+    return Case(["run", f"out={w / 'runs'}", "name=" + "9" * 5000, "twin.n_train=20"], 2, "a value of 5000 characters", w / "runs")
+
+
+def study_name_parent(fx: Fixtures, w: Path) -> Case:
+    return Case(["study", f"out={w / 'runs'}", "study.name=../../escaped", "study.n_trials=1"], 2, "one folder name",
+                w / "escaped")
+
+
+def simulate_negative_mass(fx: Fixtures, w: Path) -> Case:
+    return Case(["simulate", "--out", str(w / "sim"), "gravity=true", "link_masses_kg=[25,-15,10]"], 2,
+                "link_masses_kg", w / "sim")
+
+
+def simulate_zero_stiffness(fx: Fixtures, w: Path) -> Case:
+    return Case(["simulate", "--out", str(w / "sim"), "gravity=true", "joint_stiffness_nm_per_rad=[0]"], 2,
+                "joint_stiffness_nm_per_rad", w / "sim")
+
+
+def simulate_sockets_touching(fx: Fixtures, w: Path) -> Case:
+    return Case(["simulate", "instrument=sockets", "--out", str(w / "sim"), "distance_mm=0"], 2, "distance_mm",
+                w / "sim")
+
+
+def seed_beyond_32_bits(fx: Fixtures, w: Path) -> Case:
+    return Case(_fit(fx, fx.train, w / "out", "seed=4294967296"), 2, "seed must be an integer", w / "out")
+
+
+def seed_negative(fx: Fixtures, w: Path) -> Case:
+    return Case(_fit(fx, fx.train, w / "out", "seed=-3"), 2, "seed must be an integer", w / "out")
+
+
+def device_meta(fx: Fixtures, w: Path) -> Case:
+    return Case(_fit(fx, fx.train, w / "out", "device=meta"), 2, "not meta", w / "out")
+
+
+def device_unknown(fx: Fixtures, w: Path) -> Case:
+    return Case(_fit(fx, fx.train, w / "out", "device=gpu0"), 2, "not a torch device", w / "out")
+
+
+def boolean_given_number(fx: Fixtures, w: Path) -> Case:
+    return Case(_fit(fx, fx.train, w / "out", "head_time_check=2"), 2, "true or false", w / "out")
+
+
+def evaluate_interpolation(fx: Fixtures, w: Path) -> Case:
+    return Case(_evaluate(fx.model, fx.test, "split=${oc.env:HOME}"), 2, "interpolation", None)
+
+
+def simulate_interpolation(fx: Fixtures, w: Path) -> Case:
+    return Case(["simulate", "--out", str(w / "sim"), "n_train=${n_test}"], 2, "interpolation", w / "sim")
+
+
+def study_workers_zero(fx: Fixtures, w: Path) -> Case:
+    return Case(["study", f"out={w / 'runs'}", "--workers", "0"], 2, "--workers", w / "runs")
+
+
+def study_trials_zero(fx: Fixtures, w: Path) -> Case:
+    return Case(["study", f"out={w / 'runs'}", "--n-trials", "0"], 2, "--n-trials", w / "runs")
+
+
+def export_iterations_huge(fx: Fixtures, w: Path) -> Case:
+    return Case(["export", "--model", str(fx.model), "--out", str(w / "export"), "--iterations", "100000"], 2,
+                "--iterations", w / "export")
+
+
+def hidden_units_huge(fx: Fixtures, w: Path) -> Case:
+    return Case(_fit(fx, fx.train, w / "out", "residual_hidden=50000000"), 2, "residual_hidden", w / "out")
+
+
+def simulate_huge(fx: Fixtures, w: Path) -> Case:
+    return Case(["simulate", "--out", str(w / "sim"), "n_train=300000000"], 2, "n_train", w / "sim")
+
+
 CASES: dict[str, Callable[[Fixtures, Path], Case]] = {f.__name__: f for f in (
     csv_latin1, csv_binary, csv_nul, csv_huge_field, csv_metres, csv_radians, csv_1e300, csv_underscore, csv_nan,
-    csv_duplicate, csv_missing_column,
+    csv_duplicate, csv_missing_column, csv_semicolon, csv_wide_header, csv_million_rows,
     yaml_latin1, yaml_binary, yaml_alias_bomb, yaml_python_tag, yaml_wrong_sign, urdf_nan_origin, urdf_zero_axis,
+    urdf_nan_limit, yaml_deeply_nested,
     model_json_truncated, model_json_invalid_sealed, model_json_missing_key_sealed, safetensors_bitflip,
     safetensors_bad_header_sealed, safetensors_nan_sealed, safetensors_foreign_sealed, model_stale_residual,
-    model_no_checksums, robot_file_absolute, robot_file_parent,
+    model_no_checksums, robot_file_absolute, robot_file_parent, robot_file_of_another_model_sealed,
     fit_out_is_file, fit_out_foreign_folder, fit_out_holds_data, evaluate_json_is_folder, export_out_is_file,
     export_out_is_model, simulate_zero, simulate_negative, threshold_negative, threshold_nan, residual_unknown,
     unknown_option, register_three_poses, evaluate_metres, few_poses,
+    fit_out_is_export, export_out_is_other_model, simulate_out_is_model, simulate_out_is_export, json_into_model,
+    json_onto_checksums, json_onto_user_file, report_into_model, report_onto_export, report_onto_user_folder,
+    refit_over_user_file, export_out_inside_model, fit_file_too_large, export_file_too_large, run_name_parent,
+    run_name_slash, run_name_huge, study_name_parent, seed_beyond_32_bits, seed_negative, device_meta,
+    device_unknown, boolean_given_number, evaluate_interpolation, simulate_interpolation, study_workers_zero,
+    study_trials_zero, export_iterations_huge, hidden_units_huge, simulate_huge, fit_points_of_other_poses,
+    evaluate_points_of_other_poses, evaluate_instrument_moved, rows_with_mistyped_angle, rows_in_metres,
+    joint_never_moves, orientation_garbage, simulate_negative_mass, simulate_zero_stiffness, simulate_sockets_touching,
 )}
+
+#: Cases by class (the reliability rounds' classes); every other case is a bad input file.
+_BY_CLASS: dict[str, tuple[str, ...]] = {
+    "outputs on other outputs": (
+        "fit_out_is_file", "fit_out_foreign_folder", "fit_out_holds_data", "evaluate_json_is_folder",
+        "export_out_is_file", "export_out_is_model", "fit_out_is_export", "export_out_is_other_model",
+        "simulate_out_is_model", "simulate_out_is_export", "json_into_model", "json_onto_checksums",
+        "json_onto_user_file", "report_into_model", "report_onto_export", "report_onto_user_folder",
+        "refit_over_user_file", "export_out_inside_model"),
+    "write failures": ("fit_file_too_large", "export_file_too_large"),
+    "names that escape": ("run_name_parent", "run_name_slash", "run_name_huge", "study_name_parent"),
+    "sealed but inconsistent folders": (
+        "model_json_invalid_sealed", "model_json_missing_key_sealed", "safetensors_bad_header_sealed",
+        "safetensors_nan_sealed", "safetensors_foreign_sealed", "robot_file_absolute", "robot_file_parent",
+        "robot_file_of_another_model_sealed"),
+    "options that crash deep": (
+        "seed_beyond_32_bits", "seed_negative", "device_meta", "device_unknown", "boolean_given_number",
+        "evaluate_interpolation", "simulate_interpolation", "study_workers_zero", "study_trials_zero",
+        "threshold_negative", "threshold_nan", "residual_unknown", "unknown_option", "simulate_zero",
+        "simulate_negative"),
+    "bad rows and contradictory inputs": ("rows_with_mistyped_angle", "rows_in_metres", "csv_semicolon",
+                                          "joint_never_moves", "orientation_garbage", "urdf_nan_limit", "yaml_deeply_nested", "simulate_negative_mass",
+                                          "simulate_zero_stiffness", "simulate_sockets_touching"),
+    "a file of another robot or set-up": ("yaml_wrong_sign", "fit_points_of_other_poses", "evaluate_points_of_other_poses",
+                                          "evaluate_instrument_moved"),
+    "hangs and unbounded memory": ("export_iterations_huge", "hidden_units_huge", "simulate_huge", "csv_huge_field",
+                                   "csv_wide_header", "csv_million_rows"),
+}
+
+#: The class of each case, for counts by class.
+CLASSES: dict[str, str] = {name: next((c for c, names in _BY_CLASS.items() if name in names), "bad input files")
+                           for name in CASES}
+
+
+@contextmanager
+def file_size_limit(limit: int | None) -> Iterator[None]:
+    """The process's file-size limit (``ulimit -f``) lowered to ``limit`` bytes for the block (``None``: unchanged).
+
+    Python ignores SIGXFSZ, so a write beyond the limit raises ``OSError(EFBIG)`` as on a full disk.
+    """
+    if limit is None:
+        yield
+        return
+    import resource
+
+    soft, hard = resource.getrlimit(resource.RLIMIT_FSIZE)
+    resource.setrlimit(resource.RLIMIT_FSIZE, (limit, hard))
+    try:
+        yield
+    finally:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (soft, hard))
 
 
 def snapshot(path: Path | None) -> object:

@@ -21,6 +21,7 @@ import torch
 
 from torchcal.core.errors import TorchcalError
 from torchcal.core.io import atomic_write_json, atomic_write_text
+from torchcal.core.overrides import check_range
 from torchcal.kinematics.error_model import ErrorModel
 from torchcal.kinematics.ik import solve_ik
 from torchcal.kinematics.robot import robot_to_yaml
@@ -55,6 +56,14 @@ class SocketsTwinConfig:
     angle_error_deg: float = 0.03
     tool_error_mm: float = 0.5
     margin_deg: float = 5.0
+
+    def __post_init__(self) -> None:
+        """Refuse a fixture that cannot be built (sockets 0 mm apart carry no scale) and empty counts."""
+        check_range(self, "distance_mm", low=0.0, low_open=True)
+        for name in ("n_placements", "n_test_placements", "configurations_per_socket"):
+            check_range(self, name, low=1, high=100_000)
+        for name in ("joint_noise_deg", "spread_deg", "length_error_mm", "angle_error_deg", "tool_error_mm", "margin_deg"):
+            check_range(self, name, low=0.0)
 
 
 def _true_model(twin: Twin) -> tuple[ErrorModel, torch.Tensor]:

@@ -15,7 +15,7 @@ from torchcal.core.errors import DataError
 from torchcal.core.metrics import iso9283_repeated, position_metrics
 from torchcal.data.measurements import Measurements, load_measurements
 from torchcal.model_selection.leakage import leakage_report
-from torchcal.stages.geometry import held_out_errors
+from torchcal.stages.geometry import NOMINAL_PROTOCOL, held_out_errors, nominal_errors
 from torchcal.stages.prediction_uncertainty import score as score_uncertainty
 from torchcal.stages.prediction_uncertainty import stored_prediction
 from torchcal.stages.store import StoredModel, load_model
@@ -45,6 +45,27 @@ def evaluate(model_dir: str | Path, data_path: str | Path, *, register: bool = F
     return score(stored, data, register=register).metrics
 
 
+#: A median error beyond this (mm) on a file means the file is not of this model's robot and set-up.
+FOREIGN_FILE_MEDIAN_MM = 25.0
+
+
+def refuse_foreign_file(errors: torch.Tensor, stored: StoredModel, data: Measurements, register: bool) -> None:
+    """Refuse to score a file the model misses by centimetres: it belongs to another robot, tool or set-up.
+
+    Raises:
+        DataError: naming the median error and the likely cause (``--register`` when the frame was not re-fitted).
+    """
+    median_mm = float(errors.norm(dim=-1).median()) * 1e3
+    if median_mm <= FOREIGN_FILE_MEDIAN_MM:
+        return
+    cause = ("even with the instrument frame re-fitted (--register): the file is of another robot, tool or set-up"
+             if register else
+             "the instrument was moved since the fit (then add --register to re-fit its frame), or the file is of "
+             "another robot, tool or set-up")
+    raise DataError(f"the model {stored.folder} ({stored.robot.name}) misses these poses by {median_mm:.1f} mm "
+                    f"(median; a calibrated arm: well under 1 mm): {cause}; nothing was scored", path=data.source)
+
+
 def score(stored: StoredModel, data: Measurements, *, register: bool = False, leakage: bool = True) -> Scored:
     """The metrics of ``stored`` on ``data`` (mm): errors, ISO 9283 where poses repeat, leakage, the compensator.
 
@@ -61,8 +82,13 @@ def score(stored: StoredModel, data: Measurements, *, register: bool = False, le
                        f"the RMS is optimistic; score on {REGISTER_ADVISED_POSES} or more poses")
             warnings.warn(warning, stacklevel=2)
     errors = held_out_errors(stored, data, register=register)
+    refuse_foreign_file(errors, stored, data, register)
     metrics: dict[str, Any] = position_metrics(errors)
     metrics.update({"model": str(stored.folder), "data": str(data.source), "registered": register})
+    # the fair 'before' on the same poses: what the uncalibrated robot misses them by
+    before = position_metrics(nominal_errors(stored.robot, data))
+    metrics["nominal"] = {**before, "protocol": NOMINAL_PROTOCOL}
+    metrics["nominal_position_rms_mm"] = before["position_rms_mm"]
     prediction = stored_prediction(stored, data.q)
     if prediction is not None:
         uncertainty = score_uncertainty(prediction, errors,

@@ -7,9 +7,12 @@ residual head kept only where it helps on new poses (:mod:`torchcal.stages.resid
 
 from __future__ import annotations
 
+import math
+import warnings
 from pathlib import Path
 from typing import Any, ClassVar
 
+from torchcal.core.errors import DataError
 from torchcal.instruments.base import (
     ContractCase,
     EvaluateOutcome,
@@ -40,6 +43,7 @@ class TrackerInstrument(Instrument):
         from torchcal.config.compose import compose_fit_config
         from torchcal.core.metrics import position_metrics
         from torchcal.identify.joint_fit import predicted_positions
+        from torchcal.identify.outliers import check_orientation_columns, find_outlier_rows
         from torchcal.kinematics.robot import load_robot
         from torchcal.stages.geometry import NOMINAL_PROTOCOL, nominal_errors, with_tool
         from torchcal.stages.pipeline import fit_model
@@ -47,15 +51,28 @@ class TrackerInstrument(Instrument):
         config = compose_fit_config(request.overrides)
         robot = with_tool(load_robot(request.robot, base_link=request.base_link, end_link=request.end_link), config)
         data = self.load(request.data, robot, request.overrides)
+        still = still_joints(data, robot.joint_names)
+        for line in still:
+            warnings.warn(f"{request.data}: {line}", stacklevel=2)
+        request.progress(f"checking {len(data)} poses for rows the geometry cannot explain")
+        outliers = find_outlier_rows(robot, data, parallel_threshold_deg=config.parallel_threshold_deg)
+        check_orientation_columns(robot, data, parallel_threshold_deg=config.parallel_threshold_deg)
+        set_aside: dict = {"joints_not_moved": still} if still else {}
+        if outliers is not None:
+            warnings.warn(outliers.message(str(request.data)), stacklevel=2)
+            data = data.subset([i for i in range(len(data)) if i not in set(outliers.index)])
+            set_aside["rows_left_out"] = {"file_lines": list(outliers.lines), "errors_mm": list(outliers.errors_mm),
+                                           "median_mm_of_the_others": outliers.median_mm}
         request.progress(f"identifying {robot.name} from {len(data)} poses")
 
         def fit_metrics(result: Any) -> dict:
             before = position_metrics(nominal_errors(robot, data))
             after = position_metrics(data.position - predicted_positions(result, data.q))
             return {"fit_metrics": {"protocol": f"training poses, optimistic; nominal: {NOMINAL_PROTOCOL}",
-                                    "nominal": before, "geometry_stage": after}}
+                                    "nominal": before, "geometry_stage": after}, **set_aside}
 
         run = fit_model(request.out, robot, data, config, metadata=fit_metrics, progress=request.progress)
+        refuse_implausible_fit(run.result, robot.name, str(request.data))
         lines = run.lines()
         request.progress("writing the report")
         lines.append(_write_fit_report(run.folder, data, run.structure, lines, config))
@@ -74,7 +91,8 @@ class TrackerInstrument(Instrument):
         data = load_measurements(request.data, stored.robot, joint_unit=config.joint_unit, length_unit=config.length_unit)
         scored = score(stored, data, register=request.register)
         metrics = scored.metrics
-        lines = []
+        lines = [(f"{len(data)} poses: the model misses them by {metrics['position_rms_mm']:.4f} mm RMS, the nominal robot "
+                  f"by {metrics['nominal_position_rms_mm']:.4f} mm ({metrics['nominal']['protocol']})")]
         if "leakage" in metrics:
             leakage = LeakageReport(**metrics["leakage"])
             lines.append(f"{'warning: ' if leakage.warning else ''}{leakage.summary()}")
@@ -96,7 +114,7 @@ class TrackerInstrument(Instrument):
 
     def shown_metrics(self, metrics: dict) -> dict:
         # the point figures; leakage, uncertainty and the compensator are in the lines printed above
-        return {k: v for k, v in metrics.items() if k.startswith(("n_", "position_"))}
+        return {k: v for k, v in metrics.items() if k.startswith(("n_", "position_", "nominal_position_"))}
 
     def options(self) -> type:
         from torchcal.config.schema import FitConfig
@@ -119,6 +137,39 @@ class TrackerInstrument(Instrument):
             metric="position_rms_mm",
             bound=0.05,
         )
+
+
+#: A joint whose angles span less than this (deg) in a file is taken as not moving.
+STILL_JOINT_DEG = 1.0
+
+
+def still_joints(data: Any, joint_names: tuple[str, ...]) -> list[str]:
+    """One line per joint that (nearly) never moves in ``data``: what a model says elsewhere is extrapolation."""
+    q_deg = data.q.detach().cpu().double() * (180.0 / math.pi)
+    span = q_deg.max(dim=0).values - q_deg.min(dim=0).values
+    return [f"{name} (q{j + 1}) spans only {float(span[j]):.3f} deg in this file (around {float(q_deg[:, j].median()):.2f} "
+            f"deg): its parameters are seen at that angle only, and what the model predicts at other {name} "
+            "angles is extrapolation; measure poses that move it"
+            for j, name in enumerate(joint_names) if float(span[j]) < STILL_JOINT_DEG]
+
+
+#: A calibrated model that still misses its own training points by this much (RMS, mm) does not
+#: describe the measured robot: real arms calibrate to 0.02-0.5 mm, deflections add a few mm at most.
+IMPLAUSIBLE_FIT_RMS_MM = 10.0
+
+
+def refuse_implausible_fit(result: Any, robot_name: str, data_file: str) -> None:
+    """Refuse a fit whose calibrated geometry still misses the measured points by centimetres.
+
+    Raises:
+        DataError: naming the residual and the likely causes (nothing is written: the fit runs staged).
+    """
+    rms_mm = math.sqrt(3.0) * float(result.sigma_residual_m) * 1e3
+    if rms_mm > IMPLAUSIBLE_FIT_RMS_MM:
+        raise DataError(f"after calibration the model of {robot_name} still misses the measured points by "
+                        f"{rms_mm:.1f} mm RMS (a calibrated arm: well under 1 mm): the robot file is likely not "
+                        "this robot's (another model, joint signs or zeros, a mirrored frame), or the joint "
+                        "columns and the points are not the same poses; nothing was written", path=data_file)
 
 
 def _selection(folder: Path) -> dict | None:
