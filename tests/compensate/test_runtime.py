@@ -10,6 +10,7 @@ import pytest
 import torch
 
 from torchcal.compensate.export import build_graphs
+from torchcal.compensate.production_tcp import production_view, tcp_transform
 from torchcal.compensate.runtime import CompensatorError, CompensatorRuntime
 from torchcal.core.errors import TorchcalError
 from torchcal.stages.store import load_model
@@ -27,7 +28,7 @@ def folder(exported, tmp_path):
 def test_runtime_matches_torch(exported, model_dir):
     rt = CompensatorRuntime(exported[0])
     stored = load_model(model_dir)
-    graphs = build_graphs(stored)
+    graphs = build_graphs(production_view(stored, tcp_transform(None, None)))  # the export's default TCP: the flange
     q = stored.robot.sample_joints(50, torch.Generator().manual_seed(31))
     with torch.no_grad():
         ref = graphs["compensator"](q).numpy()

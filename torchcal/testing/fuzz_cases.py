@@ -641,11 +641,6 @@ def simulate_zero_stiffness(fx: Fixtures, w: Path) -> Case:
                 "joint_stiffness_nm_per_rad", w / "sim")
 
 
-def simulate_sockets_touching(fx: Fixtures, w: Path) -> Case:
-    return Case(["simulate", "instrument=sockets", "--out", str(w / "sim"), "distance_mm=0"], 2, "distance_mm",
-                w / "sim")
-
-
 def seed_beyond_32_bits(fx: Fixtures, w: Path) -> Case:
     return Case(_fit(fx, fx.train, w / "out", "seed=4294967296"), 2, "seed must be an integer", w / "out")
 
@@ -713,7 +708,7 @@ CASES: dict[str, Callable[[Fixtures, Path], Case]] = {f.__name__: f for f in (
     device_unknown, boolean_given_number, evaluate_interpolation, simulate_interpolation, study_workers_zero,
     study_trials_zero, export_iterations_huge, hidden_units_huge, simulate_huge, fit_points_of_other_poses,
     evaluate_points_of_other_poses, evaluate_instrument_moved, rows_with_mistyped_angle, rows_in_metres,
-    joint_never_moves, orientation_garbage, simulate_negative_mass, simulate_zero_stiffness, simulate_sockets_touching,
+    joint_never_moves, orientation_garbage, simulate_negative_mass, simulate_zero_stiffness,
 )}
 
 #: Cases by class (the reliability rounds' classes); every other case is a bad input file.
@@ -737,7 +732,7 @@ _BY_CLASS: dict[str, tuple[str, ...]] = {
         "simulate_negative"),
     "bad rows and contradictory inputs": ("rows_with_mistyped_angle", "rows_in_metres", "csv_semicolon",
                                           "joint_never_moves", "orientation_garbage", "urdf_nan_limit", "yaml_deeply_nested", "simulate_negative_mass",
-                                          "simulate_zero_stiffness", "simulate_sockets_touching"),
+                                          "simulate_zero_stiffness"),
     "a file of another robot or set-up": ("yaml_wrong_sign", "fit_points_of_other_poses", "evaluate_points_of_other_poses",
                                           "evaluate_instrument_moved"),
     "hangs and unbounded memory": ("export_iterations_huge", "hidden_units_huge", "simulate_huge", "csv_huge_field",

@@ -78,3 +78,12 @@ def test_simulate_writes_a_sockets_case(tmp_path):
     assert main(["simulate", "--out", str(tmp_path), "instrument=sockets", "n_placements=1", "n_test_placements=1",
                  "configurations_per_socket=8"]) == 0
     assert (tmp_path / "sockets.csv").read_text().startswith("placement,socket,q1")
+
+
+@pytest.mark.parametrize("item, message", [("distance_mm=0", "distance_mm"), ("n_placements=0", "n_placements"),
+                                           ("joint_noise_deg=-1", "joint_noise_deg")])
+def test_a_fixture_that_cannot_be_built_is_refused(tmp_path, item, message, capsys):
+    """Sockets 0 mm apart carry no scale: one line, nothing written."""
+    assert main(["simulate", "instrument=sockets", "--out", str(tmp_path / "sim"), item]) == 2
+    assert message in capsys.readouterr().err
+    assert not (tmp_path / "sim").exists()

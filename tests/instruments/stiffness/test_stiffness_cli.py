@@ -186,7 +186,10 @@ def test_geometry_and_stiffness_in_one_model_folder(tmp_path):
             j = int(name[3]) - 1
             assert abs(p["value"] / float(rig.joint_stiffness[j]) - 1) < 0.10, name
 
-    assert main(["export", "--model", str(combined), "--out", str(tmp_path / "exp")]) == 0
+    # the load acts at the tool the tracker measured: that is the production TCP the compensator serves
+    tool_mm = (stored.x[stored.model.layout.tool_slice][:3] * 1e3).tolist()
+    assert main(["export", "--model", str(combined), "--out", str(tmp_path / "exp"), "--tcp-mm",
+                 *(f"{v:.12g}" for v in tool_mm)]) == 0
     rt = CompensatorRuntime(tmp_path / "exp")
     assert rt.manifest["stages"] == {"geometry": True, "residual": False, "stiffness": True, "gravity_compliance": False, "joint_harmonics": False}
     q = rig.sample_poses(200, gen)
@@ -194,7 +197,10 @@ def test_geometry_and_stiffness_in_one_model_folder(tmp_path):
     # The calibrated base frame differs from the true one by what the tracker frame absorbed
     # (row 1 of the table): the target is the nominal pose in the *calibrated* base frame.
     T_base_calibrated = torch.linalg.inv(twin.T_instrument_base()) @ stored.model.instrument_from_base(stored.x)
-    target = rig.T_instrument_base @ T_base_calibrated @ twin.robot.flange_pose(q) @ _tool(twin.robot)
+    # the compensator serves the production TCP given at export: the nominal flange pose with that TCP
+    T_tcp = torch.eye(4, dtype=torch.float64)
+    T_tcp[:3, 3] = torch.tensor(tool_mm, dtype=torch.float64) * 1e-3
+    target = rig.T_instrument_base @ T_base_calibrated @ twin.robot.flange_pose(q) @ T_tcp
     q_c = torch.from_numpy(rt.correct(q.numpy(), wrench.numpy()))
 
     def rms(qq):
