@@ -209,9 +209,3 @@ def test_geometry_and_stiffness_in_one_model_folder(tmp_path):
     before, after = rms(q), rms(q_c)
     assert before > 0.5  # geometric errors plus deflection
     assert after <= 0.2 * before and after < 0.05
-
-
-def _tool(robot) -> torch.Tensor:
-    t = torch.eye(4, dtype=torch.float64)
-    t[:3, 3] = robot.tool
-    return t
