@@ -25,7 +25,14 @@ import sys
 from collections import Counter
 from pathlib import Path
 
-from torchcal.testing.fuzz_cases import CASES, CLASSES, Case, make_fixtures, out_state_problem, snapshot
+from torchcal.testing.fuzz_cases import (
+    CASES,
+    CLASSES,
+    Case,
+    make_fixtures,
+    out_state_problem,
+    snapshot,
+)
 
 HERE = Path(__file__).resolve().parents[1]
 
