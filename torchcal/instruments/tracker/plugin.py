@@ -12,7 +12,6 @@ import warnings
 from pathlib import Path
 from typing import Any, ClassVar
 
-from torchcal.core.errors import DataError
 from torchcal.instruments.base import (
     ContractCase,
     EvaluateOutcome,
@@ -72,7 +71,6 @@ class TrackerInstrument(Instrument):
                                     "nominal": before, "geometry_stage": after}, **set_aside}
 
         run = fit_model(request.out, robot, data, config, metadata=fit_metrics, progress=request.progress)
-        refuse_implausible_fit(run.result, robot.name, str(request.data))
         lines = run.lines()
         request.progress("writing the report")
         lines.append(_write_fit_report(run.folder, data, run.structure, lines, config))
@@ -151,25 +149,6 @@ def still_joints(data: Any, joint_names: tuple[str, ...]) -> list[str]:
             f"deg): its parameters are seen at that angle only, and what the model predicts at other {name} "
             "angles is extrapolation; measure poses that move it"
             for j, name in enumerate(joint_names) if float(span[j]) < STILL_JOINT_DEG]
-
-
-#: A calibrated model that still misses its own training points by this much (RMS, mm) does not
-#: describe the measured robot: real arms calibrate to 0.02-0.5 mm, deflections add a few mm at most.
-IMPLAUSIBLE_FIT_RMS_MM = 10.0
-
-
-def refuse_implausible_fit(result: Any, robot_name: str, data_file: str) -> None:
-    """Refuse a fit whose calibrated geometry still misses the measured points by centimetres.
-
-    Raises:
-        DataError: naming the residual and the likely causes (nothing is written: the fit runs staged).
-    """
-    rms_mm = math.sqrt(3.0) * float(result.sigma_residual_m) * 1e3
-    if rms_mm > IMPLAUSIBLE_FIT_RMS_MM:
-        raise DataError(f"after calibration the model of {robot_name} still misses the measured points by "
-                        f"{rms_mm:.1f} mm RMS (a calibrated arm: well under 1 mm): the robot file is likely not "
-                        "this robot's (another model, joint signs or zeros, a mirrored frame), or the joint "
-                        "columns and the points are not the same poses; nothing was written", path=data_file)
 
 
 def _selection(folder: Path) -> dict | None:
