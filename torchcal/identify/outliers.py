@@ -47,11 +47,12 @@ class OutlierRows:
                 "angles and units")
 
 
-def _row_errors_mm(robot: RobotModel, data: Measurements, weights: torch.Tensor,
-                   parallel_threshold_deg: float) -> torch.Tensor:
-    """3-D error (mm) of every row under a geometry fit with per-row ``weights`` (through the whitening)."""
-    whitening = weights.sqrt()[:, None, None] * torch.eye(3, dtype=torch.float64)
-    result = calibrate(robot, data, identifier=LevenbergMarquardt(max_iterations=30), use_orientation=False,
+def _row_errors_mm(robot: RobotModel, data: Measurements, parallel_threshold_deg: float, *,
+                   weights: torch.Tensor | None = None, use_orientation: bool = False) -> torch.Tensor:
+    """3-D error (mm) of every row under a geometry fit, with per-row ``weights`` (through the
+    whitening, positions only) or with the orientation rows."""
+    whitening = None if weights is None else weights.sqrt()[:, None, None] * torch.eye(3, dtype=torch.float64)
+    result = calibrate(robot, data, identifier=LevenbergMarquardt(max_iterations=30), use_orientation=use_orientation,
                        parallel_threshold_deg=parallel_threshold_deg, whitening=whitening)
     return (data.position - result.model.tcp_position(data.q, result.x)).norm(dim=-1) * 1e3
 
@@ -69,7 +70,7 @@ def find_outlier_rows(robot: RobotModel, data: Measurements, *, parallel_thresho
     for _ in range(rounds):
         # iteratively reweighted least squares with Cauchy weights: a bad row cannot pull the fit
         # towards itself and hide among the others (least squares alone smears it over the model)
-        errors = _row_errors_mm(robot, data, weights, parallel_threshold_deg)
+        errors = _row_errors_mm(robot, data, parallel_threshold_deg, weights=weights)
         scale = 2.0 * float(errors.median())
         weights = 1.0 / (1.0 + (errors / max(scale, 1e-9)) ** 2)
     median = float(errors.median())
@@ -103,12 +104,8 @@ def check_orientation_columns(robot: RobotModel, data: Measurements, *, parallel
     """
     if data.rotation is None:
         return
-    rms = {}
-    for use in (False, True):
-        result = calibrate(robot, data, identifier=LevenbergMarquardt(max_iterations=30), use_orientation=use,
-                           parallel_threshold_deg=parallel_threshold_deg)
-        errors = (data.position - result.model.tcp_position(data.q, result.x)).norm(dim=-1)
-        rms[use] = float(errors.pow(2).mean().sqrt()) * 1e3
+    rms = {use: float(_row_errors_mm(robot, data, parallel_threshold_deg, use_orientation=use).pow(2).mean().sqrt())
+           for use in (False, True)}
     if rms[True] > ratio * rms[False] and rms[True] > floor_mm:
         raise DataError(f"the orientation columns rx, ry, rz contradict the positions: fitted with them the model "
                         f"misses the points by {rms[True]:.3f} mm RMS, without them by {rms[False]:.3f} mm; check "

@@ -252,21 +252,23 @@ def urdf_nan_origin(fx: Fixtures, w: Path) -> Case:
     return Case(_fit(fx, fx.train, w / "out", robot=robot), 2, "finite", w / "out")
 
 
-def urdf_zero_axis(fx: Fixtures, w: Path) -> Case:
+def _urdf_with(fx: Fixtures, w: Path, opening: str, value: str) -> Path:
+    """The twin's robot as URDF with the first attribute that ``opening`` starts (``'<axis xyz="'``) set to ``value``."""
     text = _urdf(fx)
-    i = text.index('<axis xyz="')
-    j = text.index('"', i + 11)
+    i = text.index(opening)
+    j = text.index('"', i + len(opening))
     robot = w / "robot.urdf"
-    robot.write_text(text[:i] + '<axis xyz="0 0 0' + text[j:])
+    robot.write_text(text[:i] + opening + value + text[j:])
+    return robot
+
+
+def urdf_zero_axis(fx: Fixtures, w: Path) -> Case:
+    robot = _urdf_with(fx, w, '<axis xyz="', "0 0 0")
     return Case(_fit(fx, fx.train, w / "out", robot=robot), 2, "axis", w / "out")
 
 
 def urdf_nan_limit(fx: Fixtures, w: Path) -> Case:
-    text = _urdf(fx)
-    i = text.index('<limit lower="')
-    j = text.index('"', i + 14)
-    robot = w / "robot.urdf"
-    robot.write_text(text[:i] + '<limit lower="nan' + text[j:])
+    robot = _urdf_with(fx, w, '<limit lower="', "nan")
     return Case(_fit(fx, fx.train, w / "out", robot=robot), 2, "must be finite numbers", w / "out")
 
 
