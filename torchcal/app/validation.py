@@ -179,7 +179,7 @@ def _fit_and_score(robot, train: Measurements, tests: list[Measurements], protoc
 def _structure_name(result) -> str:
     points = tuple(result.compliance.points) if result.compliance is not None else ()
     gravity = next(name for name, members in POINT_SETS.items() if members == points)
-    return option_label(gravity, "first" if result.harmonics is not None else "none")
+    return option_label(gravity, result.harmonics.set_name if result.harmonics is not None else "none")
 
 
 def run_protocol(root: Path, protocol: Protocol, *, residual: bool = True, seed: int = 0) -> dict:

@@ -8,9 +8,11 @@ turns by ``q + dq(q)`` at the commanded joints ``q`` (rad):
   ``j`` on the *nominal* chain, ``base`` z up. For a lever ``l = p_k - o_j`` and joint axis ``z_j``,
   ``z_j . (l x (0, 0, -1)) = z_jy l_x - z_jx l_y``: four elementwise nodes on the joint frames the
   nominal chain graph already produces;
-* first harmonics (:mod:`torchcal.identify.harmonics`): ``dq_j = a_j sin q_j + b_j cos q_j``.
+  a ``tcp3`` basis function (nonlinear compliance) is the ``tcp`` torque cubed;
+* periodic joint errors (:mod:`torchcal.identify.harmonics`): ``dq_j = sum_k a_kj sin(k q_j) +
+  b_kj cos(k q_j)`` (first harmonics: ``k = 1`` alone).
 
-The slope ``d dq_j / d q_j`` of the harmonics enters the compensator's Newton step (the Jacobian
+The slope ``d dq_j / d q_j`` of the series enters the compensator's Newton step (the Jacobian
 with respect to the command is ``J(q + dq) diag(1 + slope)``): an amplitude of 0.05 rad slows the
 contraction by that factor per step without it. The gravity term's own slope is ``c dtau/dq``,
 ~1e-4 rad/rad on the real sets, and is left out, as the residual head's Jacobian is.
@@ -21,7 +23,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from torchcal.identify.compliance import ELBOW_FRAME
+from torchcal.identify.compliance import ELBOW_FRAME, POINT_FUNCTIONS
 from torchcal.identify.joint_errors import JointSpaceErrors
 
 
@@ -36,8 +38,10 @@ class JointErrorGraph(nn.Module):
 
     # buffers, registered in __init__ (declared so that type checkers see tensors, not Tensor | Module)
     gravity_coefficients: torch.Tensor
+    cubic_mask: torch.Tensor
     harmonic_sin: torch.Tensor
     harmonic_cos: torch.Tensor
+    harmonic_orders: torch.Tensor
 
     def __init__(self, errors: JointSpaceErrors, n_joints: int, *, dtype: torch.dtype = torch.float64,
                  device: str | torch.device = "cpu") -> None:
@@ -50,16 +54,20 @@ class JointErrorGraph(nn.Module):
         if compliance is not None and self.points:
             coefficients = compliance.coefficients.to(torch.float64).clone()  # (K, N) rad/m
             for k, name in enumerate(self.points):
+                if name not in POINT_FUNCTIONS:
+                    raise ValueError(f"unknown gravity point '{name}'")
                 if name == "elbow":  # the upper-arm weight loads only the joints before the elbow frame
                     coefficients[k, ELBOW_FRAME - 1 :] = 0.0
-                elif name != "tcp":
-                    raise ValueError(f"unknown gravity point '{name}'")
             self.register_buffer("gravity_coefficients", coefficients.to(device, dtype))
+            powers = [POINT_FUNCTIONS[name][1] for name in self.points]
+            self.register_buffer("cubic_mask", torch.tensor([[float(p == 3)] for p in powers], dtype=dtype, device=device))
         if harmonics is not None:
-            a, b = harmonics.coefficients.to(torch.float64).clone()  # rows a (sin), b (cos), rad
-            a[-1] = b[-1] = 0.0  # as harmonic_basis: the last joint has none
-            self.register_buffer("harmonic_sin", a.to(device, dtype))
-            self.register_buffer("harmonic_cos", b.to(device, dtype))
+            c = harmonics.coefficients.to(torch.float64).clone()  # rows a_1, b_1, a_2, b_2, ... rad
+            c[:, -1] = 0.0  # as harmonic_basis: the last joint has none
+            self.register_buffer("harmonic_sin", c[0::2].to(device, dtype))  # (K, N)
+            self.register_buffer("harmonic_cos", c[1::2].to(device, dtype))
+            orders = torch.arange(1, harmonics.order + 1, dtype=torch.float64)[:, None]
+            self.register_buffer("harmonic_orders", orders.to(device, dtype))  # (K, 1)
         self.n_joints = n_joints
 
     @property
@@ -83,23 +91,26 @@ class JointErrorGraph(nn.Module):
                 raise ValueError("gravity terms need the nominal joint frames")
             axes, origins = frames[..., :3, 2], frames[..., :3, 3]  # (B, N, 3)
             named: dict[str, torch.Tensor] = {}
-            if "tcp" in self.points:
+            if any(POINT_FUNCTIONS[name][0] == "tcp" for name in self.points):
                 if tcp is None:
                     raise ValueError("a 'tcp' gravity term needs the nominal TCP position")
                 named["tcp"] = tcp
             if "elbow" in self.points:
                 named["elbow"] = origins[:, min(ELBOW_FRAME, self.n_joints) - 1]
-            points = torch.stack([named[name] for name in self.points], 1)  # (B, K, 3)
+            points = torch.stack([named[POINT_FUNCTIONS[name][0]] for name in self.points], 1)  # (B, K, 3)
             lever = points.unsqueeze(2) - origins.unsqueeze(1)  # (B, K, N, 3)
             ax, ay = axes[..., 0].unsqueeze(1), axes[..., 1].unsqueeze(1)  # (B, 1, N)
             torque = ay * lever[..., 0] - ax * lever[..., 1]  # (B, K, N), m per unit weight
+            # rows of a cubic basis function take tau^3 (m^3); a mask keeps the graph free of branches
+            torque = torque + self.cubic_mask * (torque * torque * torque - torque)
             dq = (torque * self.gravity_coefficients).sum(1)
         slope = None
         if self.has_harmonics:
-            sin, cos = torch.sin(q), torch.cos(q)
-            harmonic = self.harmonic_sin * sin + self.harmonic_cos * cos
+            angle = q.unsqueeze(1) * self.harmonic_orders  # (B, K, N): k q_j
+            sin, cos = torch.sin(angle), torch.cos(angle)
+            harmonic = (self.harmonic_sin * sin + self.harmonic_cos * cos).sum(1)
             dq = harmonic if dq is None else dq + harmonic
-            slope = self.harmonic_sin * cos - self.harmonic_cos * sin
+            slope = (self.harmonic_orders * (self.harmonic_sin * cos - self.harmonic_cos * sin)).sum(1)
         if dq is None:  # unreachable: __init__ refuses a graph with neither term
             raise RuntimeError("joint error graph without terms")
         return dq, slope

@@ -8,6 +8,11 @@ every joint) and ``elbow`` (origin of MDH frame 3, beyond joints 1 and 2 only). 
 evaluated on the *nominal* chain, so ``dq`` is linear in ``c`` and the TCP displacement per
 coefficient is ``tau_j`` times the ``theta_j`` column of the position Jacobian.
 
+Nonlinear compliance. A joint whose stiffness softens or hardens with the load (a strain-wave
+gear stiffens with torque; bearing play softens it near zero) gives way by a nonlinear function of
+the torque: ``cubic`` adds the basis function ``tau_j^3`` (m^3) of the ``tcp`` torque, so
+``dq_j = c_j tau_j + c3_j tau_j^3``, still linear in the coefficients.
+
 Why. Cable-driven or light arms (a WAM, a UR) sag measurably under their own weight; a
 geometric model cannot express a deflection that changes with the load direction, so it leaves
 it in the residual. Which points to use is a model choice made by K-fold cross-validation on the
@@ -25,7 +30,10 @@ from torchcal.kinematics.error_model import ErrorModel
 from torchcal.kinematics.mdh import chain_frames
 from torchcal.kinematics.robot import RobotModel
 
-POINT_SETS: dict[str, tuple[str, ...]] = {"none": (), "wrist": ("tcp",), "elbow+wrist": ("elbow", "tcp")}
+POINT_SETS: dict[str, tuple[str, ...]] = {"none": (), "wrist": ("tcp",), "elbow+wrist": ("elbow", "tcp"),
+                                          "elbow+wrist+cubic": ("elbow", "tcp", "tcp3")}
+#: Basis functions of the gravity torque: the point whose torque it takes and the power.
+POINT_FUNCTIONS: dict[str, tuple[str, int]] = {"tcp": ("tcp", 1), "elbow": ("elbow", 1), "tcp3": ("tcp", 3)}
 ELBOW_FRAME = 3  # MDH frame whose origin stands for the upper-arm mass
 _ZERO_COLUMN = 1e-9  # a basis column below this norm (m) has no effect: joint axis along gravity
 
@@ -39,23 +47,24 @@ def gravity_torque_basis(robot: RobotModel, q: torch.Tensor, points: tuple[str, 
     n = robot.dof
     down = torch.tensor([0.0, 0.0, -1.0], dtype=q.dtype, device=q.device)
     out = []
-    for name in points:
+    for label in points:
+        if label not in POINT_FUNCTIONS:
+            raise ValueError(f"unknown gravity point '{label}'; choose one of {sorted(POINT_FUNCTIONS)}")
+        name, power = POINT_FUNCTIONS[label]
         if name == "tcp":
             point, beyond = model.tcp_position(q, x), torch.ones(n, dtype=q.dtype)
         elif name == "elbow":
             point = origins[:, min(ELBOW_FRAME, n) - 1]
             beyond = torch.tensor([1.0 if j < ELBOW_FRAME - 1 else 0.0 for j in range(n)], dtype=q.dtype)
-        else:
-            raise ValueError(f"unknown gravity point '{name}'; choose tcp or elbow")
         lever = point[:, None, :] - origins
         tau = (torch.linalg.cross(lever, down.expand_as(lever), dim=-1) * axes).sum(-1)
-        out.append(tau * beyond.to(q.device))
+        out.append(tau**power * beyond.to(q.device))
     return torch.stack(out, 1) if out else q.new_zeros(q.shape[0], 0, n)
 
 
 @dataclass(frozen=True)
 class GravityCompliance:
-    """Identified compliance: ``points`` and ``coefficients (len(points), N)`` in rad/m."""
+    """Identified compliance: ``points`` and ``coefficients (len(points), N)`` in rad/m (``tcp3``: rad/m^3)."""
 
     points: tuple[str, ...]
     coefficients: torch.Tensor
@@ -71,7 +80,8 @@ class GravityCompliance:
 
     def to_json(self) -> dict:
         return {"points": list(self.points), "coefficients_rad_per_m": self.coefficients.tolist(),
-                "model": "dq_j = c_j * tau_j, tau_j unit-weight gravity torque about joint j (m), base z up"}
+                "model": "dq_j = sum_k c_kj * f_k(tau_j), tau_j unit-weight gravity torque about joint j (m), base z up; "
+                         "point tcp3: the tcp torque cubed (m^3)"}
 
     @classmethod
     def from_json(cls, data: dict) -> GravityCompliance:

@@ -1,4 +1,4 @@
-"""Geometry identified jointly with joint-space errors (gravity compliance, first harmonics).
+"""Geometry identified jointly with joint-space errors (gravity compliance, periodic joint errors).
 
 Every joint-space term is linear in its coefficients: ``dq_j = sum_k c_kj B_kj(q)`` with a basis
 ``B (n, K, N)`` evaluated at the commanded joints (unit-weight gravity torques,
@@ -14,6 +14,7 @@ cross-validation of :mod:`torchcal.model_selection.structure`, never on a test s
 
 from __future__ import annotations
 
+import math
 import warnings
 from dataclasses import replace
 
@@ -28,7 +29,15 @@ from torchcal.identify.compliance import (
     GravityCompliance,
     gravity_torque_basis,
 )
-from torchcal.identify.harmonics import HARMONIC_SETS, JointHarmonics, harmonic_basis
+from torchcal.identify.harmonics import (
+    HARMONIC_SETS,
+    SMOOTHNESS_POWER,
+    SMOOTHNESS_SCALES_RAD,
+    JointHarmonics,
+    harmonic_basis,
+    is_series,
+    term_order,
+)
 from torchcal.identify.identifiability import analyze
 from torchcal.identify.joint_errors import JointSpaceErrors
 from torchcal.identify.lm import LevenbergMarquardt
@@ -157,13 +166,29 @@ def fit_joint_errors(robot: RobotModel, data: Measurements, geometric, points: t
         warnings.warn(msg, IdentifiabilityWarning, stacklevel=2)
     kept = [i for i, n in enumerate(names) if n not in dropped]
     free = torch.cat([geometric.free, size + torch.tensor(kept, dtype=torch.long)])
+    smooth = is_series(harmonics)
+    prior_scale = None
     if geometric.prior is not None:
-        # the geometry keeps its prior (identify.prior); the joint-space coefficients have none
-        prior = geometric.prior.extended(free, len(kept), size + len(cols))
-        # the geometry's noise sigma as the start: the joint terms lower it, a warm solve or two follow
-        fit = solve_map(problem.with_free(free), prior, x0, LevenbergMarquardt(), units=units,
-                        start_sigma=geometric.noise_sigma_m)
+        # the geometry keeps its prior (identify.prior); gravity terms and first harmonics have none,
+        # a Fourier series its smoothness prior (identify.harmonics), whose scale the evidence chooses
+        scales = SMOOTHNESS_SCALES_RAD if smooth else (None,)
+        best = None
+        start = x0
+        for scale in scales:
+            extra_sigma = None if scale is None else _series_sigma(cols, kept, len(points), harmonics, scale)
+            prior = geometric.prior.extended(free, len(kept), size + len(cols), extra_sigma)
+            # the geometry's noise sigma as the start: the joint terms lower it, a warm solve or two follow
+            fit = solve_map(problem.with_free(free), prior, start, LevenbergMarquardt(), units=units,
+                            start_sigma=geometric.noise_sigma_m)
+            start = fit.x
+            if best is None or fit.log_evidence > best[1].log_evidence:
+                best = (scale, fit)
+        assert best is not None
+        prior_scale, fit = best
         sol, cov, sigma = fit.solve, fit.covariance, fit.noise_sigma
+        if smooth:
+            notes.append(f"joint Fourier series: smoothness prior scale {prior_scale:.2g} rad (order k: scale / k^"
+                         f"{SMOOTHNESS_POWER:g}) chosen by the evidence among {', '.join(f'{v:g}' for v in scales)}")
     else:
         sol = LevenbergMarquardt().solve(problem.with_free(free), x0)
         r, jac = problem.with_free(free).jacobian(sol.x)
@@ -180,13 +205,23 @@ def fit_joint_errors(robot: RobotModel, data: Measurements, geometric, points: t
     reference, x = geometric.model.recentered(x)
     model = ErrorModel(robot, with_orientation=geometric.model.with_orientation,
                        parallel_threshold_deg=geometric.model.parallel_threshold_deg, T_instrument_base=reference)
-    terms = ([f"gravity compliance at {'+'.join(points)}"] if points else []) + (["first joint harmonics"] if harmonics else [])
-    notes.append(f"{' and '.join(terms)} identified with the geometry ({len(kept)} coefficients)")
     compliance = GravityCompliance(points, values[: len(points)]) if points else None
-    fitted = JointHarmonics(values[len(points) :], sigmas[len(points) :]) if harmonics else None
+    fitted = JointHarmonics(values[len(points) :], sigmas[len(points) :], prior_scale) if harmonics else None
+    terms = ([f"gravity compliance at {'+'.join(points)}"] if points else []) + ([fitted.label] if fitted else [])
+    notes.append(f"{' and '.join(terms)} identified with the geometry ({len(kept)} coefficients)")
     return replace(geometric, model=model, x=x, covariance=cov[:n_geo, :n_geo], sigma_residual_m=sigma,
                    noise_sigma_m=sigma if geometric.prior is not None else geometric.noise_sigma_m,
                    notes=notes, compliance=compliance, harmonics=fitted)
+
+
+def _series_sigma(cols: list[tuple[int, int]], kept: list[int], n_points: int, harmonics: tuple[str, ...],
+                  scale: float) -> torch.Tensor:
+    """Prior 1-sigma (rad) of each kept coefficient: ``scale / k^p`` for a term of order ``k``, none for gravity."""
+    out = []
+    for i in kept:
+        row = cols[i][0]
+        out.append(math.inf if row < n_points else scale / term_order(harmonics[row - n_points]) ** SMOOTHNESS_POWER)
+    return torch.tensor(out, dtype=torch.float64)
 
 
 def predicted_positions(result, q: torch.Tensor) -> torch.Tensor:
@@ -195,24 +230,38 @@ def predicted_positions(result, q: torch.Tensor) -> torch.Tensor:
 
 
 def option_label(gravity: str, harmonics: str) -> str:
-    """``none``, ``wrist``, ``elbow+wrist``, ``harmonics``, ``wrist+harmonics``, ..."""
-    parts = ([gravity] if gravity != "none" else []) + (["harmonics"] if harmonics != "none" else [])
+    """``none``, ``wrist``, ``elbow+wrist``, ``harmonics``, ``wrist+harmonics``, ``elbow+wrist+cubic+fourier2``, ..."""
+    series = {"none": [], "first": ["harmonics"]}.get(harmonics, [harmonics])
+    parts = ([gravity] if gravity != "none" else []) + series
     return "+".join(parts) or "none"
 
 
-def joint_error_options(gravity: tuple[str, ...], harmonics: tuple[str, ...]) -> list[tuple[str, str]]:
-    """``(gravity set, harmonic set)`` pairs from the simplest (fewest coefficients) up.
+#: What ``auto`` compares: every classic gravity set with and without first harmonics, then the
+#: learned joint-space models (nonlinear compliance with a Fourier series of order 2 or 4 per joint).
+AUTO_GRAVITY = ("none", "wrist", "elbow+wrist")
+AUTO_HARMONICS = ("none", "first")
+LEARNED_OPTIONS = (("elbow+wrist+cubic", "fourier2"), ("elbow+wrist+cubic", "fourier4"))
 
-    Gravity sets add about ``N`` coefficients, first harmonics ``2 (N - 1)``: all gravity sets
-    without harmonics come before any with them.
+
+def joint_error_options(gravity: str, harmonics: str) -> list[tuple[str, str]]:
+    """``(gravity set, harmonic set)`` pairs to compare for the options ``gravity`` / ``harmonics`` (a set or ``auto``).
+
+    Simplest (fewest coefficients) first: gravity sets add about ``N`` coefficients, first
+    harmonics ``2 (N - 1)``, a series of order ``K`` ``2 K (N - 1)``. With both ``auto``: the
+    classic pairs, then :data:`LEARNED_OPTIONS`.
     """
-    for name in gravity:
-        if name not in POINT_SETS:
-            raise ValueError(f"unknown gravity point set '{name}'; choose one of {sorted(POINT_SETS)}")
-    for name in harmonics:
-        if name not in HARMONIC_SETS:
-            raise ValueError(f"unknown harmonic set '{name}'; choose one of {sorted(HARMONIC_SETS)}")
-    return [(g, h) for h in harmonics for g in gravity]
+    for name, sets in ((gravity, POINT_SETS), (harmonics, HARMONIC_SETS)):
+        if name not in sets and name != "auto":
+            kind = "gravity point set" if sets is POINT_SETS else "harmonic set"
+            raise ValueError(f"unknown {kind} '{name}'; choose auto or one of {sorted(sets)}")
+    if gravity == "auto" and harmonics == "auto":
+        return [(g, h) for h in AUTO_HARMONICS for g in AUTO_GRAVITY] + list(LEARNED_OPTIONS)
+    if gravity == "auto":
+        extra = ("elbow+wrist+cubic",) if is_series(HARMONIC_SETS[harmonics]) else ()
+        return [(g, harmonics) for g in AUTO_GRAVITY + extra]
+    if harmonics == "auto":
+        return [(gravity, h) for h in AUTO_HARMONICS] + [(gravity, h) for _, h in LEARNED_OPTIONS]
+    return [(gravity, harmonics)]
 
 
 def fit_with_compliance(robot: RobotModel, data: Measurements, geometric, points: tuple[str, ...]):

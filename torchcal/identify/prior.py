@@ -231,8 +231,11 @@ class Prior:
     tolerance_sigma: torch.Tensor
     spec: PriorSpec
 
-    def extended(self, free: torch.Tensor, extra: int, size: int) -> Prior:
-        """This prior followed by ``extra`` free entries without a prior (joint-space coefficients, mean 0).
+    def extended(self, free: torch.Tensor, extra: int, size: int, extra_sigma: torch.Tensor | None = None) -> Prior:
+        """This prior followed by ``extra`` free entries (joint-space coefficients, mean 0).
+
+        ``extra_sigma`` ``(extra,)``: their independent prior 1-sigma (SI; ``inf``: no prior, the
+        default for every one).
 
         ``free``: the indices of the extended problem (this prior's, then the ``extra`` ones);
         ``size``: the length of the extended parameter vector. The mean is padded to ``size``, not
@@ -244,14 +247,18 @@ class Prior:
         precision[:k, :k] = self.precision
         root = torch.zeros_like(precision)
         root[:k, :k] = self.sqrt_precision
-        inf = torch.full((extra,), math.inf, dtype=torch.float64)
+        sigma = torch.full((extra,), math.inf, dtype=torch.float64) if extra_sigma is None else extra_sigma.to(torch.float64)
+        if len(sigma) != extra:
+            raise ModelError(f"extra_sigma needs {extra} entries, got {len(sigma)}")
+        root[k:, k:] = torch.diag(1.0 / sigma)  # 1 / inf = 0: no prior
+        precision[k:, k:] = torch.diag(sigma**-2)
         if size < len(self.mean) or (len(free) and int(free.max()) >= size):
             raise ModelError(f"an extended prior of length {size} must hold the {len(self.mean)} entries of the prior "
                              "and every free index")
         mean = torch.cat([self.mean, torch.zeros(size - len(self.mean), dtype=self.mean.dtype)])
         return replace(self, names=[*self.names, *[f"extra{i}" for i in range(extra)]], free=free, mean=mean,
-                       precision=precision, sqrt_precision=root, sigma=torch.cat([self.sigma, inf]),
-                       tolerance_sigma=torch.cat([self.tolerance_sigma, inf]))
+                       precision=precision, sqrt_precision=root, sigma=torch.cat([self.sigma, sigma]),
+                       tolerance_sigma=torch.cat([self.tolerance_sigma, sigma]))
 
 
 class PriorProblem:

@@ -130,7 +130,7 @@ def model_name(stored: StoredModel) -> str:
         label = next((name for name, members in POINT_SETS.items() if members == points), "+".join(points))
         parts.append(f"gravity compliance ({label})")
     if terms.harmonics is not None:
-        parts.append("first joint harmonics")
+        parts.append(terms.harmonics.label)
     if stored.residual is not None:
         parts.append(f"{stored.residual.head.name} residual head")
     if stored.stiffness is not None:
@@ -528,7 +528,7 @@ def _joint_terms(stored: StoredModel, pose_sets: list[PoseSet]) -> Section | Non
     q = pose_sets[0].data.q.to(torch.float64)
     rows: list[list[str]] = []
     for label, part in (("gravity compliance", JointSpaceErrors(terms.compliance, None)),
-                        ("first joint harmonics", JointSpaceErrors(None, terms.harmonics))):
+                        (terms.harmonics.label if terms.harmonics is not None else "", JointSpaceErrors(None, terms.harmonics))):
         if part.empty:
             continue
         dq = np.degrees((part.effective_joints(stored.robot, q) - q).detach().cpu().numpy()) * 1e3

@@ -6,7 +6,12 @@ errors the geometric model cannot express:
 
 * gravity-induced joint compliance: each joint deflects by ``tau_j / k_j`` where ``tau_j`` is
   the gravity torque of point masses on the links about joint ``j``'s axis;
-* periodic gear (transmission) errors: ``A_j sin(n_j q_j + phi_j)`` per joint, two harmonics.
+* periodic gear (transmission) errors: ``sum_n A_jn sin(n q_j + phi_jn)`` per joint, harmonics
+  ``n = 1 .. gear_orders`` (amplitude of order ``n``: uniform up to ``gear_amplitude_deg / n``);
+* nonlinear compliance (``compliance_cubic``): the joint's stiffness changes with the load,
+  ``dq_j = (tau_j / k_j) (1 + compliance_cubic (tau_j / tau_ref_j)^2)`` with ``tau_ref_j`` the
+  largest gravity torque of joint ``j`` over a fixed sample of the workspace (a positive value
+  softens the joint, a negative one stiffens it).
 
 Measurements add robot repeatability (isotropic Gaussian, per axis) and tracker noise (per axis).
 The noise floor of a 3-D position RMS is ``sqrt(3 (sigma_tracker^2 + sigma_repeat^2))``.
@@ -44,6 +49,9 @@ class TwinConfig:
         gravity: add gravity-induced joint compliance.
         gear: add periodic gear errors.
         gear_amplitude_deg: amplitude of the first gear harmonic.
+        gear_orders: gear harmonics per joint (1 .. this order).
+        compliance_cubic: relative change of the gravity deflection at a joint's largest torque
+            (0: linear compliance).
         joint_stiffness_nm_per_rad: per-joint stiffness for the gravity compliance (a robot with
             more joints than values repeats the last value).
         link_masses_kg: point masses at the middle of links 2 and 3 and at the wrist.
@@ -63,6 +71,8 @@ class TwinConfig:
     gravity: bool = False
     gear: bool = False
     gear_amplitude_deg: float = 0.01
+    gear_orders: int = 2
+    compliance_cubic: float = 0.0
     joint_stiffness_nm_per_rad: list[float] = field(default_factory=lambda: [4e5, 3e5, 2e5, 5e4, 4e4, 3e4])
     link_masses_kg: list[float] = field(default_factory=lambda: [25.0, 15.0, 10.0])
     margin_deg: float = 5.0
@@ -75,6 +85,8 @@ class TwinConfig:
                      "gear_amplitude_deg", "margin_deg"):
             check_range(self, name, low=0.0)
         check_range(self, "instrument_distance_mm", low=0.0, low_open=True)
+        check_range(self, "gear_orders", low=1, high=20)
+        check_range(self, "compliance_cubic", low=-0.9, high=10.0)
         # physics that cannot be: a negative mass, a zero or negative stiffness (a division by it writes NaN)
         if not self.link_masses_kg or any(not math.isfinite(m) or m < 0 for m in self.link_masses_kg):
             raise TorchcalError(f"link_masses_kg needs finite masses >= 0 (kg), got {list(self.link_masses_kg)}")
@@ -98,6 +110,7 @@ class Twin:
     x_true: torch.Tensor
     gear_amplitude: torch.Tensor
     gear_phase: torch.Tensor
+    torque_reference: torch.Tensor | None = None
 
     @classmethod
     def create(cls, config: TwinConfig) -> Twin:
@@ -125,10 +138,21 @@ class Twin:
         base = x[layout.base_slice]
         base[:3] = direction * config.instrument_distance_mm * 1e-3
         base[3:] = torch.randn(3, generator=gen, dtype=torch.float64) * 0.8
+        # the first two orders are drawn first, as before there were more: a twin of two orders stays the same
+        orders = max(config.gear_orders, 2)
         amplitude = torch.rand(robot.dof, 2, generator=gen, dtype=torch.float64) * math.radians(config.gear_amplitude_deg)
         amplitude[:, 1] *= 0.5
         phase = torch.rand(robot.dof, 2, generator=gen, dtype=torch.float64) * 2 * math.pi
-        return cls(config, robot, model, x, amplitude, phase)
+        if orders > 2:
+            more = torch.rand(robot.dof, orders - 2, generator=gen, dtype=torch.float64) * math.radians(config.gear_amplitude_deg)
+            amplitude = torch.cat([amplitude, more / torch.arange(3, orders + 1, dtype=torch.float64)], 1)
+            phase = torch.cat([phase, torch.rand(robot.dof, orders - 2, generator=gen, dtype=torch.float64) * 2 * math.pi], 1)
+        amplitude, phase = amplitude[:, : config.gear_orders], phase[:, : config.gear_orders]
+        twin = cls(config, robot, model, x, amplitude, phase)
+        if config.compliance_cubic != 0.0:
+            sample = robot.sample_joints(2000, torch.Generator().manual_seed(config.seed + 104729))
+            twin.torque_reference = twin.gravity_torque(sample).abs().amax(0).clamp_min(1e-9)
+        return twin
 
     def T_instrument_base(self) -> torch.Tensor:
         return self.model.instrument_from_base(self.x_true)
@@ -137,14 +161,30 @@ class Twin:
         """Non-geometric joint deviations ``(B, N)`` rad: gear errors plus gravity compliance."""
         dq = torch.zeros_like(q)
         if self.config.gear:
-            harmonic = torch.tensor([1.0, 2.0], dtype=q.dtype)
-            dq = dq + (self.gear_amplitude * torch.sin(q.unsqueeze(-1) * harmonic + self.gear_phase)).sum(-1)
+            dq = dq + self.gear_deviation(q)
         if self.config.gravity:
             dq = dq + self.gravity_deflection(q)
         return dq
 
+    def gear_deviation(self, q: torch.Tensor) -> torch.Tensor:
+        """Gear (transmission) errors ``(B, N)`` rad at commanded joints ``q`` ``(B, N)`` rad."""
+        harmonic = torch.arange(1, self.gear_amplitude.shape[1] + 1, dtype=q.dtype)
+        return (self.gear_amplitude * torch.sin(q.unsqueeze(-1) * harmonic + self.gear_phase)).sum(-1)
+
     def gravity_deflection(self, q: torch.Tensor) -> torch.Tensor:
-        """Joint deflection ``tau_j / k_j`` (rad) from gravity on point link masses, ``base`` z up."""
+        """Joint deflection (rad) from gravity on point link masses, ``base`` z up: ``tau_j / k_j``,
+        times ``1 + compliance_cubic (tau_j / tau_ref_j)^2`` for a nonlinear compliance."""
+        n = self.robot.dof
+        values = list(self.config.joint_stiffness_nm_per_rad[:n])
+        values += values[-1:] * (n - len(values))  # a robot with more joints: the last (wrist) value again
+        stiffness = torch.tensor(values, dtype=q.dtype)
+        tau = self.gravity_torque(q)
+        if self.torque_reference is None:
+            return tau / stiffness
+        return tau / stiffness * (1.0 + self.config.compliance_cubic * (tau / self.torque_reference.to(q)) ** 2)
+
+    def gravity_torque(self, q: torch.Tensor) -> torch.Tensor:
+        """Gravity torque ``(B, N)`` (N m) of the point link masses about each joint, ``base`` z up."""
         base_model = ErrorModel(self.robot)
         x = self.x_true.clone()
         x[self.model.layout.base_slice] = 0.0
@@ -157,9 +197,6 @@ class Twin:
         )
         masses = torch.tensor(self.config.link_masses_kg, dtype=q.dtype)
         gravity = torch.tensor([0.0, 0.0, -9.81], dtype=q.dtype)
-        values = list(self.config.joint_stiffness_nm_per_rad[:n])
-        values += values[-1:] * (n - len(values))  # a robot with more joints: the last (wrist) value again
-        stiffness = torch.tensor(values, dtype=q.dtype)
         tau = torch.zeros_like(q)
         for j in range(n):
             lever = points - origins[:, j : j + 1]
@@ -169,7 +206,7 @@ class Twin:
             force = ((masses * beyond).unsqueeze(-1) * gravity).expand_as(lever)
             moment = torch.linalg.cross(lever, force, dim=-1).sum(1)
             tau[:, j] = (moment * axes[:, j]).sum(-1)
-        return tau / stiffness
+        return tau
 
     def true_positions(self, q: torch.Tensor) -> torch.Tensor:
         """Noise-free TCP positions ``(B, 3)`` in the instrument frame, m."""
@@ -212,6 +249,10 @@ class Twin:
                 "gear": self.config.gear,
                 "gear_amplitude_deg": (self.gear_amplitude * 180 / math.pi).tolist(),
                 "gear_phase_rad": self.gear_phase.tolist(),
+                "gear_model": "dq_j = sum_n A_jn sin(n q_j + phi_jn), n = 1 .. gear_orders (rows: joints)",
+                "compliance_cubic": self.config.compliance_cubic,
+                "torque_reference_nm": None if self.torque_reference is None else self.torque_reference.tolist(),
+                "compliance_model": "dq_j = tau_j / k_j * (1 + compliance_cubic * (tau_j / torque_reference_j)^2)",
             },
             "config": asdict(self.config),
         }

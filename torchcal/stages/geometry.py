@@ -168,13 +168,10 @@ def _identifier_options(robot: RobotModel, config: FitConfig) -> dict:
 
 
 def _structure_options(config: FitConfig) -> list[tuple[str, str]]:
-    sets = {"gravity_compliance": POINT_SETS, "joint_harmonics": HARMONIC_SETS}
-    for key, allowed in sets.items():
-        value = getattr(config, key)
-        if value not in allowed and value != "auto":
-            raise DataError(f"unknown {key} '{value}'; choose auto or one of {sorted(allowed)}")
-    return joint_error_options(*(tuple(allowed) if getattr(config, key) == "auto" else (getattr(config, key),)
-                                 for key, allowed in sets.items()))
+    try:
+        return joint_error_options(config.gravity_compliance, config.joint_harmonics)
+    except ValueError as exc:
+        raise DataError(str(exc)) from None
 
 
 def fit_with_selection(robot: RobotModel, data: Measurements, config: FitConfig, *, progress=None):
@@ -235,7 +232,7 @@ def cross_validate_stored_structure(stored: StoredModel, data: Measurements, con
     terms = JointSpaceErrors.from_metadata(stored.metadata)
     points = tuple(terms.compliance.points) if terms.compliance is not None else ()
     gravity = next(name for name, members in POINT_SETS.items() if members == points)
-    harmonics = "first" if terms.harmonics is not None else "none"
+    harmonics = terms.harmonics.set_name if terms.harmonics is not None else "none"
     folds = make_config_folds(stored.robot, data, config)
     prior = None
     if stored.metadata.get("prior"):  # the folder's fit had a prior: its scale as chosen then

@@ -169,7 +169,7 @@ CALIBRATED_URDF = "calibrated_robot.urdf"
 def not_in_geometry(meta: dict) -> list[str]:
     """What of a model a geometry file (calibrated YAML or URDF) cannot hold, one line each."""
     lines = []
-    terms = [name for key, name in (("gravity_compliance", "gravity compliance"), ("joint_harmonics", "first joint harmonics"))
+    terms = [name for key, name in (("gravity_compliance", "gravity compliance"), ("joint_harmonics", "periodic joint errors"))
              if meta.get(key)]
     if terms:
         lines.append(f"Not in this file: {' and '.join(terms)} (calibration.json), joint-space errors added to the commanded "
