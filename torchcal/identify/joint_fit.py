@@ -252,8 +252,8 @@ def joint_error_options(gravity: str, harmonics: str) -> list[tuple[str, str]]:
     """
     for name, sets in ((gravity, POINT_SETS), (harmonics, HARMONIC_SETS)):
         if name not in sets and name != "auto":
-            kind = "gravity point set" if sets is POINT_SETS else "harmonic set"
-            raise ValueError(f"unknown {kind} '{name}'; choose auto or one of {sorted(sets)}")
+            key = "gravity_compliance" if sets is POINT_SETS else "joint_harmonics"
+            raise ValueError(f"unknown {key} '{name}'; choose auto or one of {sorted(sets)}")
     if gravity == "auto" and harmonics == "auto":
         return [(g, h) for h in AUTO_HARMONICS for g in AUTO_GRAVITY] + list(LEARNED_OPTIONS)
     if gravity == "auto":
