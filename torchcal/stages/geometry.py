@@ -23,7 +23,7 @@ from torchcal.data.measurements import Measurements
 from torchcal.identify import IDENTIFIERS
 from torchcal.identify.calibrate import CalibrationResult, calibrate, register_instrument
 from torchcal.identify.compliance import POINT_SETS
-from torchcal.identify.harmonics import HARMONIC_SETS
+from torchcal.identify.harmonics import HARMONIC_SETS, is_series
 from torchcal.identify.joint_errors import JointSpaceErrors
 from torchcal.identify.joint_fit import fit_joint_errors, joint_error_options, predicted_positions
 from torchcal.identify.lm import LevenbergMarquardt
@@ -31,6 +31,7 @@ from torchcal.identify.problem import CalibrationProblem
 from torchcal.kinematics.error_model import ErrorModel
 from torchcal.kinematics.robot import RobotModel
 from torchcal.kinematics.transforms import rigid_registration
+from torchcal.model_selection.compare import compare_candidates
 from torchcal.model_selection.prior_scale import (
     cross_validate_prior_scales,
     evidence_prior_scales,
@@ -202,6 +203,8 @@ def fit_with_selection(robot: RobotModel, data: Measurements, config: FitConfig,
                                               harmonic_min_range_deg=config.harmonic_min_range_deg)
         structure.prior, structure.prior_start = prior, full
         gravity, harmonics = structure.chosen
+        if is_series(HARMONIC_SETS[harmonics]) and config.head_time_check and config.split != "blocks":
+            gravity, harmonics = _learned_time_check(robot, data, config, geometry, structure, progress)
     if progress is not None:
         progress("fitting the chosen structure on all poses")
     # the regions the CV holds out also say which residuals may be correlated (identify.uncertainty)
@@ -220,6 +223,36 @@ def fit_with_selection(robot: RobotModel, data: Measurements, config: FitConfig,
                             + ", ".join(f"{r['name']} {r['cv_rms_mm']:.4f} mm" for r in comparison.rows)
                             + f" -> {structure_label(gravity, harmonics)} ({comparison.reason})")
     return result, structure
+
+
+def _learned_time_check(robot: RobotModel, data: Measurements, config: FitConfig, geometry, structure,
+                        progress) -> tuple[str, str]:
+    """A learned joint-space model (a Fourier series) that the CV chose must also beat the best classic
+    structure on contiguous blocks of measurement order, as a residual head must: one that learned a
+    drift of the series wins over regions and loses over time. Returns the option to fit."""
+    chosen = structure.chosen
+    classic = [o for o in structure.options if not is_series(HARMONIC_SETS[o[1]])]
+    if not classic:
+        return chosen
+    by_name = {c.name: c for c in structure.candidates}
+    rival_cmp = compare_candidates([by_name[structure_label(*o)] for o in classic], structure.folds.units(),
+                                   structure.folds.description)
+    rival = next(o for o in classic if structure_label(*o) == rival_cmp.chosen)
+    if progress is not None:
+        progress("checking the learned joint-space model on blocks of measurement order")
+    order = np.asarray(data.line_numbers) if data.line_numbers else None
+    blocks = make_folds("blocks", robot, data.q, k=config.cv_folds, seed=config.seed, order=order)
+    check = cross_validate_structures(robot, data, geometry, [rival, chosen], blocks,
+                                      harmonic_min_range_deg=config.harmonic_min_range_deg)
+    rows = ", ".join(f"{r['name']} {r['cv_rms_mm']:.4f} mm" for r in check.comparison.rows)
+    comparison = structure.comparison
+    if check.chosen == chosen:
+        comparison.reason += f"; it wins on blocks of measurement order too ({rows})"
+        return chosen
+    comparison.reason += (f"; refused on blocks of measurement order ({rows}: {check.comparison.reason}), "
+                          f"so {structure_label(*rival)}")
+    comparison.chosen = structure_label(*rival)
+    return rival
 
 
 def fit(robot: RobotModel, data: Measurements, config: FitConfig, *, progress=None) -> CalibrationResult:
