@@ -144,7 +144,8 @@ def _run_into(folder: Path, destination: Path, config: RunConfig, console) -> di
         summary["export"] = export_and_check(model_dir, export_dir, test, true_tcp_positions=twin.true_tcp_positions)
         console.log(summary["export"]["summary"])
         _log_compensation_on_twin(summary["export"]["compensation_on_true_robot"], console)
-    report = _write_report(folder, stored, train, test, structure, summary, truth_x, case["test.csv"])
+    report = _write_report(folder, stored, train, test, structure, summary, truth_x, case["test.csv"],
+                           joint_truth=twin.gear_deviation if config.twin.gear else None)
     final = summary["test"][summary["final_stage"]]
     # the model as chosen (structure and head), not the stage key: "geometric" also holds joint-space terms
     console.log(f"report: {destination / report.relative_to(folder)}; final held-out RMS {final['position_rms_mm']:.4f} mm ({summary['model']})")
@@ -154,7 +155,7 @@ def _run_into(folder: Path, destination: Path, config: RunConfig, console) -> di
 
 
 def _write_report(folder: Path, stored, train: Measurements, test: Measurements, structure, summary: dict,
-                  truth_x: torch.Tensor, test_file: Path) -> Path:
+                  truth_x: torch.Tensor, test_file: Path, joint_truth=None) -> Path:
     """The run's report (the one report builder of ``fit`` and ``evaluate``): training and held-out file, truth."""
     cv = cross_validated_stage(stored, structure)
     extra = [cv] if cv is not None else []
@@ -175,7 +176,7 @@ def _write_report(folder: Path, stored, train: Measurements, test: Measurements,
     inputs = ReportInputs(selection=_selection(stored.folder), compensator=scored.metrics["compensator"],
                           uncertainty=scored.metrics.get("uncertainty"), leakage=scored.metrics.get("leakage"),
                           compensation_on_truth=(summary.get("export") or {}).get("compensation_on_true_robot"),
-                          truth_x=truth_x, truth_note=truth_note, context=context)
+                          truth_x=truth_x, truth_note=truth_note, joint_truth=joint_truth, context=context)
     report = calibration_report(f"torchcal report: {stored.robot.name} ({summary['name']})", stored, pose_sets, inputs)
     return write_report(folder, report)["report.md"]
 

@@ -41,7 +41,7 @@ from torchcal.identify.harmonics import (
 from torchcal.identify.identifiability import analyze
 from torchcal.identify.joint_errors import JointSpaceErrors
 from torchcal.identify.lm import LevenbergMarquardt
-from torchcal.identify.prior import solve_map
+from torchcal.identify.prior import log_evidence, solve_map
 from torchcal.identify.uncertainty import covariance
 from torchcal.kinematics.error_model import ErrorModel
 from torchcal.kinematics.robot import RobotModel
@@ -172,19 +172,25 @@ def fit_joint_errors(robot: RobotModel, data: Measurements, geometric, points: t
         # the geometry keeps its prior (identify.prior); gravity terms and first harmonics have none,
         # a Fourier series its smoothness prior (identify.harmonics), whose scale the evidence chooses
         scales = SMOOTHNESS_SCALES_RAD if smooth else (None,)
-        best = None
-        start = x0
-        for scale in scales:
+        sized = problem.with_free(free)
+
+        def prior_of(scale):
             extra_sigma = None if scale is None else _series_sigma(cols, kept, len(points), harmonics, scale)
-            prior = geometric.prior.extended(free, len(kept), size + len(cols), extra_sigma)
-            # the geometry's noise sigma as the start: the joint terms lower it, a warm solve or two follow
-            fit = solve_map(problem.with_free(free), prior, start, LevenbergMarquardt(), units=units,
-                            start_sigma=geometric.noise_sigma_m)
-            start = fit.x
-            if best is None or fit.log_evidence > best[1].log_evidence:
-                best = (scale, fit)
-        assert best is not None
-        prior_scale, fit = best
+            return geometric.prior.extended(free, len(kept), size + len(cols), extra_sigma)
+
+        # the geometry's noise sigma as the start: the joint terms lower it, a warm solve or two follow
+        prior_scale = scales[len(scales) // 2]
+        fit = solve_map(sized, prior_of(prior_scale), x0, LevenbergMarquardt(), units=units,
+                        start_sigma=geometric.noise_sigma_m)
+        if smooth:
+            # the evidence of every scale from one Gauss-Newton step at this solution (the series is
+            # linear in its coefficients, the chain nearly so at these sizes); the best is solved in full
+            evidence, starts = _evidence_scan(sized, fit, [prior_of(v) for v in scales])
+            best = int(np.argmax(evidence))
+            if scales[best] != prior_scale:
+                prior_scale = scales[best]
+                fit = solve_map(sized, prior_of(prior_scale), starts[best], LevenbergMarquardt(), units=units,
+                                start_sigma=fit.noise_sigma)
         sol, cov, sigma = fit.solve, fit.covariance, fit.noise_sigma
         if smooth:
             notes.append(f"joint Fourier series: smoothness prior scale {prior_scale:.2g} rad (order k: scale / k^"
@@ -212,6 +218,25 @@ def fit_joint_errors(robot: RobotModel, data: Measurements, geometric, points: t
     return replace(geometric, model=model, x=x, covariance=cov[:n_geo, :n_geo], sigma_residual_m=sigma,
                    noise_sigma_m=sigma if geometric.prior is not None else geometric.noise_sigma_m,
                    notes=notes, compliance=compliance, harmonics=fitted)
+
+
+def _evidence_scan(problem: JointErrorProblem, fit, priors: list) -> tuple[list[float], list[torch.Tensor]]:
+    """Log evidence (:func:`~torchcal.identify.prior.log_evidence`) of each prior, the model linearised at ``fit.x``
+    with its noise sigma; and each prior's MAP point after one Gauss-Newton step from there (a start)."""
+    r, jac = problem.jacobian(fit.x)
+    s = fit.noise_sigma
+    free = problem.free
+    out, starts = [], []
+    for prior in priors:
+        lam = prior.precision.to(jac)
+        d = fit.x[free] - prior.mean[free].to(jac)
+        h = jac.T @ jac / s**2 + lam
+        step = -torch.linalg.solve(h, jac.T @ r / s**2 + lam @ d)
+        x = fit.x.clone()
+        x[free] = x[free] + step
+        out.append(log_evidence(jac, r + jac @ step, lam, d + step, s))
+        starts.append(x)
+    return out, starts
 
 
 def _series_sigma(cols: list[tuple[int, int]], kept: list[int], n_points: int, harmonics: tuple[str, ...],

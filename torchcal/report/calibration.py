@@ -14,7 +14,7 @@ row 1, blank lines count).
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -103,6 +103,8 @@ class ReportInputs:
         leakage: ``metrics["leakage"]`` of a held-out file.
         compensation_on_truth: the twin only: exported commands sent to the true robot.
         truth_x: the twin only: the truth expressed in the fitted parameter set (SI).
+        joint_truth: the twin only: its periodic (gear) joint errors, ``q (B, N) rad -> (B, N) rad``,
+            drawn beside the learned per-joint curves.
         lines: what the command printed.
         context: paragraphs for the summary (the twin's noise floor...).
     """
@@ -114,6 +116,7 @@ class ReportInputs:
     compensation_on_truth: dict | None = None
     truth_x: torch.Tensor | None = None
     truth_note: str = ""
+    joint_truth: Callable[[torch.Tensor], torch.Tensor] | None = None
     lines: list[str] = field(default_factory=list)
     context: list[str] = field(default_factory=list)
 
@@ -521,7 +524,7 @@ def _robot_files(stored: StoredModel) -> Section | None:
         + " The instrument-to-base transform of the measurement is in calibration.json (frames).")])
 
 
-def _joint_terms(stored: StoredModel, pose_sets: list[PoseSet]) -> Section | None:
+def _joint_terms(stored: StoredModel, pose_sets: list[PoseSet], joint_truth=None) -> Section | None:
     terms = JointSpaceErrors.from_metadata(stored.metadata)
     if terms.empty:
         return None
@@ -534,10 +537,33 @@ def _joint_terms(stored: StoredModel, pose_sets: list[PoseSet]) -> Section | Non
         dq = np.degrees((part.effective_joints(stored.robot, q) - q).detach().cpu().numpy()) * 1e3
         rows.extend([label, f"q{j + 1}", _f(float(np.sqrt(np.mean(dq[:, j] ** 2))), 2), _f(float(np.abs(dq[:, j]).max()), 2)]
                     for j in range(dq.shape[1]) if np.abs(dq[:, j]).max() > 0)
-    return Section("Joint-space terms", [
+    blocks: list = [
         Paragraph(f"Joint errors the model adds to the commanded joints before the geometric chain, over the poses of "
                   f"{pose_sets[0].label} (millidegrees; coefficients in calibration.json)."),
-        Table("joint_terms", ["term", "joint", "RMS [mdeg]", "max [mdeg]"], rows)])
+        Table("joint_terms", ["term", "joint", "RMS [mdeg]", "max [mdeg]"], rows)]
+    if terms.harmonics is not None:
+        blocks += _joint_curves(stored, q, terms.harmonics, joint_truth)
+    return Section("Joint-space terms", blocks)
+
+
+def _joint_curves(stored: StoredModel, q: torch.Tensor, harmonics, joint_truth) -> list:
+    """The learned periodic error of each joint as a function of its own angle over the poses' range
+    (and the twin's truth): constants are left out, the joint zero offset ``theta_j`` carries them."""
+    grid = torch.stack([torch.linspace(float(q[:, j].min()), float(q[:, j].max()), 361, dtype=torch.float64)
+                        for j in range(q.shape[1])], 1)
+    centred = lambda v: v - v.mean(0, keepdim=True)  # noqa: E731
+    learned = np.degrees(centred(harmonics.deflection(grid)).numpy()) * 1e3
+    truth = None if joint_truth is None else np.degrees(centred(joint_truth(grid)).detach().numpy()) * 1e3
+    caption = (f"{harmonics.label}: the learned error of each joint against its own commanded angle, over the range "
+               "of the poses, each curve less its mean (a constant is the joint zero offset's)")
+    if truth is not None:
+        miss = np.sqrt(np.mean((learned - truth) ** 2, axis=0))
+        size = np.sqrt(np.mean(truth**2, axis=0))
+        caption += ("; thick: the twin's gear error (truth). RMS of learned - truth per joint: "
+                    + ", ".join(f"q{j + 1} {miss[j]:.2f} of {size[j]:.2f} mdeg" for j in range(len(miss))))
+        caption += ". The last joint has none by design (identify.harmonics: it aliases with the tool lever)"
+    return [Figure("joint_curves", plots.joint_curves(np.degrees(grid.numpy()), learned, truth,
+                                                      "Learned periodic joint errors", "learned"), caption + ".")]
 
 
 def _notes(stored: StoredModel, inputs: ReportInputs) -> Section:
@@ -588,7 +614,7 @@ def calibration_report(title: str, stored: StoredModel, pose_sets: list[PoseSet]
         _compensator(pose_sets, inputs),
         _uncertainty(pose_sets, inputs),
         *parameter_sections(stored, inputs.truth_x, inputs.truth_note),
-        _joint_terms(stored, pose_sets),
+        _joint_terms(stored, pose_sets, inputs.joint_truth),
         _robot_files(stored),
         _notes(stored, inputs),
         _convergence(stored),

@@ -137,6 +137,33 @@ def error_vs_joints(q_deg: np.ndarray, errors_mm: np.ndarray, stage: str, title:
     return _png(fig)
 
 
+def joint_curves(q_deg: np.ndarray, learned_mdeg: np.ndarray, truth_mdeg: np.ndarray | None, title: str,
+                 label: str) -> bytes:
+    """A learned periodic joint error ``dq_j(q_j)`` (mdeg) against ``q_j`` (deg), one panel per joint, with the
+    truth where known; ``q_deg`` ``(M, N)`` sorted per joint, curves ``(M, N)``."""
+    from matplotlib.ticker import MaxNLocator
+
+    n = q_deg.shape[1]
+    cols = 3 if n <= 6 else 4
+    nrows = math.ceil(n / cols)
+    fig, axes = _figure(9.5, 2.5 * nrows + 0.8, nrows=nrows, ncols=cols)
+    for j in range(nrows * cols):
+        ax = axes[j // cols, j % cols]
+        if j >= n:
+            ax.set_visible(False)
+            continue
+        if truth_mdeg is not None:
+            ax.plot(q_deg[:, j], truth_mdeg[:, j], "-", color=COLOURS[0], lw=2.5, alpha=0.6, label="twin's truth")
+        ax.plot(q_deg[:, j], learned_mdeg[:, j], "-", color=COLOURS[3], lw=1.2, label=label)
+        ax.xaxis.set_major_locator(MaxNLocator(nbins=4))
+        ax.set_xlabel(f"q{j + 1} [deg]")
+        if j % cols == 0:
+            ax.set_ylabel("joint error [mdeg]")
+    _legend_below(fig, axes[0, 0])
+    fig.suptitle(_wrap(title), fontsize=10)
+    return _png(fig)
+
+
 def workspace(points_mm: np.ndarray, errors_mm: np.ndarray, title: str, frame: str) -> bytes:
     """The poses' TCP positions seen from above (x-y) and from the side (x-z), coloured by 3-D error (mm)."""
     fig, axes = _figure(9.5, 4.2, ncols=2)
