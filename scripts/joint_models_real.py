@@ -4,8 +4,10 @@ Runs the UR10 transfers (A -> C and D, C -> B, B -> C, re-registered) and the IR
 of :mod:`torchcal.app.validation` with the fit's structure selection (``joint_harmonics=auto``,
 ``gravity_compliance=auto``: the classic options and the learned joint-space models in
 competition, residual heads off: they are refused on every one of these rows), and writes per row
-the held-out RMS, the gate's choice and its CV table to ``docs/joint_models_real.json``. Today's
-default on the same rows is in ``docs/validation.md`` (the same protocol and scoring).
+the held-out RMS, the gate's choice and its CV table to ``docs/joint_models_real.json``. With
+``--forced`` each learned option is fitted instead of the gate (what it would have done;
+``--out docs/joint_models_real_forced.json``). Today's default: the same script run on that
+revision (``git archive``; its package first on ``PYTHONPATH``).
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ from torchcal.config.schema import FitConfig
 from torchcal.core.errors import IdentifiabilityWarning
 from torchcal.core.io import atomic_write_json
 from torchcal.data.measurements import load_measurements
+from torchcal.identify.joint_fit import LEARNED_OPTIONS
 from torchcal.kinematics.robot import load_robot
 
 ROWS = ("C_to_B", "B_to_C", "A_to_CD", "icelinker-irb120-faro")
@@ -39,30 +42,38 @@ def main() -> None:
     parser.add_argument("--data-root", default="../shared/data/real")
     parser.add_argument("--out", default="docs/joint_models_real.json")
     parser.add_argument("--only", default="", help="comma-separated slugs (default: every row)")
+    parser.add_argument("--forced", action="store_true",
+                        help="fit each learned option of the gate (LEARNED_OPTIONS) forced, instead of the gate, to show "
+                             "what it would have done")
     args = parser.parse_args()
     root, results = Path(args.data_root), []
+    configs = ({f"{g}+{h}": FitConfig(residual="none", uncertainty="none", progress=False, gravity_compliance=g,
+                                      joint_harmonics=h) for g, h in LEARNED_OPTIONS}
+               if args.forced else {"default (gate)": FitConfig(residual="none", progress=False)})
     for protocol in _protocols(list(filter(None, args.only.split(","))) or ROWS):
         start = time.perf_counter()
         folder = root / protocol.dataset
         robot = load_robot(folder / "robot.yaml")
         data = load_measurements(folder / protocol.fit_file, robot)
-        errors: dict[int, list] = {}
-        choices, tables = [], []
-        with tempfile.TemporaryDirectory() as tmp, warnings.catch_warnings():
-            warnings.simplefilter("ignore", IdentifiabilityWarning)
-            for i, (train, tests) in enumerate(_pairs(data, protocol, robot, folder, 0)):
-                out = _fit_and_score(robot, train, tests, protocol, FitConfig(residual="none", progress=False),
-                                     Path(tmp) / f"m{i}")
-                for k, e in enumerate(out["errors"]):
-                    errors.setdefault(k, []).append(e)
-                choices.append(_structure_name(out["result"]))
-                tables.append(out["structure_note"])
-        labels = list(protocol.test_files) or ["held out"]
-        row = {"dataset": protocol.dataset, "protocol": protocol.label, "choices": choices, "cv_tables": tables,
-               "seconds": time.perf_counter() - start,
-               "rms_mm": {labels[k]: float((torch.cat(v).norm(dim=-1) * 1e3).pow(2).mean().sqrt()) for k, v in errors.items()}}
-        print(row["dataset"], row["protocol"][:40], row["rms_mm"], choices, f"{row['seconds']:.0f} s", flush=True)
-        results.append(row)
+        for config_name, config in configs.items():
+            errors: dict[int, list] = {}
+            choices, tables = [], []
+            with tempfile.TemporaryDirectory() as tmp, warnings.catch_warnings():
+                warnings.simplefilter("ignore", IdentifiabilityWarning)
+                for i, (train, tests) in enumerate(_pairs(data, protocol, robot, folder, 0)):
+                    out = _fit_and_score(robot, train, tests, protocol, config, Path(tmp) / f"m{i}")
+                    for k, e in enumerate(out["errors"]):
+                        errors.setdefault(k, []).append(e)
+                    choices.append(_structure_name(out["result"]))
+                    tables.append(out["structure_note"])
+            labels = list(protocol.test_files) or ["held out"]
+            row = {"dataset": protocol.dataset, "protocol": protocol.label, "fit": config_name, "choices": choices,
+                   "cv_tables": tables, "seconds": time.perf_counter() - start,
+                   "rms_mm": {labels[k]: float((torch.cat(v).norm(dim=-1) * 1e3).pow(2).mean().sqrt())
+                              for k, v in errors.items()}}
+            print(row["dataset"], row["protocol"][:40], config_name, row["rms_mm"], choices, f"{row['seconds']:.0f} s",
+                  flush=True)
+            results.append(row)
         atomic_write_json(Path(args.out), results)
 
 

@@ -119,3 +119,43 @@ def test_auto_options_put_the_learned_models_last():
                                                     ("wrist", "fourier4")]
     assert joint_error_options("auto", "fourier3")[-1] == ("elbow+wrist+cubic", "fourier3")
     assert joint_error_options("none", "fourier2") == [("none", "fourier2")]
+
+
+def _auto(**kwargs) -> FitConfig:
+    return FitConfig(residual="none", uncertainty="none", progress=False, **kwargs)
+
+
+def test_gate_keeps_the_learned_model_where_the_twin_has_higher_gear_orders_and_it_wins_on_blocks(generator):
+    twin = Twin.create(TwinConfig(seed=3, gravity=True, gear=True, gear_orders=3, gear_amplitude_deg=0.02,
+                                  compliance_cubic=0.5))
+    data = twin.sample(600, generator)
+    result = fit(twin.robot, data, _auto())
+    note = next(n for n in result.notes if n.startswith("structure chosen"))
+    assert result.harmonics is not None and result.harmonics.order > 1, note
+    assert "wins on blocks of measurement order too" in note
+
+
+def test_gate_falls_back_to_the_classic_structure_when_blocks_refuse_the_learned_one(generator, monkeypatch):
+    """The same twin; the blocks CV is made to prefer the classic rival (its learned errors doubled): the
+    fit then carries the classic structure and says why."""
+    import torchcal.stages.geometry as geometry
+    from torchcal.model_selection.compare import compare_candidates
+
+    original = geometry.cross_validate_structures
+
+    def blocks_prefer_the_rival(robot, data, fit_geometry, options, folds, **kwargs):
+        out = original(robot, data, fit_geometry, options, folds, **kwargs)
+        if len(options) == 2:  # the blocks check: the classic rival, then the learned model
+            for c in out.candidates[1:]:
+                c.errors_mm = c.errors_mm * 2.0
+            out.comparison = compare_candidates(out.candidates, folds.units(), folds.description)
+        return out
+
+    monkeypatch.setattr(geometry, "cross_validate_structures", blocks_prefer_the_rival)
+    twin = Twin.create(TwinConfig(seed=3, gravity=True, gear=True, gear_orders=3, gear_amplitude_deg=0.02,
+                                  compliance_cubic=0.5))
+    data = twin.sample(600, generator)
+    result = fit(twin.robot, data, _auto())
+    note = next(n for n in result.notes if n.startswith("structure chosen"))
+    assert result.harmonics is None or result.harmonics.order == 1, note
+    assert "refused on blocks of measurement order" in note
