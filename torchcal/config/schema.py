@@ -45,11 +45,13 @@ class FitConfig:
             beyond chance over configuration groups) to be kept.
         progress: show progress of long steps.
         gravity_compliance: joint compliance under the arm's own weight, identified with the
-            geometry (:mod:`torchcal.identify.compliance`): ``none``, ``wrist``, ``elbow+wrist``
-            or ``auto`` (default: chosen by the cross-validation, with the harmonics).
-        joint_harmonics: first-harmonic joint errors ``a_j sin q_j + b_j cos q_j`` (rad), every
-            joint but the last, identified with the geometry (:mod:`torchcal.identify.harmonics`):
-            ``none``, ``first`` or ``auto`` (default). With ``auto`` (here or in
+            geometry (:mod:`torchcal.identify.compliance`): ``none``, ``wrist``, ``elbow+wrist``,
+            ``elbow+wrist+cubic`` (nonlinear: a ``tau^3`` term; never chosen by ``auto``) or ``auto``
+            (default: chosen by the cross-validation, with the harmonics).
+        joint_harmonics: periodic joint errors ``sum_k a_kj sin(k q_j) + b_kj cos(k q_j)`` (rad),
+            every joint but the last, identified with the geometry (:mod:`torchcal.identify.harmonics`):
+            ``none``, ``first``, ``fourier2`` .. ``fourier4`` (a learned series with a smoothness
+            prior) or ``auto`` (default: none, first, fourier2, fourier4). With ``auto`` (here or in
             ``gravity_compliance``) the cross-validation compares the options and keeps the
             simplest within noise of the best (:mod:`torchcal.model_selection.compare`). The
             exported compensator carries both terms (:mod:`torchcal.compensate.joint_error_graph`).
