@@ -115,8 +115,7 @@ def test_auto_options_put_the_learned_models_last():
     options = joint_error_options("auto", "auto")
     assert options[:6] == [(g, h) for h in ("none", "first") for g in ("none", "wrist", "elbow+wrist")]
     assert options[6:] == list(LEARNED_OPTIONS)
-    assert joint_error_options("wrist", "auto") == [("wrist", "none"), ("wrist", "first"), ("wrist", "fourier2"),
-                                                    ("wrist", "fourier4")]
+    assert joint_error_options("wrist", "auto") == [("wrist", "none"), ("wrist", "first"), ("wrist", "fourier2")]
     assert joint_error_options("auto", "fourier3") == [(g, "fourier3") for g in ("none", "wrist", "elbow+wrist")]
     assert joint_error_options("elbow+wrist+cubic", "first") == [("elbow+wrist+cubic", "first")]
     assert joint_error_options("none", "fourier2") == [("none", "fourier2")]

@@ -51,7 +51,7 @@ class FitConfig:
         joint_harmonics: periodic joint errors ``sum_k a_kj sin(k q_j) + b_kj cos(k q_j)`` (rad),
             every joint but the last, identified with the geometry (:mod:`torchcal.identify.harmonics`):
             ``none``, ``first``, ``fourier2`` .. ``fourier4`` (a learned series with a smoothness
-            prior) or ``auto`` (default: none, first, fourier2, fourier4). With ``auto`` (here or in
+            prior) or ``auto`` (default: none, first, fourier2). With ``auto`` (here or in
             ``gravity_compliance``) the cross-validation compares the options and keeps the
             simplest within noise of the best (:mod:`torchcal.model_selection.compare`). The
             exported compensator carries both terms (:mod:`torchcal.compensate.joint_error_graph`).
