@@ -92,8 +92,9 @@ def select_with_heads(robot, data: Measurements, structure: StructureCV, config,
     comparison = compare_candidates(structure.candidates + heads.candidates, structure.folds.units(),
                                     structure.folds.description, tolerance=structure_tolerance())
     head_rows = {c.name for c in heads.candidates}
-    if comparison.chosen not in head_rows and comparison.chosen != parent:
-        # the structures were decided without heads; heads only add rows on top of that choice
+    if comparison.chosen not in head_rows:
+        # the structures were decided without heads (a learned joint model also on time blocks, with
+        # its reason); heads only add rows on top of that choice
         comparison.chosen, comparison.reason = parent, structure.comparison.reason
     for name, why in heads.stopped.items():
         comparison.rows.append(_stopped_row(f"{parent}+{name}", why))
