@@ -25,7 +25,7 @@ from torchcal.kinematics.mdh import chain_transforms
 _LENGTH_UNITS = {"m": 1.0, "mm": 1e-3, "cm": 1e-2}
 _ANGLE_UNITS = {"rad": 1.0, "deg": math.pi / 180.0}
 _ROW_KEYS = ("alpha", "a", "d", "theta")
-_OPTIONAL_ROW_KEYS = ("beta", "min", "max", "velocity", "acceleration")
+_OPTIONAL_ROW_KEYS = ("beta", "min", "max", "continuous", "velocity", "acceleration")
 
 
 @dataclass(frozen=True)
@@ -36,7 +36,8 @@ class RobotModel:
         name: robot name.
         joint_names: one name per revolute joint, in chain order.
         table: ``(N, 5)`` MDH rows ``[alpha, a, beta, theta_offset, d]`` (rad, m).
-        joint_limits: ``(N, 2)`` lower/upper joint limits, rad.
+        joint_limits: ``(N, 2)`` lower/upper joint limits, rad; ``-inf, +inf`` for a continuous joint
+            (a URDF ``type="continuous"`` joint, a YAML row with ``continuous: true``), which has none.
         tool: ``(3,)`` nominal TCP / reflector position in the ``flange`` frame, m.
         T_base_0: ``(4, 4)`` fixed ``base -> frame 0`` transform (identity for a YAML robot).
         T_n_flange: ``(4, 4)`` fixed ``frame N -> flange`` transform (identity for a YAML robot).
@@ -76,14 +77,31 @@ class RobotModel:
         pose = self.flange_pose(q)
         return pose[..., :3, :3] @ self.tool.to(q) + pose[..., :3, 3]
 
+    @property
+    def continuous(self) -> torch.Tensor:
+        """``(N,)`` bool: joints without limits (any angle is reachable)."""
+        return ~torch.isfinite(self.joint_limits).all(-1)
+
+    @property
+    def turn_limits(self) -> torch.Tensor:
+        """``(N, 2)`` rad: the joint limits with one turn ``[-pi, pi]`` for a continuous joint.
+
+        For what needs a finite range: sampling poses, scaling features, centring a planner; a
+        continuous joint's configurations repeat every turn, so one turn covers all of them.
+        """
+        turn = torch.tensor([-math.pi, math.pi], dtype=self.joint_limits.dtype)
+        return torch.where(self.continuous.unsqueeze(-1), turn, self.joint_limits)
+
     def within_limits(self, q: torch.Tensor, tol: float = 1e-9) -> torch.Tensor:
         lim = self.joint_limits.to(q)
         return ((q >= lim[:, 0] - tol) & (q <= lim[:, 1] + tol)).all(-1)
 
     def sample_joints(self, n: int, generator: torch.Generator, margin: float = 0.0) -> torch.Tensor:
-        """Uniform random joint angles ``(n, N)`` within limits (shrunk by ``margin`` rad)."""
-        lo = self.joint_limits[:, 0] + margin
-        hi = self.joint_limits[:, 1] - margin
+        """Uniform random joint angles ``(n, N)`` within limits (shrunk by ``margin`` rad); one turn
+        ``[-pi, pi]`` for a continuous joint."""
+        lim = self.turn_limits
+        lo = lim[:, 0] + torch.where(self.continuous, 0.0, margin)
+        hi = lim[:, 1] - torch.where(self.continuous, 0.0, margin)
         u = torch.rand(n, self.dof, generator=generator, dtype=torch.float64)
         return lo + u * (hi - lo)
 
@@ -189,8 +207,16 @@ def robot_from_yaml(path: str | Path) -> RobotModel:
             raise ModelError(f"{path}: joint {i} lacks {missing}")
         alpha, a, d, theta = (_number(row[k], path, f"joint {i} '{k}'") for k in _ROW_KEYS)
         beta = _number(row.get("beta", 0.0), path, f"joint {i} 'beta'")
-        lo = _number(row.get("min", -180.0 if angle_unit == "deg" else -math.pi), path, f"joint {i} 'min'")
-        hi = _number(row.get("max", 180.0 if angle_unit == "deg" else math.pi), path, f"joint {i} 'max'")
+        continuous = row.get("continuous", False)
+        if not isinstance(continuous, bool):
+            raise ModelError(f"{path}: joint {i} 'continuous' must be true or false, got {continuous!r}")
+        if continuous:
+            if "min" in row or "max" in row:
+                raise ModelError(f"{path}: joint {i} is continuous and has min/max: give one or the other")
+            lo, hi = -math.inf, math.inf
+        else:
+            lo = _number(row.get("min", -180.0 if angle_unit == "deg" else -math.pi), path, f"joint {i} 'min'")
+            hi = _number(row.get("max", 180.0 if angle_unit == "deg" else math.pi), path, f"joint {i} 'max'")
         if lo >= hi:
             raise ModelError(f"{path}: joint {i} has min {lo} >= max {hi}")
         rows.append([alpha * as_, a * ls, beta * as_, theta * as_, d * ls])
@@ -240,7 +266,10 @@ def robot_to_yaml(robot: RobotModel, table: torch.Tensor | None = None, tool: to
         entries = [f"alpha: {alpha * deg:.9g}", f"a: {a * 1e3:.9g}", f"d: {d * 1e3:.9g}", f"theta: {theta * deg:.9g}"]
         if abs(beta) > 0:
             entries.append(f"beta: {beta * deg:.9g}")
-        entries += [f"min: {lim[0] * deg:.9g}", f"max: {lim[1] * deg:.9g}"]
+        if math.isfinite(lim[0]) and math.isfinite(lim[1]):
+            entries += [f"min: {lim[0] * deg:.9g}", f"max: {lim[1] * deg:.9g}"]
+        else:
+            entries.append("continuous: true")
         if velocity is not None:
             entries.append(f"velocity: {velocity * deg:.9g}")
         if acceleration is not None:
@@ -281,10 +310,11 @@ def mdh_to_urdf(robot: RobotModel) -> str:
         child = f"link{i + 1}"
         lo, hi = robot.joint_limits[i].tolist()
         links.append(f'<link name="{child}"/>')
+        kind, limit = ("continuous", "") if bool(robot.continuous[i]) else (
+            "revolute", f'<limit lower="{lo:.17g}" upper="{hi:.17g}" effort="0" velocity="0"/>')
         joints.append(
-            f'<joint name="{robot.joint_names[i]}" type="revolute"><parent link="{parent}"/>'
-            f'<child link="{child}"/>{_origin_xml(link_tf)}<axis xyz="0 0 1"/>'
-            f'<limit lower="{lo:.17g}" upper="{hi:.17g}" effort="0" velocity="0"/></joint>'
+            f'<joint name="{robot.joint_names[i]}" type="{kind}"><parent link="{parent}"/>'
+            f'<child link="{child}"/>{_origin_xml(link_tf)}<axis xyz="0 0 1"/>{limit}</joint>'
         )
         parent = child
     links.append(f'<link name="{robot.end_link}"/>')
@@ -296,18 +326,20 @@ def mdh_to_urdf(robot: RobotModel) -> str:
     return f'<?xml version="1.0"?>\n<robot name="{robot.name}">\n  {body}\n</robot>\n'
 
 
-def _joint_origins_float64(text: str) -> dict[str, torch.Tensor]:
-    """Joint origin transforms ``parent -> joint frame`` of a URDF, float64, by joint name."""
+def _joint_origins_float64(text: str) -> tuple[dict[str, torch.Tensor], dict[str, str]]:
+    """Joint origin transforms ``parent -> joint frame`` of a URDF, float64, and the URDF joint
+    types (``revolute``, ``continuous``, ...), by joint name."""
     from pytorch_kinematics.urdf_parser_py.urdf import URDF
 
     robot = URDF.from_xml_string(text.encode() if isinstance(text, str) else text)
-    origins = {}
+    origins, types = {}, {}
     for joint in robot.joints:
         xyz = joint.origin.xyz if joint.origin is not None and joint.origin.xyz is not None else [0, 0, 0]
         rpy = joint.origin.rpy if joint.origin is not None and joint.origin.rpy is not None else [0, 0, 0]
         rot = tf.euler_xyz_to_matrix(torch.tensor(rpy, dtype=torch.float64))
         origins[joint.name] = tf.homogeneous(rot, torch.tensor(xyz, dtype=torch.float64))
-    return origins
+        types[joint.name] = joint.type
+    return origins, types
 
 
 def robot_from_urdf(
@@ -355,7 +387,7 @@ def robot_from_urdf(
             raise ModelError(f"{path}: joint '{joint.name}' is {joint.joint_type}; only revolute joints are supported")
     # pytorch-kinematics gives the chain's structure; its URDF reader rounds rpy to float32
     # (about 1e-8 m at arm's length), so the origins are re-read in float64 by joint name.
-    origins = _joint_origins_float64(text)
+    origins, urdf_types = _joint_origins_float64(text)
     transform = torch.eye(4, dtype=torch.float64)
     points, directions = [], []
     for frame in chain._serial_frames[1:]:
@@ -378,6 +410,11 @@ def robot_from_urdf(
         raise ModelError(f"{path}: the joint axes give no MDH table ({exc.__class__.__name__}: {exc})") from None
     limits = []
     for joint in frames:
+        if urdf_types.get(joint.name) == "continuous":
+            # no limits: the URDF ignores a continuous joint's lower/upper (pytorch-kinematics reads
+            # it as revolute, with the limit tag's lower/upper, or (0, 0) where it gives only effort)
+            limits.append([-math.inf, math.inf])
+            continue
         lim = joint.limits
         if lim is not None and not (math.isfinite(float(lim[0])) and math.isfinite(float(lim[1]))
                                     and float(lim[0]) < float(lim[1])):
