@@ -425,6 +425,17 @@ def _main(argv: list[str] | None) -> int:
     elif extra:
         parser.error(f"unrecognized arguments: {' '.join(extra)}")
     warnings.formatwarning = lambda message, category, *rest: f"torchcal: warning: {message}\n"
+    # each warning once per command: fold and candidate fits repeat the full fit's warnings, and every
+    # `catch_warnings` block on the way resets Python's own once-per-location registry
+    shown: set[str] = set()
+    show = warnings.showwarning
+
+    def show_once(message, category, filename, lineno, file=None, line=None):
+        if str(message) not in shown:
+            shown.add(str(message))
+            show(message, category, filename, lineno, file, line)
+
+    warnings.showwarning = show_once
     try:
         return int(args.func(args) or 0)
     except TorchcalError as exc:
@@ -459,6 +470,8 @@ def _main(argv: list[str] | None) -> int:
             raise
         print(f"torchcal: error: {line}; earlier outputs were left as they were", file=sys.stderr)
         return 2
+    finally:
+        warnings.showwarning = show
 
 
 if __name__ == "__main__":
