@@ -84,12 +84,17 @@ def _cmd_fit(args) -> int:
 def _cmd_evaluate(args) -> int:
     from torchcal.core.io import atomic_write_json
     from torchcal.core.outputs import JSON_KEY, claim_file, is_metrics_json
-    from torchcal.instruments.base import EvaluateRequest, evaluate_reported
+    from torchcal.instruments.base import (
+        EvaluateRequest,
+        check_evaluate_overrides,
+        evaluate_reported,
+    )
     from torchcal.instruments.registry import recognise
 
     if args.json:
         claim_file(args.json, "metrics", "--json", is_metrics_json)
     instrument = recognise(args.data)
+    check_evaluate_overrides(instrument, list(args.overrides))
     outcome = evaluate_reported(instrument, EvaluateRequest(
         model=Path(args.model), data=Path(args.data), overrides=list(args.overrides), register=args.register,
         report=Path(args.report) if args.report else None))
@@ -215,7 +220,7 @@ def option_listing(command: str) -> str:
     from torchcal.core.options import format_options, list_options
 
     blocks: list[str] = []
-    if command in ("fit", "evaluate"):
+    if command == "fit":
         from torchcal.instruments.registry import default, get, names
 
         first = default()
@@ -225,6 +230,15 @@ def option_listing(command: str) -> str:
         for name in names():
             own = [o for o in list_options(get(name).options()) if o.key not in common]
             blocks.append(format_options(f"options of {name} files ({get(name).description}):", own))
+    elif command == "evaluate":
+        from torchcal.instruments.registry import get, names
+
+        # only what evaluate reads: the model folder holds what the fit chose
+        for name in names():
+            instrument = get(name)
+            used = instrument.evaluate_options()
+            own = [o for o in list_options(instrument.options()) if used is None or o.key in used]
+            blocks.append(format_options(f"key=value options of {name} files ({instrument.description}):", own))
     elif command == "motion":
         from torchcal.motion.planner import PlanOptions
 
@@ -305,7 +319,8 @@ def build_parser(with_options: bool | str = False) -> argparse.ArgumentParser:
     p.add_argument("--register", action="store_true", help="re-fit only the rigid instrument frame to the file first")
     p.add_argument("--report", default=None, metavar="DIR",
                    help="write report.md and report.html (figures inline) of this evaluation into DIR")
-    p.add_argument("overrides", nargs="*")
+    p.add_argument("overrides", nargs="*", help="key=value options of the file (listed below); fit options are refused: "
+                   "the model folder holds what the fit chose")
     p.set_defaults(func=_cmd_evaluate)
 
     p = add("study", help="Optuna study over a search space from configs/study/ (resumable)")

@@ -686,7 +686,12 @@ def boolean_given_number(fx: Fixtures, w: Path) -> Case:
 
 
 def evaluate_interpolation(fx: Fixtures, w: Path) -> Case:
-    return Case(_evaluate(fx.model, fx.test, "split=${oc.env:HOME}"), 2, "interpolation", None)
+    return Case(_evaluate(fx.model, fx.test, "joint_unit=${oc.env:HOME}"), 2, "interpolation", None)
+
+
+def evaluate_fit_option(fx: Fixtures, w: Path) -> Case:
+    return Case(_evaluate(fx.model, fx.test, "--json", str(w / "m.json"), "residual=mlp"), 2,
+                "residual is an option of fit, not of evaluate", w / "m.json")
 
 
 def simulate_interpolation(fx: Fixtures, w: Path) -> Case:
@@ -729,7 +734,7 @@ CASES: dict[str, Callable[[Fixtures, Path], Case]] = {f.__name__: f for f in (
     json_onto_checksums, json_onto_user_file, report_into_model, report_onto_export, report_onto_user_folder,
     refit_over_user_file, export_out_inside_model, fit_file_too_large, export_file_too_large, run_name_parent,
     run_name_slash, run_name_huge, study_name_parent, seed_beyond_32_bits, seed_negative, device_meta,
-    device_unknown, boolean_given_number, evaluate_interpolation, simulate_interpolation, study_workers_zero,
+    device_unknown, boolean_given_number, evaluate_interpolation, evaluate_fit_option, simulate_interpolation, study_workers_zero,
     study_trials_zero, export_iterations_huge, hidden_units_huge, simulate_huge, fit_points_of_other_poses,
     evaluate_points_of_other_poses, evaluate_instrument_moved, rows_with_mistyped_angle, rows_in_metres,
     joint_never_moves, orientation_garbage, simulate_negative_mass, simulate_zero_stiffness,
@@ -751,7 +756,7 @@ _BY_CLASS: dict[str, tuple[str, ...]] = {
         "robot_file_of_another_model_sealed"),
     "options that crash deep": (
         "seed_beyond_32_bits", "seed_negative", "device_meta", "device_unknown", "boolean_given_number",
-        "evaluate_interpolation", "simulate_interpolation", "study_workers_zero", "study_trials_zero",
+        "evaluate_interpolation", "evaluate_fit_option", "simulate_interpolation", "study_workers_zero", "study_trials_zero",
         "threshold_negative", "threshold_nan", "residual_unknown", "unknown_option", "simulate_zero",
         "simulate_negative"),
     "bad rows and contradictory inputs": ("rows_with_mistyped_angle", "rows_in_metres", "csv_semicolon",
