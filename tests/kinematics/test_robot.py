@@ -145,3 +145,45 @@ def test_yaml_continuous_flag_is_checked(tmp_path, row, match):
     bad.write_text(f"name: x\nkinematics:\n  convention: mdh\n  joints:\n    - {{alpha: 0, a: 0, d: 1, theta: 0, {row}}}\n")
     with pytest.raises(ModelError, match=match):
         load_robot(bad)
+
+
+def test_urdf_parsed_once_and_its_parser_notes_are_one_warning(tmp_path, monkeypatch):
+    """A URDF with ROS transmissions (tags the kinematics do not use): the parser's lines become one
+    warning naming them, and loading the same text again (the copy a model folder keeps, the links
+    named) parses nothing."""
+    import warnings
+
+    from pytorch_kinematics.urdf_parser_py.urdf import URDF
+
+    transmissions = "".join(
+        f'<transmission name="t{i}"><type>transmission_interface/SimpleTransmission</type>'
+        f'<joint name="j{i}"><hardwareInterface>hardware_interface/PositionJointInterface</hardwareInterface></joint>'
+        f'<actuator name="m{i}"><hardwareInterface>hardware_interface/PositionJointInterface</hardwareInterface>'
+        f'<mechanicalReduction>1</mechanicalReduction></actuator></transmission>' for i in range(1, 7))
+    # a comment makes the text unique to this test (the cache is by content)
+    text = OFFSET.read_text().replace("</robot>", transmissions + f"<!-- {tmp_path.name} --></robot>")
+    first, copy = tmp_path / "ros.urdf", tmp_path / "copy" / "robot.urdf"
+    first.write_text(text)
+    copy.parent.mkdir()
+    copy.write_text(text)
+    parses = []
+    original = URDF.from_xml_string.__func__
+    monkeypatch.setattr(URDF, "from_xml_string", classmethod(lambda cls, xml: parses.append(1) or original(cls, xml)))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        robot = load_robot(first)
+        again = load_robot(copy, base_link=robot.base_link, end_link=robot.end_link)
+    assert len(parses) == 2  # pytorch-kinematics' chain and the float64 origins, for both loads together
+    lines = [str(w.message) for w in caught]
+    assert len(lines) == 1 and "skipped 6 element(s)" in lines[0] and 'Unknown tag "hardwareInterface" x6' in lines[0]
+    torch.testing.assert_close(again.table, robot.table)
+    torch.testing.assert_close(robot.table, load_robot(OFFSET).table)  # the transmissions change nothing
+
+
+def test_urdf_parser_notes_name_a_misspelt_attribute(tmp_path, capfd):
+    text = OFFSET.read_text().replace('<origin xyz="0 0 0.16" rpy="0 0 0"/>', '<origin xyz="0 0 0.16" rpi="0 0 0.1"/>')
+    path = tmp_path / "typo.urdf"
+    path.write_text(text)
+    with pytest.warns(UserWarning, match='Unknown attribute "rpi"'):
+        load_robot(path)
+    assert "Unknown" not in capfd.readouterr().err  # nothing printed by the parser itself

@@ -10,8 +10,13 @@ of both routes can be checked against each other.
 
 from __future__ import annotations
 
+import hashlib
 import math
-from dataclasses import dataclass, field
+import re
+import warnings
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import torch
@@ -342,6 +347,57 @@ def _joint_origins_float64(text: str) -> tuple[dict[str, torch.Tensor], dict[str
     return origins, types
 
 
+@dataclass(frozen=True)
+class _ParsedUrdf:
+    """What a URDF gives for one chain (see :func:`robot_from_urdf`), cached by the text's hash."""
+
+    joint_names: tuple[str, ...]
+    table: torch.Tensor
+    T_base_0: torch.Tensor
+    T_n_flange: torch.Tensor
+    limits: torch.Tensor
+    base_link: str
+    end_link: str
+    notes: tuple[str, ...]  # what the URDF parser said (unknown tags and attributes)
+
+
+#: Parsed URDFs by (sha256 of the text, base_link, end_link): a fit loads its robot several times
+#: (the command, the model folder it writes, the folder's checks), and each parse runs the URDF
+#: parser three times (pytorch-kinematics' full and serial chains, the float64 origins).
+_URDF_CACHE: dict[tuple[str, str | None, str | None], _ParsedUrdf] = {}
+_URDF_CACHE_SIZE = 8
+
+
+@contextmanager
+def _parser_notes() -> Iterator[list[str]]:
+    """Collect what the URDF parser of pytorch-kinematics writes to stderr (one line per unknown tag
+    or attribute, per parse) instead of letting it print."""
+    from pytorch_kinematics.urdf_parser_py import xml_reflection
+    from pytorch_kinematics.urdf_parser_py.xml_reflection import core
+
+    notes: list[str] = []
+    saved = core.on_error, xml_reflection.on_error
+    core.on_error = xml_reflection.on_error = notes.append
+    try:
+        yield notes
+    finally:
+        core.on_error, xml_reflection.on_error = saved
+
+
+def _notes_warning(path: Path, notes: tuple[str, ...]) -> str:
+    """One line for the parser's notes: what was skipped, each kind once (a misspelt attribute,
+    ``rpi`` for ``rpy``, reads as absent, so they are named)."""
+    kinds: dict[str, int] = {}
+    for note in notes:
+        match = re.match(r'(Unknown (?:tag|attribute) "[^"]*")', note)
+        kind = match.group(1) if match else note
+        kinds[kind] = kinds.get(kind, 0) + 1
+    listed = "; ".join(f"{kind} x{n}" if n > 1 else kind for kind, n in list(kinds.items())[:6])
+    more = f"; and {len(kinds) - 6} more kinds" if len(kinds) > 6 else ""
+    return (f"{path}: the URDF parser skipped {len(notes)} element(s) it does not know, read as absent "
+            f"({listed}{more}); kinematics use links, joints, origins, axes and limits only")
+
+
 def robot_from_urdf(
     path: str | Path,
     *,
@@ -356,11 +412,45 @@ def robot_from_urdf(
         base_link: link that is the ``base`` frame (default: the URDF root).
         end_link: link that is the ``flange`` frame (default: the last link of the chain).
         tool: nominal TCP in the ``flange`` frame, m (default: the flange origin).
-    """
-    import pytorch_kinematics as pk
 
+    The text is parsed once per content and chain (cached by its sha256); what the parser says
+    about unknown tags and attributes becomes one warning, at that parse.
+    """
     path = Path(path)
     text = read_robot_text(path)
+    key = (hashlib.sha256(text.encode()).hexdigest(), base_link, end_link)
+    parsed = _URDF_CACHE.get(key)
+    if parsed is None:
+        with _parser_notes() as notes:
+            parsed = _parse_urdf(path, text, base_link, end_link)
+        # each of the three parses says the same: each line once
+        parsed = replace(parsed, notes=tuple(dict.fromkeys(notes)))
+        while len(_URDF_CACHE) >= _URDF_CACHE_SIZE:
+            _URDF_CACHE.pop(next(iter(_URDF_CACHE)))
+        # also under the links it resolved to: a model folder names them when it loads its copy
+        for k in (key, (key[0], parsed.base_link, parsed.end_link)):
+            _URDF_CACHE[k] = parsed
+        if parsed.notes:  # once per text: its copy in a model folder says nothing new
+            warnings.warn(_notes_warning(path, parsed.notes), stacklevel=2)
+    return RobotModel(
+        name=path.stem,
+        joint_names=parsed.joint_names,
+        table=parsed.table.clone(),
+        joint_limits=parsed.limits.clone(),
+        tool=torch.tensor(tool if tool is not None else (0.0, 0.0, 0.0), dtype=torch.float64),
+        T_base_0=parsed.T_base_0.clone(),
+        T_n_flange=parsed.T_n_flange.clone(),
+        source=str(path),
+        urdf=text,
+        base_link=parsed.base_link,
+        end_link=parsed.end_link,
+    )
+
+
+def _parse_urdf(path: Path, text: str, base_link: str | None, end_link: str | None) -> _ParsedUrdf:
+    """The chain from ``base_link`` to ``end_link`` of URDF ``text`` (``path`` names it in errors)."""
+    import pytorch_kinematics as pk
+
     try:
         full = pk.build_chain_from_urdf(text.encode())
     except Exception as exc:  # noqa: BLE001 (the parser raises many types; the user needs the file name)
@@ -374,7 +464,7 @@ def robot_from_urdf(
         if link not in names:
             raise ModelError(f"{path}: {label} '{link}' is not a link of this URDF (links: {', '.join(names)})")
     try:
-        chain = pk.build_serial_chain_from_urdf(text.encode(), end_link, base_link)
+        chain = pk.SerialChain(full, end_link, base_link)  # from the parsed chain: no second parse
     except Exception as exc:  # noqa: BLE001 (as above)
         raise ModelError(f"{path}: no serial chain from '{base_link}' to '{end_link}' ({exc})") from None
     chain = chain.to(dtype=torch.float64)
@@ -422,19 +512,8 @@ def robot_from_urdf(
             raise ModelError(f"{path}: joint '{joint.name}': <limit lower/upper> must be finite numbers with "
                              f"lower < upper, got {float(lim[0])!r}, {float(lim[1])!r}")
         limits.append([float(lim[0]), float(lim[1])] if lim is not None else [-math.pi, math.pi])
-    return RobotModel(
-        name=path.stem,
-        joint_names=joint_names,
-        table=axes.table,
-        joint_limits=torch.tensor(limits, dtype=torch.float64),
-        tool=torch.tensor(tool if tool is not None else (0.0, 0.0, 0.0), dtype=torch.float64),
-        T_base_0=axes.T_base_0,
-        T_n_flange=axes.T_n_flange,
-        source=str(path),
-        urdf=text,
-        base_link=base_link,
-        end_link=end_link,
-    )
+    return _ParsedUrdf(joint_names=joint_names, table=axes.table, T_base_0=axes.T_base_0, T_n_flange=axes.T_n_flange,
+                       limits=torch.tensor(limits, dtype=torch.float64), base_link=base_link, end_link=end_link, notes=())
 
 
 def load_robot(
