@@ -1,4 +1,4 @@
-"""Command line: ``torchcal run | simulate | fit | evaluate | export | check | compensate | study | motion``.
+"""Command line: ``torchcal run | simulate | fit | evaluate | export | check | update | compensate | study | motion``.
 
 Options follow the command-line contract of the design; ``key=value`` overrides set fields of
 the command's configuration (dotted for nested ones, e.g. ``twin.n_train=120``). Heavy imports
@@ -160,6 +160,23 @@ def _cmd_check(args) -> int:
             write_report(staging, check_report(result, args.model))
     for line in result.lines():
         print(line)
+    return 0
+
+
+def _cmd_update(args) -> int:
+    from torchcal.app.update import update_model
+    from torchcal.core.errors import TorchcalError
+
+    free = "auto"
+    for item in args.overrides:
+        key, _, value = item.partition("=")
+        if key.strip() != "free":
+            raise TorchcalError(f"update: unknown option '{item}'; the one option is free=auto|frame|tool|offsets|all|<names>")
+        free = value
+    result = update_model(args.model, args.data, args.out, free=free)
+    for line in result.lines():
+        print(line)
+    print(f"model: {args.out}")
     return 0
 
 
@@ -341,6 +358,14 @@ def build_parser(with_options: bool | str = False) -> argparse.ArgumentParser:
     p.add_argument("--json", default=None, help="write verdict, changed and the evidence to this JSON file")
     p.add_argument("--report", default=None, metavar="DIR", help="write report.md and report.html into DIR")
     p.set_defaults(func=_cmd_check)
+
+    p = add("update", help="a new model folder from an old one and a few new poses (frame re-registered, changed group refitted)")
+    p.add_argument("--model", required=True, help="the old model folder (the prior)")
+    p.add_argument("--data", required=True, help="a few new measured poses (x,y,z,q1..qN; any tracker set-up)")
+    p.add_argument("--out", required=True, help="the new model folder to write (never the old one)")
+    p.add_argument("overrides", nargs="*", help="free=auto (default: what check names) | frame | tool | offsets | all | "
+                                                "names, e.g. free=tool,theta3")
+    p.set_defaults(func=_cmd_update)
 
     p = add("compensate", help="correct the joint targets of a robot program offline with a model's compensator")
     p.add_argument("--model", required=True, help="model folder")
