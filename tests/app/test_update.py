@@ -124,3 +124,24 @@ def test_update_never_writes_into_its_parent(calibrated, tmp_path, capsys):
     write_measurements_csv(tmp_path / "few.csv", data.q, data.position)
     code = main(["update", "--model", str(stored.folder), "--data", str(tmp_path / "few.csv"), "--out", str(stored.folder)])
     assert code == 2 and "names the parent model" in capsys.readouterr().err
+
+
+def test_check_and_update_name_and_refit_a_changed_compliance(tmp_path):
+    """A heavier payload at the wrist (10 -> 30 kg) changes the gravity sag, not the geometry."""
+    twin = Twin.create(TwinConfig(seed=3, gravity=True))
+    fit_model(tmp_path / "old", twin.robot, twin.sample(150, torch.Generator().manual_seed(11)),
+              FitConfig(residual="none", progress=False))
+    old = load_model(tmp_path / "old")
+    assert old.metadata.get("gravity_compliance")
+    heavy = dataclasses.replace(twin, config=dataclasses.replace(twin.config, link_masses_kg=[25.0, 15.0, 30.0]))
+    result = update_data(old, heavy.sample(12, torch.Generator().manual_seed(300)))
+    assert result.check is not None and result.check.changed == ["gravity_compliance"]
+    assert result.freed == ["gravity_compliance"] and result.scales["gravity_compliance"] > 0.5  # the sag grew
+    with staged_folder(tmp_path / "new") as staging:
+        write_update(staging, result)
+    new = load_model(tmp_path / "new")
+    test = heavy.sample(300, torch.Generator().manual_seed(5))
+    before = _rms_mm(held_out_errors(old, test, register=True))
+    after = _rms_mm(held_out_errors(new, test))
+    # one scale for the whole term takes most of the change (the true change is at one mass point only)
+    assert after < 0.5 * before

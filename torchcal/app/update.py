@@ -49,7 +49,16 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from torchcal.app.check import BIC_CHANGED, CheckResult, check_data, check_report, groups_of
+from torchcal.app.check import (
+    BIC_CHANGED,
+    TERM_GROUPS,
+    CheckResult,
+    check_data,
+    check_report,
+    groups_of,
+    refit,
+    term_deflections,
+)
 from torchcal.core.errors import DataError, IdentifiabilityWarning, ModelError
 from torchcal.core.folder import CHECKSUMS, write_member
 from torchcal.core.hashing import sha256_file
@@ -97,10 +106,17 @@ class UpdateResult:
     head_line: str | None
     parent_sha256: str
     notes: list[str] = field(default_factory=list)
+    scales: dict[str, float] = field(default_factory=dict)
+    used: StoredModel | None = None
+
+    @property
+    def terms_of(self) -> StoredModel:
+        """The parent with its joint-space terms as the update uses them (rescaled where freed)."""
+        return self.used if self.used is not None else self.stored
 
     @property
     def fit_rms_mm(self) -> float:
-        q = model_joints(self.stored, self.data.q)
+        q = model_joints(self.terms_of, self.data.q)
         errors = self.data.position - self.fit.model.tcp_position(q, self.fit.x) - self._head_offset()
         return float(errors.norm(dim=-1).pow(2).mean().sqrt()) * 1e3
 
@@ -122,6 +138,10 @@ class UpdateResult:
         position = {int(i): k for k, i in enumerate(self.fit.free.tolist())}
         rows = []
         for name in self.freed:
+            if name in self.scales:
+                s = self.scales[name]
+                rows.append({"name": f"{name} scale", "unit": "", "old": 1.0, "new": 1.0 + s, "change": s, "sigma": math.nan})
+                continue
             i = layout.index(name)
             old, new = float(self.stored.x[i] * scale[i]), float(self.fit.x[i] * scale[i])
             rows.append({"name": name, "unit": "deg" if bool(angle[i]) else "mm", "old": old, "new": new,
@@ -139,6 +159,7 @@ class UpdateResult:
             "freed_by": self.how,
             "prior_of_freed": "manufacturing tolerances centred on the parent's values",
             "kept": "every other parameter, joint-space terms included, fixed at the parent's values with its covariance",
+            "joint_space_term_scales": {k: 1.0 + v for k, v in self.scales.items()},
             "changes": self.changes(),
             "fit_rms_mm": self.fit_rms_mm,
             "leave_one_out_rms_mm": self.loo_rms_mm,
@@ -196,12 +217,12 @@ def resolve_free(spec: str, stored: StoredModel, check: CheckResult | None) -> t
         return [n for n in table if n.startswith("theta")], "free=offsets"
     if text == "all":
         return table + tool, "free=all"
-    groups = groups_of(model)
+    groups = groups_of(model, stored.metadata)
     chosen: list[str] = []
     for item in (t.strip() for t in text.split(",")):
         if item in groups:
             members = groups[item]
-        elif item in names and not item.startswith("base_"):
+        elif (item in names and not item.startswith("base_")) or item in groups.get("compliance", []) + groups.get("harmonics", []):
             members = [item]
         else:
             raise DataError(f"free={spec}: unknown '{item}'; give auto, frame, tool, offsets, all, a group "
@@ -229,14 +250,42 @@ def _fit(stored: StoredModel, data: Measurements, names: list[str]) -> Calibrati
                          parallel_threshold_deg=stored.model.parallel_threshold_deg)
 
 
+def _rescaled(stored: StoredModel, scales: dict[str, float]) -> StoredModel:
+    """``stored`` with each joint-space term in ``scales`` (by its ``calibration.json`` key) multiplied by ``1 + s``."""
+    terms = JointSpaceErrors.from_metadata(stored.metadata)
+    compliance, harmonics = terms.compliance, terms.harmonics
+    if compliance is not None and TERM_GROUPS["compliance"] in scales:
+        compliance = replace(compliance, coefficients=compliance.coefficients * (1.0 + scales[TERM_GROUPS["compliance"]]))
+    if harmonics is not None and TERM_GROUPS["harmonics"] in scales:
+        factor = 1.0 + scales[TERM_GROUPS["harmonics"]]
+        harmonics = replace(harmonics, coefficients=harmonics.coefficients * factor,
+                            sigma=None if harmonics.sigma is None else harmonics.sigma * abs(factor))
+    return replace(stored, metadata={**stored.metadata, **JointSpaceErrors(compliance, harmonics).to_metadata()})
+
+
+def _fit_all(stored: StoredModel, data: Measurements, names: list[str]) -> tuple[StoredModel, CalibrationResult, dict]:
+    """The update's fit: freed joint-space terms first (each as a whole, one scale, with the frame and the
+    freed geometry, by least squares: :func:`torchcal.app.check.refit`), then the MAP fit of the frame and
+    the freed geometry on the joints of the rescaled terms. Returns ``(terms model, fit, scales)``."""
+    keys = [n for n in names if n in TERM_GROUPS.values()]
+    geometry = [n for n in names if n not in keys]
+    if not keys:
+        return stored, _fit(stored, data, geometry), {}
+    _, x, model = refit(stored, data, names, torch.ones(len(data), dtype=torch.float64))
+    present = list(term_deflections(stored, data.q))
+    scales = {k: float(x[model.layout.size + present.index(k)]) for k in keys}
+    used = _rescaled(stored, scales)
+    return used, _fit(used, data, geometry), scales
+
+
 def _loo_errors(stored: StoredModel, data: Measurements, names: list[str]) -> np.ndarray:
     """``(n, 3)`` mm: each pose's error predicted by the update fitted to the other poses."""
     n = len(data)
     out = np.zeros((n, 3))
     for i in range(n):
         rest = [k for k in range(n) if k != i]
-        fit = _fit(stored, data.subset(rest), names)
-        q = model_joints(stored, data.q[i : i + 1])
+        used, fit, _ = _fit_all(stored, data.subset(rest), names)
+        q = model_joints(used, data.q[i : i + 1])
         out[i] = ((data.position[i : i + 1] - fit.model.tcp_position(q, fit.x)) * 1e3).numpy()[0]
     return out
 
@@ -313,16 +362,16 @@ def update_data(stored: StoredModel, data: Measurements, free: str = "auto") -> 
     work = data
     head_kept: bool | None = None
     head_line = None
-    fit = _fit(stored, work, names)
+    used, fit, scales = _fit_all(stored, work, names)
     loo = _loo_errors(stored, work, names)
     if stored.residual is not None:
         corrected = replace(data, position=data.position - _head_offset(stored, fit, data))
-        fit_h = _fit(stored, corrected, names)
+        used_h, fit_h, scales_h = _fit_all(stored, corrected, names)
         loo_h = _loo_errors(stored, corrected, names)
         without, with_head = (float(np.sqrt(np.mean(np.sum(e**2, axis=-1)))) for e in (loo, loo_h))
         head_kept = with_head < without
         if head_kept:
-            fit, loo = fit_h, loo_h
+            used, fit, scales, loo = used_h, fit_h, scales_h, loo_h
             head_line = (f"residual head ({stored.residual.head.name}) kept: leave-one-out RMS "
                          f"{with_head:.3f} mm with it, {without:.3f} mm without")
         else:
@@ -330,11 +379,14 @@ def update_data(stored: StoredModel, data: Measurements, free: str = "auto") -> 
                          f"{with_head:.3f} mm with it, {without:.3f} mm without (it no longer helps on this robot)")
     if stored.stiffness is not None:
         notes.append("joint stiffness kept from the parent (position poses do not measure it)")
-    union_free, cov = _union(stored, fit, model_joints(stored, data.q))
-    uncertainty = _uncertainty(stored, data, fit, union_free, cov, loo)
+    union_free, cov = _union(stored, fit, model_joints(used, data.q))
+    uncertainty = _uncertainty(used, data, fit, union_free, cov, loo)
+    for key, scale in scales.items():
+        notes.append(f"{key} refitted as a whole: scaled by {1.0 + scale:.3f} (with the frame and the freed geometry)")
     return UpdateResult(stored=stored, data=data, freed=names, how=how, check=check, fit=fit, free=union_free,
                         covariance=cov, loo_errors_mm=loo, uncertainty=uncertainty, head_kept=head_kept,
-                        head_line=head_line, parent_sha256=parent_sha256(stored.folder), notes=notes)
+                        head_line=head_line, parent_sha256=parent_sha256(stored.folder), notes=notes, scales=scales,
+                        used=used)
 
 
 def load_has_uncertainty(stored: StoredModel) -> bool:
@@ -354,7 +406,7 @@ def write_update(folder: Path, result: UpdateResult) -> Path:
         "notes": [*fit.notes, *result.notes] + ([result.head_line] if result.head_line else []),
         "prior": prior_metadata(fit),
         "update": result.provenance(),
-        **JointSpaceErrors.from_metadata(stored.metadata).to_metadata(),
+        **JointSpaceErrors.from_metadata(result.terms_of.metadata).to_metadata(),
     }
     training = data.q if stored.training_q is None else torch.cat([stored.training_q.to(data.q), data.q])
     save_model(folder, stored.robot, fit.model, fit.x, result.free, result.covariance, meta, training_q=training)
