@@ -135,7 +135,7 @@ def _cmd_compensate(args) -> int:
 
     outcome = compensate_program(args.model, args.targets, args.out, task=args.task, iterations=args.iterations,
                                  tcp_mm=args.tcp_mm, tcp_rpy_deg=args.tcp_rpy_deg,
-                                 allow_large_corrections=args.allow_large_corrections)
+                                 allow_large_corrections=args.allow_large_corrections, start_deg=args.start)
     for line in outcome.lines():
         print(line)
     return 0
@@ -369,7 +369,11 @@ def build_parser(with_options: bool | str = False) -> argparse.ArgumentParser:
 
     p = add("compensate", help="correct the joint targets of a robot program offline with a model's compensator")
     p.add_argument("--model", required=True, help="model folder")
-    p.add_argument("--targets", required=True, help="program CSV: q1..qN (deg), one target per row")
+    p.add_argument("--targets", required=True,
+                   help="program CSV: q1..qN (deg), one target per row; or TCP poses x,y,z (mm) [rx,ry,rz (deg)] in the "
+                        "base frame with --start")
+    p.add_argument("--start", type=float, nargs="+", default=None, metavar="DEG",
+                   help="start configuration q1 .. qN (deg) of a program of TCP poses")
     p.add_argument("--out", required=True, help="corrected CSV to write: q1..qN (deg), corrected, correction_deg, remaining_mm")
     p.add_argument("--task", choices=["position", "pose"], default="position", help="as for export (default: position)")
     p.add_argument("--iterations", type=int, default=None, help="Newton steps (default: as for export)")
