@@ -145,3 +145,36 @@ def test_check_and_update_name_and_refit_a_changed_compliance(tmp_path):
     after = _rms_mm(held_out_errors(new, test))
     # one scale for the whole term takes most of the change (the true change is at one mass point only)
     assert after < 0.5 * before
+
+
+def test_a_head_is_kept_while_it_helps_and_dropped_when_its_error_is_gone(tmp_path):
+    """Truth: a twin with gear errors (which a head learns), and the same twin with the gearboxes replaced."""
+    from torchcal.residual import HEADS
+    from torchcal.residual.selection import fit_before_gate
+    from torchcal.stages.geometry import model_joints
+    from torchcal.stages.residual import make_features, residual_targets_mm
+    from torchcal.stages.residual_store import StoredResidual, save_residual
+
+    geared = Twin.create(TwinConfig(seed=3, gear=True, gear_amplitude_deg=0.05))
+    replaced = Twin.create(TwinConfig(seed=3))
+    assert torch.equal(geared.x_true, replaced.x_true)
+    data = geared.sample(600, torch.Generator().manual_seed(11))
+    config = FitConfig(residual="none", progress=False, gravity_compliance="none", joint_harmonics="none")
+    fit_model(tmp_path / "old", geared.robot, data, config)
+    stored = load_model(tmp_path / "old")
+    head = HEADS["elm"].from_options(config)  # a head on every pose (the gate is the fit's business, not this test's)
+    features = make_features(stored.robot, data)
+    fit_before_gate(head, features(data.q, data.temperature),
+                    residual_targets_mm(stored.model, stored.x, data, model_joints(stored, data.q)), seed=0)
+    save_residual(tmp_path / "old", StoredResidual(head, features, {"decision": "fitted for this test"}))
+    stored = load_model(tmp_path / "old")
+    kept = update_data(stored, geared.sample(16, torch.Generator().manual_seed(300)), free="frame")
+    dropped = update_data(stored, replaced.sample(16, torch.Generator().manual_seed(300)), free="frame")
+    assert kept.head_kept is True and "kept" in (kept.head_line or "")
+    assert dropped.head_kept is False and "dropped" in (dropped.head_line or "")
+    with staged_folder(tmp_path / "new") as staging:
+        write_update(staging, dropped)
+    assert load_model(tmp_path / "new").residual is None
+    with staged_folder(tmp_path / "new2") as staging:
+        write_update(staging, kept)
+    assert load_model(tmp_path / "new2").residual is not None
