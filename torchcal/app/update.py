@@ -207,7 +207,7 @@ def resolve_free(spec: str, stored: StoredModel, check: CheckResult | None) -> t
         best = check.best
         if check.changed and best is not None:
             return list(best.names), (f"chosen by the check's evidence: group {best.group}, dBIC {best.delta_bic:+.1f} "
-                                      f"(named above {BIC_CHANGED:g})")
+                                      f"> {BIC_CHANGED:g}")
         return [], "chosen by the check's evidence: no group named (the robot moved or nothing changed)"
     if text == "frame":
         return [], "free=frame"
