@@ -1,4 +1,4 @@
-"""Command line: ``torchcal run | simulate | fit | evaluate | export | check | compensate | study | motion``.
+"""Command line: ``torchcal run | simulate | fit | evaluate | export | check | update | compensate | study | motion``.
 
 Options follow the command-line contract of the design; ``key=value`` overrides set fields of
 the command's configuration (dotted for nested ones, e.g. ``twin.n_train=120``). Heavy imports
@@ -140,7 +140,7 @@ def _cmd_compensate(args) -> int:
 
     outcome = compensate_program(args.model, args.targets, args.out, task=args.task, iterations=args.iterations,
                                  tcp_mm=args.tcp_mm, tcp_rpy_deg=args.tcp_rpy_deg,
-                                 allow_large_corrections=args.allow_large_corrections)
+                                 allow_large_corrections=args.allow_large_corrections, start_deg=args.start)
     for line in outcome.lines():
         print(line)
     return 0
@@ -165,6 +165,23 @@ def _cmd_check(args) -> int:
             write_report(staging, check_report(result, args.model))
     for line in result.lines():
         print(line)
+    return 0
+
+
+def _cmd_update(args) -> int:
+    from torchcal.app.update import update_model
+    from torchcal.core.errors import TorchcalError
+
+    free = "auto"
+    for item in args.overrides:
+        key, _, value = item.partition("=")
+        if key.strip() != "free":
+            raise TorchcalError(f"update: unknown option '{item}'; the one option is free=auto|frame|tool|offsets|all|<names>")
+        free = value
+    result = update_model(args.model, args.data, args.out, free=free)
+    for line in result.lines():
+        print(line)
+    print(f"model: {args.out}")
     return 0
 
 
@@ -357,9 +374,21 @@ def build_parser(with_options: bool | str = False) -> argparse.ArgumentParser:
     p.add_argument("--report", default=None, metavar="DIR", help="write report.md and report.html into DIR")
     p.set_defaults(func=_cmd_check)
 
+    p = add("update", help="a new model folder from an old one and a few new poses (frame re-registered, changed group refitted)")
+    p.add_argument("--model", required=True, help="the old model folder (the prior)")
+    p.add_argument("--data", required=True, help="a few new measured poses (x,y,z,q1..qN; any tracker set-up)")
+    p.add_argument("--out", required=True, help="the new model folder to write (never the old one)")
+    p.add_argument("overrides", nargs="*", help="free=auto (default: what check names) | frame | tool | offsets | all | "
+                                                "names, e.g. free=tool,theta3")
+    p.set_defaults(func=_cmd_update)
+
     p = add("compensate", help="correct the joint targets of a robot program offline with a model's compensator")
     p.add_argument("--model", required=True, help="model folder")
-    p.add_argument("--targets", required=True, help="program CSV: q1..qN (deg), one target per row")
+    p.add_argument("--targets", required=True,
+                   help="program CSV: q1..qN (deg), one target per row; or TCP poses x,y,z (mm) [rx,ry,rz (deg)] in the "
+                        "base frame with --start")
+    p.add_argument("--start", type=float, nargs="+", default=None, metavar="DEG",
+                   help="start configuration q1 .. qN (deg) of a program of TCP poses")
     p.add_argument("--out", required=True, help="corrected CSV to write: q1..qN (deg), corrected, correction_deg, remaining_mm")
     p.add_argument("--task", choices=["position", "pose"], default="position", help="as for export (default: position)")
     p.add_argument("--iterations", type=int, default=None, help="Newton steps (default: as for export)")

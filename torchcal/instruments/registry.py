@@ -25,6 +25,7 @@ BUILTIN: dict[str, str] = {
     "stiffness": "torchcal.instruments.stiffness",
     "profile": "torchcal.instruments.profile",
     "sockets": "torchcal.instruments.sockets",
+    "length_station": "torchcal.instruments.tracer.one_station",
 }
 
 ENTRY_POINT_GROUP = "torchcal.instruments"

@@ -46,11 +46,9 @@ class TracerFitConfig(FitConfig):
             covariances are scaled a posteriori).
         triangle_tolerance_mm: slack of the triangle-inequality check of the loader.
         max_iterations: Levenberg-Marquardt cap of the joint method.
-        structure: one station (``l1`` alone, a draw-wire): ``auto`` (default: the structure the
-            order-blocked CV chooses), ``nominal``, ``offsets`` or ``full``
-            (:mod:`torchcal.instruments.tracer.one_station.fit`).
-        check_limits: one station: refuse joints outside the robot's limits.
-        refit_anchor: one station: ``evaluate`` re-fits anchor and offset to the scored file.
+
+    A file with one station (``l1`` alone) is the instrument ``length_station``, with its own
+    options (:class:`torchcal.instruments.tracer.one_station.commands.LengthStationConfig`).
     """
 
     tracer_method: str = "joint"
@@ -58,9 +56,6 @@ class TracerFitConfig(FitConfig):
     sigma_per_m_um: float = 0.3
     triangle_tolerance_mm: float = 20.0
     max_iterations: int = 100
-    structure: str = "auto"
-    check_limits: bool = True
-    refit_anchor: bool = True
 
     @property
     def sigma(self) -> LengthSigma:

@@ -3,8 +3,8 @@
 ``fit`` identifies the robot, the stations and their dead paths from lengths alone
 (:mod:`torchcal.instruments.tracer.commands`); ``evaluate`` on a length file re-fits only the
 stations (a new set-up) and scores the lengths. A file with ``l1`` alone is one station (a
-draw-wire at an unknown anchor): :mod:`torchcal.instruments.tracer.one_station` fits what one
-length per pose can support, chosen by order-blocked cross-validation.
+draw-wire at an unknown anchor), the instrument ``length_station``
+(:mod:`torchcal.instruments.tracer.one_station`), which shares this package's length model.
 """
 
 from __future__ import annotations
@@ -23,53 +23,31 @@ from torchcal.instruments.base import (
 )
 
 
-def _one_station(path: Path) -> bool:
-    """Whether the length file at ``path`` has a single station (``l1`` and no ``l2``)."""
-    from torchcal.data.csv_table import read_header
-
-    return "l2" not in read_header(path)
-
-
 class TracerInstrument(Instrument):
     """Laser-tracer lengths; stations and dead paths are fitted with the robot."""
 
     name: ClassVar[str] = "tracer"
     description: ClassVar[str] = "multi-station laser-tracer lengths (lengths.csv, test.csv)"
     stage: ClassVar[str] = "geometry"
-    required_columns: ClassVar[frozenset[str]] = frozenset({"l1"})
+    required_columns: ClassVar[frozenset[str]] = frozenset({"l1", "l2"})
 
     def load(self, path: Path, robot: Any, overrides: list[str] | None = None) -> Any:
         from torchcal.instruments.tracer.commands import tracer_config
         from torchcal.instruments.tracer.data import load_tracer_data
 
         config = tracer_config(overrides or [])
-        if _one_station(path):
-            from torchcal.instruments.tracer.one_station.data import load_length_data
-
-            return load_length_data(path, robot, joint_unit=config.joint_unit, length_unit=config.length_unit,
-                                    check_limits=config.check_limits)
         return load_tracer_data(path, robot, joint_unit=config.joint_unit, length_unit=config.length_unit,
                                 triangle_tolerance_mm=config.triangle_tolerance_mm)
 
     def fit(self, request: FitRequest) -> FitOutcome:
         from torchcal.instruments.tracer.commands import fit_tracer
 
-        if _one_station(request.data):
-            from torchcal.instruments.tracer.one_station.commands import fit_length_station
-
-            return fit_length_station(request.robot, request.data, request.out, request.overrides,
-                                      base_link=request.base_link, end_link=request.end_link, progress=request.progress)
         return fit_tracer(request.robot, request.data, request.out, request.overrides,
                           base_link=request.base_link, end_link=request.end_link, progress=request.progress)
 
     def evaluate(self, request: EvaluateRequest) -> EvaluateOutcome:
         from torchcal.instruments.tracer.commands import evaluate_tracer
 
-        if _one_station(request.data):
-            from torchcal.instruments.tracer.one_station.commands import evaluate_length_station
-
-            return EvaluateOutcome(evaluate_length_station(request.model, request.data, request.overrides,
-                                                           register=request.register))
         return EvaluateOutcome(evaluate_tracer(request.model, request.data, request.overrides, register=request.register))
 
     def options(self) -> type:

@@ -10,14 +10,15 @@ and offset to the scored file (a new set-up), or with ``refit_anchor=false`` kee
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
 import torch
 
 from torchcal.core.errors import TorchcalError
+from torchcal.core.overrides import apply_overrides, check_range
 from torchcal.identify.lm import LevenbergMarquardt
 from torchcal.instruments.base import FitOutcome
-from torchcal.instruments.tracer.commands import TracerFitConfig, tracer_config
 from torchcal.instruments.tracer.joint_fit import TracerJointProblem
 from torchcal.instruments.tracer.lengths import station_distances
 from torchcal.instruments.tracer.one_station.cv import compare_structures
@@ -27,16 +28,49 @@ from torchcal.kinematics.robot import load_robot
 from torchcal.stages.store import load_model, save_model
 
 
-def _config(overrides: list[str]) -> TracerFitConfig:
-    config = tracer_config(list(overrides))
-    if config.structure != "auto" and config.structure not in STRUCTURES:
-        raise TorchcalError(f"structure must be auto or one of {', '.join(STRUCTURES)}, got {config.structure!r}")
-    return config
+@dataclass
+class LengthStationConfig:
+    """Options of ``fit`` / ``evaluate`` on a one-station length file.
+
+    Attributes:
+        joint_unit: ``deg`` (default, the contract's) or ``rad``.
+        length_unit: ``mm`` (default) or ``m``.
+        structure: ``auto`` (default: the structure the order-blocked cross-validation chooses),
+            ``nominal``, ``offsets`` or ``full`` (:mod:`torchcal.instruments.tracer.one_station.fit`).
+        cv_folds: folds of the random-row and order-blocked cross-validation.
+        seed: seed of the random-row folds.
+        max_iterations: Levenberg-Marquardt cap of every fit.
+        check_limits: refuse joints outside the robot file's limits (``false``: accept them).
+        refit_anchor: ``evaluate`` re-fits anchor and offset to the scored file (a new set-up;
+            ``false``: the fitted anchor and offset are kept).
+    """
+
+    joint_unit: str = "deg"
+    length_unit: str = "mm"
+    structure: str = "auto"
+    cv_folds: int = 5
+    seed: int = 0
+    max_iterations: int = 100
+    check_limits: bool = True
+    refit_anchor: bool = True
+
+    def __post_init__(self) -> None:
+        """Refuse out-of-range values before any file is read."""
+        check_range(self, "cv_folds", low=2, high=100)
+        check_range(self, "max_iterations", low=1, high=10000)
+        if self.structure != "auto" and self.structure not in STRUCTURES:
+            raise TorchcalError(f"structure must be auto or one of {', '.join(STRUCTURES)}, got {self.structure!r}")
+
+
+def length_station_config(overrides: list[str]) -> LengthStationConfig:
+    """The options of a one-station fit or evaluation from ``key=value`` overrides."""
+    return apply_overrides(LengthStationConfig(), list(overrides))
+
 
 
 def fit_length_station(robot_path, data_path, out_dir, overrides, *, base_link=None, end_link=None, progress=None) -> FitOutcome:
     """Fit a single length station (and what the data support of the robot); returns the folder and result lines."""
-    config = _config(overrides)
+    config = length_station_config(overrides)
     robot = load_robot(robot_path, base_link=base_link, end_link=end_link)
     data = load_length_data(data_path, robot, joint_unit=config.joint_unit, length_unit=config.length_unit,
                             check_limits=config.check_limits)
@@ -82,7 +116,7 @@ def fit_length_station(robot_path, data_path, out_dir, overrides, *, base_link=N
 
 def evaluate_length_station(model_dir, data_path, overrides, *, register: bool = False) -> dict:
     """Length residuals of a model folder on a one-station file (anchor and offset re-fitted by default)."""
-    config = _config(overrides)
+    config = length_station_config(overrides)
     stored = load_model(model_dir)
     data = load_length_data(data_path, stored.robot, joint_unit=config.joint_unit, length_unit=config.length_unit,
                             check_limits=config.check_limits)
