@@ -56,10 +56,8 @@ class TracerInstrument(Instrument):
         return TracerFitConfig
 
     def evaluate_options(self) -> tuple[str, ...]:
-        # a length-station file reads check_limits and refit_anchor, a tracer file the sigmas and triangle_tolerance_mm
-        return ("joint_unit", "length_unit", "check_limits", "max_iterations", "sigma_constant_um", "sigma_per_m_um",
-                "triangle_tolerance_mm",
-                "refit_anchor")
+        return ("joint_unit", "length_unit", "max_iterations", "sigma_constant_um", "sigma_per_m_um",
+                "triangle_tolerance_mm")
 
     def twin(self) -> TwinSpec:
         from torchcal.instruments.tracer.twin_case import TracerTwinConfig, write_tracer_case
