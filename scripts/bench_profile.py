@@ -38,7 +38,7 @@ NOTES = {
         "translation with a 0.01 mm error tilts a placement's normal by ~0.04 deg. The predicted sigmas assume "
         "independent point noise and are then optimistic by about ten times. Remedies: more scans and larger "
         "translations and rotations (the error falls as 1/sqrt(scans) and with the lever), several profiles "
-        "averaged per pose do not help (same pose error), and a calibrated model (`model=<dir>`) for the "
+        "averaged per pose do not help (same pose error), and a calibrated model (`model_dir=<dir>`) for the "
         "systematic part of the flange pose error."
     ),
 }
@@ -154,7 +154,7 @@ so a point is `p_sensor = (u, 0, w)`. torchcal finds `T_flange_sensor = (R, t)` 
 plane target whose placement is unknown: `torchcal fit --robot ROBOT --data profile.csv --out DIR`
 writes `DIR/sensor.json` (`R_flange_sensor`, `t_flange_sensor_mm`, `sigma_rotation_deg`,
 `sigma_t_mm`, the 6x6 covariance, the closed-form result, the placements and fit statistics).
-`model=<model dir>` takes the flange poses from a calibrated model (`torchcal fit` on tracker
+`model_dir=<model dir>` takes the flange poses from a calibrated model (`torchcal fit` on tracker
 data) instead of the nominal robot; `joint_unit=rad`, `length_unit=m` read files in SI.
 `torchcal evaluate --model DIR --data profile.csv` reports the RMS point-to-plane distance of the
 stored extrinsics (each placement's plane re-fitted, since placements belong to a file).

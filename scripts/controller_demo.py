@@ -23,7 +23,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--precision", default="float64", choices=["float64", "float32"])
     args = parser.parse_args(argv)
     runtime = CompensatorRuntime(args.folder, precision=args.precision, threads=1)
-    limits = np.asarray(runtime.manifest["joint_limits_rad"])
+    # null: a continuous joint, whose commands here span one turn
+    limits = np.array([lim if lim is not None else [-np.pi, np.pi] for lim in runtime.manifest["joint_limits_rad"]])
     rng = np.random.default_rng(0)
     # a few commands within the joint limits (10 % margin), as a controller would send
     span = limits[:, 1] - limits[:, 0]

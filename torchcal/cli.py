@@ -1,4 +1,4 @@
-"""Command line: ``torchcal run | simulate | fit | evaluate | export | check | compensate | study | motion``.
+"""Command line: ``torchcal run | simulate | fit | evaluate | export | check | update | compensate | study | motion``.
 
 Options follow the command-line contract of the design; ``key=value`` overrides set fields of
 the command's configuration (dotted for nested ones, e.g. ``twin.n_train=120``). Heavy imports
@@ -84,12 +84,17 @@ def _cmd_fit(args) -> int:
 def _cmd_evaluate(args) -> int:
     from torchcal.core.io import atomic_write_json
     from torchcal.core.outputs import JSON_KEY, claim_file, is_metrics_json
-    from torchcal.instruments.base import EvaluateRequest, evaluate_reported
+    from torchcal.instruments.base import (
+        EvaluateRequest,
+        check_evaluate_overrides,
+        evaluate_reported,
+    )
     from torchcal.instruments.registry import recognise
 
     if args.json:
         claim_file(args.json, "metrics", "--json", is_metrics_json)
     instrument = recognise(args.data)
+    check_evaluate_overrides(instrument, list(args.overrides))
     outcome = evaluate_reported(instrument, EvaluateRequest(
         model=Path(args.model), data=Path(args.data), overrides=list(args.overrides), register=args.register,
         report=Path(args.report) if args.report else None))
@@ -135,7 +140,7 @@ def _cmd_compensate(args) -> int:
 
     outcome = compensate_program(args.model, args.targets, args.out, task=args.task, iterations=args.iterations,
                                  tcp_mm=args.tcp_mm, tcp_rpy_deg=args.tcp_rpy_deg,
-                                 allow_large_corrections=args.allow_large_corrections)
+                                 allow_large_corrections=args.allow_large_corrections, start_deg=args.start)
     for line in outcome.lines():
         print(line)
     return 0
@@ -160,6 +165,23 @@ def _cmd_check(args) -> int:
             write_report(staging, check_report(result, args.model))
     for line in result.lines():
         print(line)
+    return 0
+
+
+def _cmd_update(args) -> int:
+    from torchcal.app.update import update_model
+    from torchcal.core.errors import TorchcalError
+
+    free = "auto"
+    for item in args.overrides:
+        key, _, value = item.partition("=")
+        if key.strip() != "free":
+            raise TorchcalError(f"update: unknown option '{item}'; the one option is free=auto|frame|tool|offsets|all|<names>")
+        free = value
+    result = update_model(args.model, args.data, args.out, free=free)
+    for line in result.lines():
+        print(line)
+    print(f"model: {args.out}")
     return 0
 
 
@@ -215,7 +237,7 @@ def option_listing(command: str) -> str:
     from torchcal.core.options import format_options, list_options
 
     blocks: list[str] = []
-    if command in ("fit", "evaluate"):
+    if command == "fit":
         from torchcal.instruments.registry import default, get, names
 
         first = default()
@@ -225,6 +247,15 @@ def option_listing(command: str) -> str:
         for name in names():
             own = [o for o in list_options(get(name).options()) if o.key not in common]
             blocks.append(format_options(f"options of {name} files ({get(name).description}):", own))
+    elif command == "evaluate":
+        from torchcal.instruments.registry import get, names
+
+        # only what evaluate reads: the model folder holds what the fit chose
+        for name in names():
+            instrument = get(name)
+            used = instrument.evaluate_options()
+            own = [o for o in list_options(instrument.options()) if used is None or o.key in used]
+            blocks.append(format_options(f"key=value options of {name} files ({instrument.description}):", own))
     elif command == "motion":
         from torchcal.motion.planner import PlanOptions
 
@@ -305,7 +336,8 @@ def build_parser(with_options: bool | str = False) -> argparse.ArgumentParser:
     p.add_argument("--register", action="store_true", help="re-fit only the rigid instrument frame to the file first")
     p.add_argument("--report", default=None, metavar="DIR",
                    help="write report.md and report.html (figures inline) of this evaluation into DIR")
-    p.add_argument("overrides", nargs="*")
+    p.add_argument("overrides", nargs="*", help="key=value options of the file (listed below); fit options are refused: "
+                   "the model folder holds what the fit chose")
     p.set_defaults(func=_cmd_evaluate)
 
     p = add("study", help="Optuna study over a search space from configs/study/ (resumable)")
@@ -342,9 +374,21 @@ def build_parser(with_options: bool | str = False) -> argparse.ArgumentParser:
     p.add_argument("--report", default=None, metavar="DIR", help="write report.md and report.html into DIR")
     p.set_defaults(func=_cmd_check)
 
+    p = add("update", help="a new model folder from an old one and a few new poses (frame re-registered, changed group refitted)")
+    p.add_argument("--model", required=True, help="the old model folder (the prior)")
+    p.add_argument("--data", required=True, help="a few new measured poses (x,y,z,q1..qN; any tracker set-up)")
+    p.add_argument("--out", required=True, help="the new model folder to write (never the old one)")
+    p.add_argument("overrides", nargs="*", help="free=auto (default: what check names) | frame | tool | offsets | all | "
+                                                "names, e.g. free=tool,theta3")
+    p.set_defaults(func=_cmd_update)
+
     p = add("compensate", help="correct the joint targets of a robot program offline with a model's compensator")
     p.add_argument("--model", required=True, help="model folder")
-    p.add_argument("--targets", required=True, help="program CSV: q1..qN (deg), one target per row")
+    p.add_argument("--targets", required=True,
+                   help="program CSV: q1..qN (deg), one target per row; or TCP poses x,y,z (mm) [rx,ry,rz (deg)] in the "
+                        "base frame with --start")
+    p.add_argument("--start", type=float, nargs="+", default=None, metavar="DEG",
+                   help="start configuration q1 .. qN (deg) of a program of TCP poses")
     p.add_argument("--out", required=True, help="corrected CSV to write: q1..qN (deg), corrected, correction_deg, remaining_mm")
     p.add_argument("--task", choices=["position", "pose"], default="position", help="as for export (default: position)")
     p.add_argument("--iterations", type=int, default=None, help="Newton steps (default: as for export)")
@@ -425,6 +469,17 @@ def _main(argv: list[str] | None) -> int:
     elif extra:
         parser.error(f"unrecognized arguments: {' '.join(extra)}")
     warnings.formatwarning = lambda message, category, *rest: f"torchcal: warning: {message}\n"
+    # each warning once per command: fold and candidate fits repeat the full fit's warnings, and every
+    # `catch_warnings` block on the way resets Python's own once-per-location registry
+    shown: set[str] = set()
+    show = warnings.showwarning
+
+    def show_once(message, category, filename, lineno, file=None, line=None):
+        if str(message) not in shown:
+            shown.add(str(message))
+            show(message, category, filename, lineno, file, line)
+
+    warnings.showwarning = show_once
     try:
         return int(args.func(args) or 0)
     except TorchcalError as exc:
@@ -459,6 +514,8 @@ def _main(argv: list[str] | None) -> int:
             raise
         print(f"torchcal: error: {line}; earlier outputs were left as they were", file=sys.stderr)
         return 2
+    finally:
+        warnings.showwarning = show
 
 
 if __name__ == "__main__":

@@ -136,3 +136,46 @@ def test_cli_prints_the_summary(program, model_dir, tmp_path, capsys):
                  "--out", str(tmp_path / "c.csv"), "--tcp-mm", "0", "0", "0"])
     out = capsys.readouterr().out
     assert code == 0 and "targets corrected" in out and "largest joint correction" in out
+
+
+def _poses(path, pose: torch.Tensor, oriented: bool) -> None:
+    header = "x,y,z,rx,ry,rz" if oriented else "x,y,z"
+    from torchcal.kinematics.transforms import matrix_to_euler_xyz
+
+    cells = torch.cat([pose[:, :3, 3] * 1e3] + ([torch.rad2deg(matrix_to_euler_xyz(pose[:, :3, :3]))] if oriented else []), 1)
+    path.write_text("\n".join([header] + [",".join(repr(v) for v in row) for row in cells.tolist()]) + "\n")
+
+
+@pytest.mark.parametrize("oriented", [True, False])
+def test_tcp_poses_with_a_start_give_the_joint_programs_result(twin, model_dir, tmp_path, oriented):
+    """A path of TCP poses (the nominal robot's at known joints, small steps) equals that joint program."""
+    from torchcal.kinematics.error_model import ErrorModel
+
+    stored = production_view(load_model(model_dir), tcp_transform([0.0, 0.0, 0.0], None))
+    start = twin.robot.sample_joints(1, torch.Generator().manual_seed(5), margin=0.4)[0]
+    steps = torch.linspace(0, 1, 25, dtype=torch.float64)[:, None] * torch.deg2rad(torch.tensor([20.0, -10, 15, 30, -20, 40]))
+    q = start + steps
+    nominal = ErrorModel(stored.robot, T_instrument_base=torch.eye(4, dtype=torch.float64))
+    _poses(tmp_path / "poses.csv", nominal.tcp_pose(q, nominal.nominal_vector()), oriented)
+    _program(tmp_path / "joints.csv", q)
+    by_joints = compensate_program(model_dir, tmp_path / "joints.csv", tmp_path / "a.csv")
+    by_poses = compensate_program(model_dir, tmp_path / "poses.csv", tmp_path / "b.csv",
+                                  start_deg=torch.rad2deg(start).tolist())
+    a, b = _read(tmp_path / "a.csv"), _read(tmp_path / "b.csv")
+    assert by_poses.n_corrected == by_joints.n_corrected == len(q)
+    if oriented:  # the pose fixes the joints: the same program
+        for j in range(1, 7):
+            assert np.allclose(a[f"q{j}"], b[f"q{j}"], atol=1e-6)
+    # the TCP position of the corrected command, on the model, is the target's either way
+    assert np.allclose(b["remaining_mm"], 0.0, atol=1e-3)
+
+
+def test_tcp_poses_need_a_start_and_name_an_unreachable_row(model_dir, tmp_path, capsys):
+    (tmp_path / "poses.csv").write_text("x,y,z\n500,0,600\n9000,0,0\n")
+    assert main(["compensate", "--model", str(model_dir), "--targets", str(tmp_path / "poses.csv"),
+                 "--out", str(tmp_path / "o.csv")]) == 2
+    assert "--start" in capsys.readouterr().err
+    assert main(["compensate", "--model", str(model_dir), "--targets", str(tmp_path / "poses.csv"),
+                 "--out", str(tmp_path / "o.csv"), "--start", "0", "-60", "90", "0", "30", "0"]) == 2
+    err = capsys.readouterr().err
+    assert "row 3" in err and "not reachable" in err and len(err.strip().splitlines()) == 1

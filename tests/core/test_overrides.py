@@ -80,3 +80,19 @@ def test_plain_boolean_words_and_edge_seeds_pass():
     config = apply_overrides(_Run(), ["flag=false", "seed=4294967295", "device=cpu"])
     assert (config.flag, config.seed, config.device) == (False, 4294967295, "cpu")
     assert apply_overrides(_Run(), ["flag=yes"]).flag is True
+
+
+@pytest.mark.parametrize("module, factory", [("torchcal.instruments.stiffness.commands", "stiffness_config"),
+                                             ("torchcal.instruments.profile.commands", "profile_config")])
+def test_model_folder_option_is_model_dir_and_the_old_spelling_still_works(module, factory, tmp_path):
+    """``model=`` names a config group for tracker fits; the model folder of stiffness and profile files is
+    ``model_dir=``. The old spelling is read for one release, with a warning."""
+    import importlib
+    import warnings
+
+    make = getattr(importlib.import_module(module), factory)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # the new spelling warns about nothing
+        assert make([f"model_dir={tmp_path}"]).model_dir == str(tmp_path)
+    with pytest.warns(FutureWarning, match=r"model= on a \w+ file is now model_dir="):
+        assert make([f"model={tmp_path}"]).model_dir == str(tmp_path)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import pytest
 import torch
@@ -100,3 +101,89 @@ def test_urdf_without_the_named_link(robot, tmp_path):
 def test_sample_joints_within_limits(robot, generator):
     q = robot.sample_joints(1000, generator, margin=math.radians(5))
     assert bool(robot.within_limits(q).all())
+
+
+CONTINUOUS = Path(__file__).parent / "fixtures" / "arm6_continuous.urdf"
+OFFSET = Path(__file__).parent / "fixtures" / "arm6_offset.urdf"
+
+
+def test_continuous_urdf_joint_has_no_limits(generator):
+    """A ``type="continuous"`` joint (here with a ``<limit>`` of effort and velocity only, which
+    pytorch-kinematics reads as lower = upper = 0) has no limits, and its kinematics are those of the
+    same joint declared revolute."""
+    robot = load_robot(CONTINUOUS)
+    assert robot.continuous.tolist() == [False] * 5 + [True]
+    assert robot.joint_limits[5].tolist() == [-math.inf, math.inf]
+    assert robot.turn_limits[5].tolist() == [-math.pi, math.pi]
+    limited = load_robot(OFFSET)
+    torch.testing.assert_close(robot.joint_limits[:5], limited.joint_limits[:5])
+    q = robot.sample_joints(500, generator, margin=math.radians(5))
+    assert float(q[:, 5].abs().max()) <= math.pi and float(q[:, 5].abs().max()) > 3.0  # one whole turn, no margin
+    # any angle is within the limits, and a turn later the flange is where it was
+    q[:, 5] += 4 * math.pi
+    assert bool(robot.within_limits(q).all()) and not bool(limited.within_limits(q).any())
+    torch.testing.assert_close(robot.flange_pose(q), limited.flange_pose(q))
+
+
+def test_continuous_joint_round_trips_through_yaml_and_urdf(tmp_path):
+    robot = load_robot(CONTINUOUS)
+    (tmp_path / "r.yaml").write_text(robot_to_yaml(robot))
+    assert "continuous: true" in (tmp_path / "r.yaml").read_text()
+    (tmp_path / "r.urdf").write_text(mdh_to_urdf(robot))
+    assert 'type="continuous"' in (tmp_path / "r.urdf").read_text()
+    for back in (load_robot(tmp_path / "r.yaml"), load_robot(tmp_path / "r.urdf")):
+        assert back.continuous.tolist() == robot.continuous.tolist()
+        torch.testing.assert_close(back.joint_limits[:5], robot.joint_limits[:5])
+
+
+@pytest.mark.parametrize("row, match", [
+    ("continuous: true, min: -90", "continuous and has min/max"),
+    ("continuous: 1", "'continuous' must be true or false"),
+])
+def test_yaml_continuous_flag_is_checked(tmp_path, row, match):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(f"name: x\nkinematics:\n  convention: mdh\n  joints:\n    - {{alpha: 0, a: 0, d: 1, theta: 0, {row}}}\n")
+    with pytest.raises(ModelError, match=match):
+        load_robot(bad)
+
+
+def test_urdf_parsed_once_and_its_parser_notes_are_one_warning(tmp_path, monkeypatch):
+    """A URDF with ROS transmissions (tags the kinematics do not use): the parser's lines become one
+    warning naming them, and loading the same text again (the copy a model folder keeps, the links
+    named) parses nothing."""
+    import warnings
+
+    from pytorch_kinematics.urdf_parser_py.urdf import URDF
+
+    transmissions = "".join(
+        f'<transmission name="t{i}"><type>transmission_interface/SimpleTransmission</type>'
+        f'<joint name="j{i}"><hardwareInterface>hardware_interface/PositionJointInterface</hardwareInterface></joint>'
+        f'<actuator name="m{i}"><hardwareInterface>hardware_interface/PositionJointInterface</hardwareInterface>'
+        f'<mechanicalReduction>1</mechanicalReduction></actuator></transmission>' for i in range(1, 7))
+    # a comment makes the text unique to this test (the cache is by content)
+    text = OFFSET.read_text().replace("</robot>", transmissions + f"<!-- {tmp_path.name} --></robot>")
+    first, copy = tmp_path / "ros.urdf", tmp_path / "copy" / "robot.urdf"
+    first.write_text(text)
+    copy.parent.mkdir()
+    copy.write_text(text)
+    parses = []
+    original = URDF.from_xml_string.__func__
+    monkeypatch.setattr(URDF, "from_xml_string", classmethod(lambda cls, xml: parses.append(1) or original(cls, xml)))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        robot = load_robot(first)
+        again = load_robot(copy, base_link=robot.base_link, end_link=robot.end_link)
+    assert len(parses) == 2  # pytorch-kinematics' chain and the float64 origins, for both loads together
+    lines = [str(w.message) for w in caught]
+    assert len(lines) == 1 and "skipped 6 element(s)" in lines[0] and 'Unknown tag "hardwareInterface" x6' in lines[0]
+    torch.testing.assert_close(again.table, robot.table)
+    torch.testing.assert_close(robot.table, load_robot(OFFSET).table)  # the transmissions change nothing
+
+
+def test_urdf_parser_notes_name_a_misspelt_attribute(tmp_path, capfd):
+    text = OFFSET.read_text().replace('<origin xyz="0 0 0.16" rpy="0 0 0"/>', '<origin xyz="0 0 0.16" rpi="0 0 0.1"/>')
+    path = tmp_path / "typo.urdf"
+    path.write_text(text)
+    with pytest.warns(UserWarning, match='Unknown attribute "rpi"'):
+        load_robot(path)
+    assert "Unknown" not in capfd.readouterr().err  # nothing printed by the parser itself

@@ -55,3 +55,26 @@ def test_a_head_needs_margin_and_evidence():
                              units, "test")
     assert out.chosen == "geometry+mlp"
     assert "geometry+mlp" in out.format_table()
+
+
+def test_verdicts_name_their_reference_and_a_later_rejection_restates_them():
+    """A head that wins the CV but is ruled out by a later check (time blocks) is not the reference of
+    the structures' verdicts: they are restated against the best structure, as the decision is."""
+    rng = np.random.default_rng(4)
+    units = np.repeat(np.arange(50), 10)
+    geometry = rng.rayleigh(0.3, 500)
+    wrist = geometry * 0.999  # within noise of geometry
+    head = geometry * 0.6  # clearly better than both
+    cands = [Candidate("geometry", geometry), Candidate("geometry+wrist", wrist),
+             Candidate("geometry+mlp", head, parent="geometry", min_gain=0.05)]
+    out = compare_candidates(cands, units, "test")
+    assert out.chosen == "geometry+mlp"
+    verdicts = {r["name"]: r["verdict"] for r in out.rows}
+    assert verdicts["geometry"] == "worse than geometry+mlp beyond noise" and verdicts["geometry+mlp"] == "best"
+    later = compare_candidates(cands, units, "test", excluded={"geometry+mlp": "rejected: not on time blocks"})
+    assert later.chosen == "geometry"
+    verdicts = {r["name"]: r["verdict"] for r in later.rows}
+    assert verdicts == {"geometry": "within noise of geometry+wrist", "geometry+wrist": "best",
+                        "geometry+mlp": "rejected: not on time blocks"}
+    rows = {r["name"]: r for r in later.rows}
+    assert rows["geometry+wrist"]["vs_best_pct"] == 0.0 and rows["geometry+mlp"]["vs_best_pct"] < -30

@@ -38,6 +38,19 @@ def _fit(tmp_path, twin, data, **options):
     return load_model(folder), summary
 
 
+def _table_agrees_with_decision(comparison) -> None:
+    """Every verdict of the main rows is relative to one reference still in the running, and the
+    chosen row is that reference or within noise of it (as the decision line says)."""
+    rows = [r for r in comparison.rows if "[time blocks]" not in r["name"] and r["cv_rms_mm"] == r["cv_rms_mm"]]
+    best = [r["name"] for r in rows if r["verdict"] == "best"]
+    assert len(best) == 1, rows
+    for r in rows:
+        if r["verdict"].startswith(("within noise", "worse than")):
+            assert r["verdict"] in (f"within noise of {best[0]}", f"worse than {best[0]} beyond noise"), r
+    chosen = next(r for r in rows if r["name"] == comparison.chosen)
+    assert chosen["verdict"] in ("best", f"within noise of {best[0]}"), (chosen, best)
+
+
 def _rms_mm(error: torch.Tensor) -> float:
     return float(error.norm(dim=-1).pow(2).mean().sqrt()) * 1e3
 
@@ -50,6 +63,7 @@ def test_a_head_that_learns_measurement_drift_is_refused(tmp_path):
     series = drifting_series(twin, q, seed=0, generator=gen)
     stored, summary = _fit(tmp_path, twin, series)
     assert summary.kept is None and stored.residual is None
+    _table_agrees_with_decision(summary.comparison)
     # the same fit judged on random rows keeps the head: near-twins leak the drift
     leaky, leaky_summary = _fit(tmp_path, twin, series, split="random", head_time_check=False)
     assert leaky_summary.kept == "mlp"
@@ -66,6 +80,7 @@ def test_a_head_that_learns_a_robot_property_is_kept_and_helps_on_new_poses(tmp_
     gen = torch.Generator().manual_seed(3)
     stored, summary = _fit(tmp_path, twin, smooth_field_series(twin, 600, gen))
     assert summary.kept == "mlp"
+    _table_agrees_with_decision(summary.comparison)
     q = twin.robot.sample_joints(300, gen)
     truth = twin.true_positions(q) + smooth_field_instrument(twin, q)
     with_head = _rms_mm(truth - predict_positions(stored, q))

@@ -152,3 +152,21 @@ def test_config_validation(model, traj, x_nom, line):
         follow(model, x_nom, traj, line.q_start, MotionConfig(rate_hz=1000.0))
     kr6 = torch.tensor([360.0, 300.0, 360.0, 381.0, 388.0, 615.0], dtype=torch.float64) * DEG
     torch.testing.assert_close(MotionConfig().speed_limits(model.robot), kr6)
+
+
+def test_follow_with_a_continuous_joint(model, x_nom, line):
+    """A joint without limits (``-inf, inf``) is never scaled or clamped and the null-space pull leaves it
+    alone: the trajectory stays finite and tracks the path as with finite limits far away."""
+    robot = model.robot
+    limits = robot.joint_limits.clone()
+    limits[5] = torch.tensor([-math.inf, math.inf], dtype=torch.float64)
+    free = ErrorModel(dataclasses.replace(robot, joint_limits=limits))
+    wide = robot.joint_limits.clone()
+    wide[5] = torch.tensor([-1e6, 1e6], dtype=torch.float64)  # as good as no limit: its pull ~1e-12
+    far = ErrorModel(dataclasses.replace(robot, joint_limits=wide))
+    short = line.path.sample("trapezoid", None, 250.0)
+    config = dataclasses.replace(RAW, null_space_gain=1.0)
+    a = follow(free, x_nom, short, line.q_start, config)
+    b = follow(far, x_nom, short, line.q_start, config)
+    assert bool(torch.isfinite(a.trajectory.q).all())
+    torch.testing.assert_close(a.trajectory.q, b.trajectory.q, atol=1e-9, rtol=0)

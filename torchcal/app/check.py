@@ -9,16 +9,19 @@ pose's per-coordinate sigma ``s_i`` and 95 % radius):
   :data:`EXCEEDANCE_ALPHA` says it does not.
 * **which group changed**: from the old model, refits freeing the instrument frame alone (the
   null) and the frame plus one group: the tool point (``tool``), one joint's zero offset
-  (``theta<j>``), one link's geometry (``alpha<j>, a<j>, d<j>`` or ``beta<j>``). Residuals are
+  (``theta<j>``), one link's geometry (``alpha<j>, a<j>, d<j>`` or ``beta<j>``) and, where the
+  model has them, each joint-space term as a whole (``compliance``: the gravity compliance,
+  named ``gravity_compliance``; ``harmonics``: the joint harmonics, named ``joint_harmonics``;
+  one scale each, :mod:`torchcal.identify.term_scale`: a payload or balancer that changed the
+  sag, a gearbox replaced). Residuals are
   whitened by ``s_i``, so ``chi2 = sum |r_i|^2 / s_i^2``; each group's evidence is the BIC
   difference ``dBIC = chi2_null - chi2_group - k ln(3n)`` (``k`` its parameters) and the
   likelihood-ratio p-value of ``chi2_null - chi2_group`` on ``k`` degrees of freedom. A group
   with ``dBIC >`` :data:`BIC_CHANGED` ("very strong" on Kass and Raftery's scale) is named.
 
 Verdict: ``changed`` when either piece says so; ``changed`` lists the best group's names (or is
-empty when only the per-pose test fired), ``valid`` otherwise. Compliance (a gravity sag that
-changed) and a learned residual head are not tested: the check scores the geometric stage with
-its joint-space terms, and says so.
+empty when only the per-pose test fired), ``valid`` otherwise. A learned residual head is not
+tested: the check scores the geometric stage with its joint-space terms, and says so.
 """
 
 from __future__ import annotations
@@ -34,8 +37,10 @@ from scipy import stats
 from torchcal.core.errors import ModelError
 from torchcal.data.measurements import Measurements, load_measurements
 from torchcal.identify.calibrate import register_instrument
+from torchcal.identify.joint_errors import JointSpaceErrors
 from torchcal.identify.lm import LevenbergMarquardt
 from torchcal.identify.problem import CalibrationProblem
+from torchcal.identify.term_scale import TermScaleProblem
 from torchcal.kinematics.error_model import ErrorModel
 from torchcal.report.document import Paragraph, Preformatted, Report, Section, Table
 from torchcal.stages.geometry import model_joints
@@ -103,7 +108,7 @@ class CheckResult:
                        "ranked": [g.to_dict() for g in sorted(self.groups, key=lambda g: -g.delta_bic)]},
             "poses": [{"row": r, "error_mm": float(e), "p95_mm": float(p), "beyond": bool(e > p)}
                       for r, e, p in zip(self.lines_in_file, self.errors_mm, self.p95_mm)],
-            "not_tested": "gravity compliance and a learned residual head (the geometric stage with its joint-space terms is scored)",
+            "not_tested": "a learned residual head (the geometric stage with its joint-space terms is scored)",
         }
 
     def lines(self) -> list[str]:
@@ -118,8 +123,14 @@ class CheckResult:
         return out
 
 
-def groups_of(model: ErrorModel) -> dict[str, list[str]]:
-    """The parameter groups a check tests, by name: tool, each joint offset, each link's geometry."""
+#: The joint-space term groups (``calibration.json`` key of the term, by group name).
+TERM_GROUPS = {"compliance": "gravity_compliance", "harmonics": "joint_harmonics"}
+
+
+def groups_of(model: ErrorModel, metadata: dict | None = None) -> dict[str, list[str]]:
+    """The parameter groups a check tests, by name: tool, each joint offset, each link's geometry and,
+    where the model folder's ``metadata`` holds them, each joint-space term as a whole (``compliance``
+    named ``gravity_compliance``, ``harmonics`` named ``joint_harmonics``, as in ``calibration.json``)."""
     layout, active = model.layout, model.default_active()
     names = list(layout.names)
     groups = {"tool": ["tool_x", "tool_y", "tool_z"]}
@@ -128,7 +139,21 @@ def groups_of(model: ErrorModel) -> dict[str, list[str]]:
     for j in range(1, model.robot.dof + 1):
         link = [f"{p}{j}" for p in ("alpha", "a", "beta", "d") if active[names.index(f"{p}{j}")]]
         groups[f"link{j}"] = link
+    for group, key in TERM_GROUPS.items():
+        if (metadata or {}).get(key):
+            groups[group] = [key]
     return groups
+
+
+def term_deflections(stored: StoredModel, q: torch.Tensor) -> dict[str, torch.Tensor]:
+    """Each stored joint-space term's deflection ``(n, N)`` rad at commanded joints ``q``, by its key."""
+    terms = JointSpaceErrors.from_metadata(stored.metadata)
+    out = {}
+    if terms.compliance is not None:
+        out[TERM_GROUPS["compliance"]] = terms.compliance.deflection(stored.robot, q)
+    if terms.harmonics is not None:
+        out[TERM_GROUPS["harmonics"]] = terms.harmonics.deflection(q)
+    return out
 
 
 def _effective(stored: StoredModel, data: Measurements) -> Measurements:
@@ -145,7 +170,19 @@ def refit(stored: StoredModel, data: Measurements, names: list[str], sigma_m: to
     x0 = stored.x.detach().cpu().to(torch.float64).clone()
     x0[model.layout.base_slice] = 0.0
     layout = model.layout
-    free = list(range(layout.base_slice.start, layout.base_slice.stop)) + [layout.index(n) for n in names]
+    free = list(range(layout.base_slice.start, layout.base_slice.stop)) + [layout.index(n) for n in names
+                                                                            if n in layout.names]
+    terms = term_deflections(stored, data.q)
+    scaled = [key for key in terms if key in names]
+    if scaled:
+        # a term as a whole refitted: one scale per term (identify.term_scale), the others as stored
+        keys = list(terms)
+        free += [layout.size + keys.index(key) for key in scaled]
+        scaled_problem = TermScaleProblem(model, data, torch.stack([terms[k] for k in keys]), torch.tensor(free),
+                                          [f"{k}_scale" for k in keys], weights=1.0 / sigma_m)
+        x0 = torch.cat([x0, torch.zeros(len(keys), dtype=torch.float64)])
+        solved = LevenbergMarquardt(max_iterations=100).solve(scaled_problem, x0)
+        return 2.0 * float(solved.cost), solved.x, model
     whitening = torch.eye(3, dtype=torch.float64).expand(len(data), 3, 3) / sigma_m[:, None, None]
     problem = CalibrationProblem(model, effective, torch.tensor(free), whitening=whitening)
     solved = LevenbergMarquardt(max_iterations=100).solve(problem, x0)
@@ -172,7 +209,7 @@ def check_data(stored: StoredModel, data: Measurements) -> CheckResult:
     tail = float(stats.binom.sf(beyond - 1, n, 0.05)) if beyond > 0 else 1.0
     log_n = math.log(3 * n)
     groups = []
-    for group, names in groups_of(stored.model).items():
+    for group, names in groups_of(stored.model, stored.metadata).items():
         if not names or len(names) + 6 >= 3 * n:
             continue
         chi2, x, _ = refit(stored, data, names, sigma_m)

@@ -474,7 +474,10 @@ def _export_into(out_dir: Path, model_dir: Path, stored, *, wrench_frame: str, i
         "robot": robot.name,
         "n_joints": robot.dof,
         "joint_names": list(robot.joint_names),
-        "joint_limits_rad": robot.joint_limits.tolist(),
+        # JSON has no infinity: a continuous joint's limits are null (it is never clipped)
+        "joint_limits_rad": [None if cont else lim
+                             for lim, cont in zip(robot.joint_limits.tolist(), robot.continuous.tolist())],
+        "continuous_joints": [name for name, cont in zip(robot.joint_names, robot.continuous.tolist()) if cont],
         "units": {
             "compensator": {"input": "q_nominal, rad", "output": "q_corrected, rad",
                             RESIDUAL_OUTPUT: "(batch, 2): remaining TCP position error of the model at q_corrected, m, "
@@ -532,7 +535,7 @@ def _solver_description(compensator: CompensatorGraph, portable: bool) -> dict:
         "damping_gain": float(compensator.damping_gain),
         "damping_floor": math.sqrt(float(compensator.damping_floor_sq)),
         "max_step_rad": float(compensator.max_step),
-        "joint_limits": "every iterate is clipped to joint_limits_rad",
+        "joint_limits": "every iterate is clipped to joint_limits_rad (null: a continuous joint, not clipped)",
     }
     if compensator.task == "pose":
         return {

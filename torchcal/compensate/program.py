@@ -17,7 +17,14 @@ program's targets, with the same safety limits:
   is not corrected keeps its nominal command in the output and gets one line saying why.
 
 Targets: ``q1..qN`` (deg), one row per target, the data contract's joint columns; other columns
-are ignored. Output: ``q1..qN`` (deg, the corrected command or, where not corrected, the nominal
+are ignored. Or **TCP poses** with a start configuration: ``x, y, z`` (mm, the robot's base frame,
+the production TCP) and optionally ``rx, ry, rz`` (deg, fixed-axis XYZ, the file convention), no
+joint columns, and ``start_deg`` (``--start``): each pose's nominal joint target is found by the
+project's inverse kinematics (:func:`torchcal.kinematics.ik.solve_ik`, on the nominal robot ending
+in the production TCP) from the previous target's solution (the first from the start), so the
+program keeps one arm configuration; those joint targets then go through the same compensator. A
+pose the nominal robot cannot reach from there, or only outside its joint limits, is one line
+naming its row (exit status 2). Output: ``q1..qN`` (deg, the corrected command or, where not corrected, the nominal
 one), ``corrected`` (1/0), ``correction_deg`` (the largest joint move), ``remaining_mm`` (the
 model's remaining TCP error at the written command). It is written atomically with a sidecar
 ``<out>.torchcal.json`` (model, targets and output SHA-256, the settings, the summary); an
@@ -47,6 +54,9 @@ from torchcal.core.errors import DataError, TorchcalError
 from torchcal.core.hashing import sha256_bytes
 from torchcal.core.io import atomic_write_json, atomic_write_text
 from torchcal.data.csv_table import check_joint_limits, joint_columns, read_csv_table
+from torchcal.kinematics import transforms as tf
+from torchcal.kinematics.error_model import ErrorModel
+from torchcal.kinematics.ik import solve_ik
 from torchcal.stages.files import read_json_member
 from torchcal.stages.store import load_model
 
@@ -122,6 +132,57 @@ def read_targets(path: Path, robot) -> tuple[torch.Tensor, list[int]]:
     return torch.from_numpy(np.radians(q_deg)), list(table.line_numbers)
 
 
+#: A TCP pose counts as reached by the nominal inverse kinematics within this (m, rad).
+IK_WITHIN = 1e-9
+#: TCP pose columns of a program file (position required, orientation optional).
+POSITION_COLUMNS, ROTATION_COLUMNS = ("x", "y", "z"), ("rx", "ry", "rz")
+
+
+def is_tcp_program(path: Path) -> bool:
+    """Whether the program file holds TCP poses (``x, y, z`` and no joint column) rather than joint targets."""
+    header = read_csv_table(path).header
+    return all(c in header for c in POSITION_COLUMNS) and not any(len(h) > 1 and h[0] == "q" and h[1:].isdigit()
+                                                                   for h in header)
+
+
+def read_tcp_targets(path: Path, robot, start_deg: list[float]) -> tuple[torch.Tensor, list[int]]:
+    """Nominal joint targets ``(B, N)`` rad of a file of TCP poses, solved in order from ``start_deg``.
+
+    ``robot``: the nominal robot ending in the production TCP (:func:`production_view`'s).
+    """
+    table = read_csv_table(path)
+    if not table.rows:
+        raise DataError("no targets (only a header)", path=str(path))
+    if len(start_deg) != robot.dof or not all(math.isfinite(v) for v in start_deg):
+        raise DataError(f"--start needs {robot.dof} finite joint values (deg) for {robot.name}, got {list(start_deg)}",
+                        path=str(path))
+    start = np.asarray(start_deg, dtype=np.float64)[None]
+    check_joint_limits(start, "deg", robot.joint_limits.numpy(), path="--start", lines=[1], robot_name=robot.name)
+    oriented = all(c in table.header for c in ROTATION_COLUMNS)
+    position = torch.from_numpy(np.stack([table.column(c) for c in POSITION_COLUMNS], 1)) * 1e-3
+    if oriented:
+        angles = torch.from_numpy(np.radians(np.stack([table.column(c) for c in ROTATION_COLUMNS], 1)))
+        targets = tf.homogeneous(tf.euler_xyz_to_matrix(angles), position)
+    model = ErrorModel(robot, T_instrument_base=torch.eye(4, dtype=torch.float64))
+    x = model.nominal_vector()
+    q = torch.from_numpy(np.radians(start[0]))
+    solved = []
+    for k, line in enumerate(table.line_numbers):
+        target = targets[k : k + 1] if oriented else position[k : k + 1]
+        result = solve_ik(model, x, target, q[None], position_only=not oriented)
+        if not bool(result.converged[0]) and not (float(result.position_error[0]) < IK_WITHIN
+                                                  and float(result.rotation_error[0]) < IK_WITHIN):
+            raise DataError(f"the TCP pose is not reachable by the nominal robot from the previous target's joints "
+                            f"(inverse kinematics leaves {float(result.position_error[0]) * 1e3:.3g} mm, "
+                            f"{math.degrees(float(result.rotation_error[0])):.3g} deg)", path=str(path), row=line)
+        q = result.q[0]
+        solved.append(q)
+    q_all = torch.stack(solved)
+    check_joint_limits(np.degrees(q_all.numpy()), "deg", robot.joint_limits.numpy(), path=path,
+                       lines=table.line_numbers, robot_name=robot.name)
+    return q_all, list(table.line_numbers)
+
+
 def _csv(q_deg: np.ndarray, corrected: np.ndarray, correction_deg: np.ndarray, remaining_mm: np.ndarray) -> str:
     n = q_deg.shape[1]
     lines = [",".join([f"q{j}" for j in range(1, n + 1)] + ["corrected", "correction_deg", "remaining_mm"])]
@@ -140,11 +201,13 @@ def compensate_program(
     tcp_mm: list[float] | None = None,
     tcp_rpy_deg: list[float] | None = None,
     allow_large_corrections: bool = False,
+    start_deg: list[float] | None = None,
 ) -> ProgramOutcome:
     """Correct the joint targets of ``targets`` with the compensator of ``model_dir`` into ``out``.
 
     ``task``, ``iterations``, ``tcp_mm``, ``tcp_rpy_deg``: as ``torchcal export`` (the same
-    compensator; without a TCP, the flange, stated in the summary).
+    compensator; without a TCP, the flange, stated in the summary). ``start_deg``: the start
+    configuration of a file of TCP poses (module docstring); refused with joint targets.
     """
     model_dir, targets, out = Path(model_dir), Path(targets), Path(out)
     if task not in TASKS:
@@ -156,7 +219,14 @@ def compensate_program(
     stored = production_view(stored, tcp_transform(tcp_mm, tcp_rpy_deg))  # as export: the flange by default
     tcp_note = (f"targets of the TCP {tcp_mm or [0, 0, 0]} mm, {tcp_rpy_deg or [0, 0, 0]} deg in the flange frame"
                 + ("" if tcp_mm or tcp_rpy_deg else " (the flange; --tcp-mm sets the production TCP)"))
-    q, lines = read_targets(targets, stored.robot)
+    if is_tcp_program(targets):
+        if start_deg is None:
+            raise DataError("TCP poses (x, y, z) need a start configuration: give --start q1 .. qN (deg)", path=str(targets))
+        q, lines = read_tcp_targets(targets, stored.robot, start_deg)
+    else:
+        if start_deg is not None:
+            raise DataError("--start is for a file of TCP poses (x, y, z); this one holds joint targets", path=str(targets))
+        q, lines = read_targets(targets, stored.robot)
     graphs = build_graphs(stored, task=task, iterations=iterations)
     if has_wrench_input(graphs):
         raise TorchcalError(f"{model_dir}: the model has a stiffness stage, whose compensator needs each target's "

@@ -122,6 +122,21 @@ def field_names(config_class: Any) -> set[str]:
     return {f.name for f in fields(config_class)}
 
 
+def renamed_keys(overrides: list[str], renamed: dict[str, str], *, what: str) -> list[str]:
+    """``overrides`` with keys of an earlier release spelled the current way (``old=v`` ->
+    ``new=v``), each with a warning that the old spelling goes in the next release."""
+    out = []
+    for item in overrides:
+        key, sep, value = item.partition("=")
+        if sep and key.strip() in renamed:
+            new = renamed[key.strip()]
+            warnings.warn(f"{key.strip()}= on {what} is now {new}= ({key.strip()}= names a config group of the tracker fit); "
+                          f"read as {new}={value}; the old spelling goes in the next release", FutureWarning, stacklevel=3)
+            item = f"{new}={value}"
+        out.append(item)
+    return out
+
+
 def split_foreign_keys(overrides: list[str], own: Any, foreign: Any, *, what: str) -> list[str]:
     """The overrides that ``own`` accepts; those only ``foreign`` knows are dropped with one warning.
 

@@ -182,7 +182,8 @@ def check_joint_limits(
 
     Args:
         q_file: ``(B, N)`` joints as written in the file (``joint_unit``: ``deg`` or ``rad``).
-        limits_rad: ``(N, 2)`` lower and upper limits, rad.
+        limits_rad: ``(N, 2)`` lower and upper limits, rad; ``-inf, inf`` for a continuous joint,
+            which no value is outside.
         lines: file line of each row; ``columns`` the name of each joint column (``q1..qN``).
         tolerance_deg: how far outside a limit a value may be (rounding in files), deg.
 

@@ -39,12 +39,14 @@ def check_joint_unit(q_file: np.ndarray, joint_unit: str, limits_rad: np.ndarray
 
     Args:
         q_file: ``(B, N)`` joints as written in the file, in ``joint_unit``.
-        limits_rad: ``(N, 2)`` joint limits, rad.
+        limits_rad: ``(N, 2)`` joint limits, rad (infinite for a continuous joint).
     """
     if joint_unit != "deg" or len(q_file) < 5:
         return
     largest = float(np.abs(q_file).max())
-    widest_limit_deg = math.degrees(float((limits_rad[:, 1] - limits_rad[:, 0]).max()))
+    span = limits_rad[:, 1] - limits_rad[:, 0]
+    # a continuous joint (infinite limits) spans at least one turn
+    widest_limit_deg = math.degrees(float(np.where(np.isfinite(span), span, 2 * math.pi).max()))
     if largest <= 2 * math.pi + 1e-6 and widest_limit_deg > 30.0:
         col = int(np.abs(q_file).max(0).argmax())
         row = int(np.abs(q_file[:, col]).argmax())

@@ -194,6 +194,12 @@ class Instrument(ABC):
         """The configuration dataclass of ``fit`` / ``evaluate`` on this instrument's files (their
         ``key=value`` options; ``--help`` lists its fields)."""
 
+    def evaluate_options(self) -> tuple[str, ...] | None:
+        """The keys of :meth:`options` that ``evaluate`` reads (the file's units and the like); the
+        others are fit options, which ``evaluate --help`` does not list and ``evaluate`` refuses.
+        ``None``: every option is read by ``evaluate`` too."""
+        return None
+
     def shown_metrics(self, metrics: dict) -> dict:
         """The part of ``evaluate``'s metrics the command prints as JSON (all of them unless the
         instrument's lines already say the rest); ``--json`` writes all of them."""
@@ -206,6 +212,22 @@ class Instrument(ABC):
     @abstractmethod
     def contract_case(self) -> ContractCase:
         """The small known-truth case of the shared contract suite."""
+
+
+def check_evaluate_overrides(instrument: Instrument, overrides: list[str]) -> None:
+    """Refuse a fit option given to ``evaluate`` (one that would change nothing) in one line."""
+    from torchcal.core.errors import TorchcalError
+    from torchcal.core.options import list_options
+
+    used = instrument.evaluate_options()
+    if used is None:
+        return
+    fit_only = {o.key for o in list_options(instrument.options())} - set(used)
+    for item in overrides:
+        key = item.split("=", 1)[0].strip()
+        if key in fit_only:
+            raise TorchcalError(f"{key} is an option of fit, not of evaluate (the model folder holds what the fit chose); "
+                              f"evaluate on {instrument.name} files takes {', '.join(used)}")
 
 
 def check_fit_paths(out: Path, data: Path, robot: Path) -> None:

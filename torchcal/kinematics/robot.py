@@ -10,8 +10,13 @@ of both routes can be checked against each other.
 
 from __future__ import annotations
 
+import hashlib
 import math
-from dataclasses import dataclass, field
+import re
+import warnings
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import torch
@@ -25,7 +30,7 @@ from torchcal.kinematics.mdh import chain_transforms
 _LENGTH_UNITS = {"m": 1.0, "mm": 1e-3, "cm": 1e-2}
 _ANGLE_UNITS = {"rad": 1.0, "deg": math.pi / 180.0}
 _ROW_KEYS = ("alpha", "a", "d", "theta")
-_OPTIONAL_ROW_KEYS = ("beta", "min", "max", "velocity", "acceleration")
+_OPTIONAL_ROW_KEYS = ("beta", "min", "max", "continuous", "velocity", "acceleration")
 
 
 @dataclass(frozen=True)
@@ -36,7 +41,8 @@ class RobotModel:
         name: robot name.
         joint_names: one name per revolute joint, in chain order.
         table: ``(N, 5)`` MDH rows ``[alpha, a, beta, theta_offset, d]`` (rad, m).
-        joint_limits: ``(N, 2)`` lower/upper joint limits, rad.
+        joint_limits: ``(N, 2)`` lower/upper joint limits, rad; ``-inf, +inf`` for a continuous joint
+            (a URDF ``type="continuous"`` joint, a YAML row with ``continuous: true``), which has none.
         tool: ``(3,)`` nominal TCP / reflector position in the ``flange`` frame, m.
         T_base_0: ``(4, 4)`` fixed ``base -> frame 0`` transform (identity for a YAML robot).
         T_n_flange: ``(4, 4)`` fixed ``frame N -> flange`` transform (identity for a YAML robot).
@@ -76,14 +82,31 @@ class RobotModel:
         pose = self.flange_pose(q)
         return pose[..., :3, :3] @ self.tool.to(q) + pose[..., :3, 3]
 
+    @property
+    def continuous(self) -> torch.Tensor:
+        """``(N,)`` bool: joints without limits (any angle is reachable)."""
+        return ~torch.isfinite(self.joint_limits).all(-1)
+
+    @property
+    def turn_limits(self) -> torch.Tensor:
+        """``(N, 2)`` rad: the joint limits with one turn ``[-pi, pi]`` for a continuous joint.
+
+        For what needs a finite range: sampling poses, scaling features, centring a planner; a
+        continuous joint's configurations repeat every turn, so one turn covers all of them.
+        """
+        turn = torch.tensor([-math.pi, math.pi], dtype=self.joint_limits.dtype)
+        return torch.where(self.continuous.unsqueeze(-1), turn, self.joint_limits)
+
     def within_limits(self, q: torch.Tensor, tol: float = 1e-9) -> torch.Tensor:
         lim = self.joint_limits.to(q)
         return ((q >= lim[:, 0] - tol) & (q <= lim[:, 1] + tol)).all(-1)
 
     def sample_joints(self, n: int, generator: torch.Generator, margin: float = 0.0) -> torch.Tensor:
-        """Uniform random joint angles ``(n, N)`` within limits (shrunk by ``margin`` rad)."""
-        lo = self.joint_limits[:, 0] + margin
-        hi = self.joint_limits[:, 1] - margin
+        """Uniform random joint angles ``(n, N)`` within limits (shrunk by ``margin`` rad); one turn
+        ``[-pi, pi]`` for a continuous joint."""
+        lim = self.turn_limits
+        lo = lim[:, 0] + torch.where(self.continuous, 0.0, margin)
+        hi = lim[:, 1] - torch.where(self.continuous, 0.0, margin)
         u = torch.rand(n, self.dof, generator=generator, dtype=torch.float64)
         return lo + u * (hi - lo)
 
@@ -189,8 +212,16 @@ def robot_from_yaml(path: str | Path) -> RobotModel:
             raise ModelError(f"{path}: joint {i} lacks {missing}")
         alpha, a, d, theta = (_number(row[k], path, f"joint {i} '{k}'") for k in _ROW_KEYS)
         beta = _number(row.get("beta", 0.0), path, f"joint {i} 'beta'")
-        lo = _number(row.get("min", -180.0 if angle_unit == "deg" else -math.pi), path, f"joint {i} 'min'")
-        hi = _number(row.get("max", 180.0 if angle_unit == "deg" else math.pi), path, f"joint {i} 'max'")
+        continuous = row.get("continuous", False)
+        if not isinstance(continuous, bool):
+            raise ModelError(f"{path}: joint {i} 'continuous' must be true or false, got {continuous!r}")
+        if continuous:
+            if "min" in row or "max" in row:
+                raise ModelError(f"{path}: joint {i} is continuous and has min/max: give one or the other")
+            lo, hi = -math.inf, math.inf
+        else:
+            lo = _number(row.get("min", -180.0 if angle_unit == "deg" else -math.pi), path, f"joint {i} 'min'")
+            hi = _number(row.get("max", 180.0 if angle_unit == "deg" else math.pi), path, f"joint {i} 'max'")
         if lo >= hi:
             raise ModelError(f"{path}: joint {i} has min {lo} >= max {hi}")
         rows.append([alpha * as_, a * ls, beta * as_, theta * as_, d * ls])
@@ -240,7 +271,10 @@ def robot_to_yaml(robot: RobotModel, table: torch.Tensor | None = None, tool: to
         entries = [f"alpha: {alpha * deg:.9g}", f"a: {a * 1e3:.9g}", f"d: {d * 1e3:.9g}", f"theta: {theta * deg:.9g}"]
         if abs(beta) > 0:
             entries.append(f"beta: {beta * deg:.9g}")
-        entries += [f"min: {lim[0] * deg:.9g}", f"max: {lim[1] * deg:.9g}"]
+        if math.isfinite(lim[0]) and math.isfinite(lim[1]):
+            entries += [f"min: {lim[0] * deg:.9g}", f"max: {lim[1] * deg:.9g}"]
+        else:
+            entries.append("continuous: true")
         if velocity is not None:
             entries.append(f"velocity: {velocity * deg:.9g}")
         if acceleration is not None:
@@ -281,10 +315,11 @@ def mdh_to_urdf(robot: RobotModel) -> str:
         child = f"link{i + 1}"
         lo, hi = robot.joint_limits[i].tolist()
         links.append(f'<link name="{child}"/>')
+        kind, limit = ("continuous", "") if bool(robot.continuous[i]) else (
+            "revolute", f'<limit lower="{lo:.17g}" upper="{hi:.17g}" effort="0" velocity="0"/>')
         joints.append(
-            f'<joint name="{robot.joint_names[i]}" type="revolute"><parent link="{parent}"/>'
-            f'<child link="{child}"/>{_origin_xml(link_tf)}<axis xyz="0 0 1"/>'
-            f'<limit lower="{lo:.17g}" upper="{hi:.17g}" effort="0" velocity="0"/></joint>'
+            f'<joint name="{robot.joint_names[i]}" type="{kind}"><parent link="{parent}"/>'
+            f'<child link="{child}"/>{_origin_xml(link_tf)}<axis xyz="0 0 1"/>{limit}</joint>'
         )
         parent = child
     links.append(f'<link name="{robot.end_link}"/>')
@@ -296,18 +331,71 @@ def mdh_to_urdf(robot: RobotModel) -> str:
     return f'<?xml version="1.0"?>\n<robot name="{robot.name}">\n  {body}\n</robot>\n'
 
 
-def _joint_origins_float64(text: str) -> dict[str, torch.Tensor]:
-    """Joint origin transforms ``parent -> joint frame`` of a URDF, float64, by joint name."""
+def _joint_origins_float64(text: str) -> tuple[dict[str, torch.Tensor], dict[str, str]]:
+    """Joint origin transforms ``parent -> joint frame`` of a URDF, float64, and the URDF joint
+    types (``revolute``, ``continuous``, ...), by joint name."""
     from pytorch_kinematics.urdf_parser_py.urdf import URDF
 
     robot = URDF.from_xml_string(text.encode() if isinstance(text, str) else text)
-    origins = {}
+    origins, types = {}, {}
     for joint in robot.joints:
         xyz = joint.origin.xyz if joint.origin is not None and joint.origin.xyz is not None else [0, 0, 0]
         rpy = joint.origin.rpy if joint.origin is not None and joint.origin.rpy is not None else [0, 0, 0]
         rot = tf.euler_xyz_to_matrix(torch.tensor(rpy, dtype=torch.float64))
         origins[joint.name] = tf.homogeneous(rot, torch.tensor(xyz, dtype=torch.float64))
-    return origins
+        types[joint.name] = joint.type
+    return origins, types
+
+
+@dataclass(frozen=True)
+class _ParsedUrdf:
+    """What a URDF gives for one chain (see :func:`robot_from_urdf`), cached by the text's hash."""
+
+    joint_names: tuple[str, ...]
+    table: torch.Tensor
+    T_base_0: torch.Tensor
+    T_n_flange: torch.Tensor
+    limits: torch.Tensor
+    base_link: str
+    end_link: str
+    notes: tuple[str, ...]  # what the URDF parser said (unknown tags and attributes)
+
+
+#: Parsed URDFs by (sha256 of the text, base_link, end_link): a fit loads its robot several times
+#: (the command, the model folder it writes, the folder's checks), and each parse runs the URDF
+#: parser three times (pytorch-kinematics' full and serial chains, the float64 origins).
+_URDF_CACHE: dict[tuple[str, str | None, str | None], _ParsedUrdf] = {}
+_URDF_CACHE_SIZE = 8
+
+
+@contextmanager
+def _parser_notes() -> Iterator[list[str]]:
+    """Collect what the URDF parser of pytorch-kinematics writes to stderr (one line per unknown tag
+    or attribute, per parse) instead of letting it print."""
+    from pytorch_kinematics.urdf_parser_py import xml_reflection
+    from pytorch_kinematics.urdf_parser_py.xml_reflection import core
+
+    notes: list[str] = []
+    saved = core.on_error, xml_reflection.on_error
+    core.on_error = xml_reflection.on_error = notes.append
+    try:
+        yield notes
+    finally:
+        core.on_error, xml_reflection.on_error = saved
+
+
+def _notes_warning(path: Path, notes: tuple[str, ...]) -> str:
+    """One line for the parser's notes: what was skipped, each kind once (a misspelt attribute,
+    ``rpi`` for ``rpy``, reads as absent, so they are named)."""
+    kinds: dict[str, int] = {}
+    for note in notes:
+        match = re.match(r'(Unknown (?:tag|attribute) "[^"]*")', note)
+        kind = match.group(1) if match else note
+        kinds[kind] = kinds.get(kind, 0) + 1
+    listed = "; ".join(f"{kind} x{n}" if n > 1 else kind for kind, n in list(kinds.items())[:6])
+    more = f"; and {len(kinds) - 6} more kinds" if len(kinds) > 6 else ""
+    return (f"{path}: the URDF parser skipped {len(notes)} element(s) it does not know, read as absent "
+            f"({listed}{more}); kinematics use links, joints, origins, axes and limits only")
 
 
 def robot_from_urdf(
@@ -324,11 +412,45 @@ def robot_from_urdf(
         base_link: link that is the ``base`` frame (default: the URDF root).
         end_link: link that is the ``flange`` frame (default: the last link of the chain).
         tool: nominal TCP in the ``flange`` frame, m (default: the flange origin).
-    """
-    import pytorch_kinematics as pk
 
+    The text is parsed once per content and chain (cached by its sha256); what the parser says
+    about unknown tags and attributes becomes one warning, at that parse.
+    """
     path = Path(path)
     text = read_robot_text(path)
+    key = (hashlib.sha256(text.encode()).hexdigest(), base_link, end_link)
+    parsed = _URDF_CACHE.get(key)
+    if parsed is None:
+        with _parser_notes() as notes:
+            parsed = _parse_urdf(path, text, base_link, end_link)
+        # each of the three parses says the same: each line once
+        parsed = replace(parsed, notes=tuple(dict.fromkeys(notes)))
+        while len(_URDF_CACHE) >= _URDF_CACHE_SIZE:
+            _URDF_CACHE.pop(next(iter(_URDF_CACHE)))
+        # also under the links it resolved to: a model folder names them when it loads its copy
+        for k in (key, (key[0], parsed.base_link, parsed.end_link)):
+            _URDF_CACHE[k] = parsed
+        if parsed.notes:  # once per text: its copy in a model folder says nothing new
+            warnings.warn(_notes_warning(path, parsed.notes), stacklevel=2)
+    return RobotModel(
+        name=path.stem,
+        joint_names=parsed.joint_names,
+        table=parsed.table.clone(),
+        joint_limits=parsed.limits.clone(),
+        tool=torch.tensor(tool if tool is not None else (0.0, 0.0, 0.0), dtype=torch.float64),
+        T_base_0=parsed.T_base_0.clone(),
+        T_n_flange=parsed.T_n_flange.clone(),
+        source=str(path),
+        urdf=text,
+        base_link=parsed.base_link,
+        end_link=parsed.end_link,
+    )
+
+
+def _parse_urdf(path: Path, text: str, base_link: str | None, end_link: str | None) -> _ParsedUrdf:
+    """The chain from ``base_link`` to ``end_link`` of URDF ``text`` (``path`` names it in errors)."""
+    import pytorch_kinematics as pk
+
     try:
         full = pk.build_chain_from_urdf(text.encode())
     except Exception as exc:  # noqa: BLE001 (the parser raises many types; the user needs the file name)
@@ -342,7 +464,7 @@ def robot_from_urdf(
         if link not in names:
             raise ModelError(f"{path}: {label} '{link}' is not a link of this URDF (links: {', '.join(names)})")
     try:
-        chain = pk.build_serial_chain_from_urdf(text.encode(), end_link, base_link)
+        chain = pk.SerialChain(full, end_link, base_link)  # from the parsed chain: no second parse
     except Exception as exc:  # noqa: BLE001 (as above)
         raise ModelError(f"{path}: no serial chain from '{base_link}' to '{end_link}' ({exc})") from None
     chain = chain.to(dtype=torch.float64)
@@ -355,7 +477,7 @@ def robot_from_urdf(
             raise ModelError(f"{path}: joint '{joint.name}' is {joint.joint_type}; only revolute joints are supported")
     # pytorch-kinematics gives the chain's structure; its URDF reader rounds rpy to float32
     # (about 1e-8 m at arm's length), so the origins are re-read in float64 by joint name.
-    origins = _joint_origins_float64(text)
+    origins, urdf_types = _joint_origins_float64(text)
     transform = torch.eye(4, dtype=torch.float64)
     points, directions = [], []
     for frame in chain._serial_frames[1:]:
@@ -378,6 +500,11 @@ def robot_from_urdf(
         raise ModelError(f"{path}: the joint axes give no MDH table ({exc.__class__.__name__}: {exc})") from None
     limits = []
     for joint in frames:
+        if urdf_types.get(joint.name) == "continuous":
+            # no limits: the URDF ignores a continuous joint's lower/upper (pytorch-kinematics reads
+            # it as revolute, with the limit tag's lower/upper, or (0, 0) where it gives only effort)
+            limits.append([-math.inf, math.inf])
+            continue
         lim = joint.limits
         if lim is not None and not (math.isfinite(float(lim[0])) and math.isfinite(float(lim[1]))
                                     and float(lim[0]) < float(lim[1])):
@@ -385,19 +512,8 @@ def robot_from_urdf(
             raise ModelError(f"{path}: joint '{joint.name}': <limit lower/upper> must be finite numbers with "
                              f"lower < upper, got {float(lim[0])!r}, {float(lim[1])!r}")
         limits.append([float(lim[0]), float(lim[1])] if lim is not None else [-math.pi, math.pi])
-    return RobotModel(
-        name=path.stem,
-        joint_names=joint_names,
-        table=axes.table,
-        joint_limits=torch.tensor(limits, dtype=torch.float64),
-        tool=torch.tensor(tool if tool is not None else (0.0, 0.0, 0.0), dtype=torch.float64),
-        T_base_0=axes.T_base_0,
-        T_n_flange=axes.T_n_flange,
-        source=str(path),
-        urdf=text,
-        base_link=base_link,
-        end_link=end_link,
-    )
+    return _ParsedUrdf(joint_names=joint_names, table=axes.table, T_base_0=axes.T_base_0, T_n_flange=axes.T_n_flange,
+                       limits=torch.tensor(limits, dtype=torch.float64), base_link=base_link, end_link=end_link, notes=())
 
 
 def load_robot(

@@ -103,13 +103,21 @@ class Comparison:
 
 
 def compare_candidates(candidates: list[Candidate], units: np.ndarray, protocol: str, *, tolerance: float = 0.01,
-                       z_min: float = 2.0) -> Comparison:
-    """Apply the module's rule to ``candidates`` (simplest first); ``units`` ``(n,)`` label independent units."""
+                       z_min: float = 2.0, excluded: dict[str, str] | None = None) -> Comparison:
+    """Apply the module's rule to ``candidates`` (simplest first); ``units`` ``(n,)`` label independent units.
+
+    ``excluded``: candidates ruled out by a later check (name -> why); they are scored and listed
+    but are neither the reference ("vs best") nor chosen, so that every verdict is relative to
+    the candidate the decision was taken against. Each verdict names that reference.
+    """
     if not candidates:
         raise ValueError("no candidates to compare")
     by_name = {c.name: c for c in candidates}
     eligible: dict[str, str] = {}
     for cand in candidates:
+        if excluded and cand.name in excluded:
+            eligible[cand.name] = excluded[cand.name]
+            continue
         if cand.parent is None:
             eligible[cand.name] = "eligible"
             continue
@@ -134,7 +142,7 @@ def compare_candidates(candidates: list[Candidate], units: np.ndarray, protocol:
         if within and chosen is None:
             chosen = cand
         verdict = eligible[cand.name] if eligible[cand.name] != "eligible" else (
-            "within noise of the best" if within else "worse than the best beyond noise")
+            "best" if cand is best else f"within noise of {best.name}" if within else f"worse than {best.name} beyond noise")
         comparison.rows.append({
             "name": cand.name, "cv_rms_mm": cand.rms, "vs_best_pct": 100.0 * (cand.rms / best.rms - 1.0),
             "se_pct": 100.0 * se / (2 * best.rms**2) if math.isfinite(se) else math.inf,

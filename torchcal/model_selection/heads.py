@@ -45,7 +45,7 @@ def make_features(robot, data: Measurements) -> JointFeatures:
     if data.temperature is not None:
         t = data.temperature
         temperature = (float(t.mean()), float(t.std().clamp_min(1e-6)))
-    return JointFeatures(robot.joint_limits.to(torch.float64), temperature)
+    return JointFeatures(robot.turn_limits.to(torch.float64), temperature)  # one turn for a continuous joint
 
 
 def cross_validate_heads(robot, data: Measurements, structure: StructureCV, parent: str, make_heads, *,

@@ -149,7 +149,8 @@ def follow(
     dt = config.dt
     speed = config.speed_limits(robot).to(q0) if config.enforce_speed_limits else None
     bounds = robot.joint_limits.to(q0) if config.enforce_joint_limits else None
-    centre = robot.joint_limits.to(q0).mean(-1)
+    # the null-space pull towards mid-range; a continuous joint (infinite span) has no middle: weight 0
+    centre = robot.turn_limits.to(q0).mean(-1)
     weight = 1.0 / (robot.joint_limits[:, 1] - robot.joint_limits[:, 0]).to(q0) ** 2
     ff = feed_forward(traj).to(q0)
     targets = traj.poses.to(q0)

@@ -89,20 +89,55 @@ def select_with_heads(robot, data: Measurements, structure: StructureCV, config,
     parent = structure.comparison.chosen
     heads = cross_validate_heads(robot, data, structure, parent, lambda: _candidates(config),
                                  margin=config.residual_margin, seed=config.seed, progress=progress)
-    comparison = compare_candidates(structure.candidates + heads.candidates, structure.folds.units(),
-                                    structure.folds.description, tolerance=structure_tolerance())
+    candidates = structure.candidates + heads.candidates
+    units, protocol = structure.folds.units(), structure.folds.description
+    comparison = compare_candidates(candidates, units, protocol, tolerance=structure_tolerance())
     head_rows = {c.name for c in heads.candidates}
-    if comparison.chosen not in head_rows:
-        # the structures were decided without heads (a learned joint model also on time blocks, with
-        # its reason); heads only add rows on top of that choice
-        comparison.chosen, comparison.reason = parent, structure.comparison.reason
+    later: list[dict] = []
+    if comparison.chosen not in head_rows and comparison.chosen != parent:
+        # the structures were decided without heads; heads only add rows on top of that choice. The
+        # table is restated against the structures, so that its verdicts and the decision agree.
+        comparison = _restated(candidates, units, protocol, parent, structure, {
+            name: f"not kept: {comparison.chosen} is within noise of it, and the structure ({parent}) was chosen "
+                  "before the heads" for name in head_rows if _eligible(comparison, name)})
+    elif comparison.chosen == parent:
+        # the structure's own reason (a learned joint model's check on time blocks included)
+        comparison.reason = structure.comparison.reason
+    head = comparison.chosen_head
+    if head is not None and config.head_time_check and structure.folds.kind != "blocks":
+        timed_protocol, later, passed = _check_on_time_blocks(robot, data, structure, head, config, progress)
+        protocol = f"{protocol}; a kept head also checked by {timed_protocol}"
+        comparison.protocol = protocol
+        if not passed:
+            comparison = _restated(candidates, units, protocol, parent, structure, {
+                comparison.chosen: f"rejected: passed on configuration regions, not on {timed_protocol}"})
+            comparison.reason = (f"{structure.comparison.reason}; head '{head}' passed on configuration regions but "
+                                 "not on blocks of measurement order: it learned what changed while the series was "
+                                 "measured, not the robot")
     for name, why in heads.stopped.items():
         comparison.rows.append(_stopped_row(f"{parent}+{name}", why))
         comparison.heads[f"{parent}+{name}"] = name
-    head = comparison.chosen_head
-    if head is not None and config.head_time_check and structure.folds.kind != "blocks":
-        _check_on_time_blocks(robot, data, structure, comparison, head, config, progress)
+    for row in later:
+        comparison.rows.append(row)
+        if row.get("head") is not None:
+            comparison.heads[row["name"]] = row.pop("head")
+        row.pop("head", None)
     return comparison
+
+
+def _eligible(comparison: Comparison, name: str) -> bool:
+    row = next(r for r in comparison.rows if r["name"] == name)
+    return not row["verdict"].startswith(("rejected", "not kept"))
+
+
+def _restated(candidates, units, protocol: str, parent: str, structure: StructureCV,
+              excluded: dict[str, str]) -> Comparison:
+    """The comparison of ``candidates`` again with ``excluded`` ruled out: the structure ``parent`` chosen, every
+    verdict relative to the best candidate still in the running."""
+    assert structure.comparison is not None
+    restated = compare_candidates(candidates, units, protocol, tolerance=structure_tolerance(), excluded=excluded)
+    restated.chosen, restated.reason = parent, structure.comparison.reason
+    return restated
 
 
 def _stopped_row(name: str, why: str) -> dict:
@@ -110,9 +145,13 @@ def _stopped_row(name: str, why: str) -> dict:
     return {"name": name, "cv_rms_mm": nan, "vs_best_pct": nan, "se_pct": nan, "verdict": why, "detail": ""}
 
 
-def _check_on_time_blocks(robot, data: Measurements, structure: StructureCV, comparison: Comparison, head_name: str,
-                          config, progress) -> None:
-    """Repeat the chosen head's CV on blocks of row order; revert to the structure if it fails there."""
+def _check_on_time_blocks(robot, data: Measurements, structure: StructureCV, head_name: str,
+                          config, progress) -> tuple[str, list[dict], bool]:
+    """Repeat the chosen head's CV on blocks of row order.
+
+    Returns the blocks' protocol, the rows of that check (named ``... [time blocks]``, each with
+    its ``head`` or ``None``) and whether the head is kept there too.
+    """
     assert structure.comparison is not None
     parent = structure.comparison.chosen
     order = torch.as_tensor(data.line_numbers).numpy() if data.line_numbers else None
@@ -124,19 +163,10 @@ def _check_on_time_blocks(robot, data: Measurements, structure: StructureCV, com
                                  lambda: [h for h in _candidates(config) if h.name == head_name],
                                  margin=config.residual_margin, seed=config.seed, progress=progress)
     check = compare_candidates(timed.candidates + heads.candidates, blocks.units(), blocks.description)
-    for row in check.rows:
-        comparison.rows.append({**row, "name": f"{row['name']} [time blocks]"})
-        if row["name"] in check.heads:
-            comparison.heads[f"{row['name']} [time blocks]"] = check.heads[row["name"]]
-    for name, why in heads.stopped.items():
-        comparison.rows.append(_stopped_row(f"{parent}+{name} [time blocks]", why))
-        comparison.heads[f"{parent}+{name} [time blocks]"] = name
-    comparison.protocol += f"; a kept head also checked by {blocks.description}"
-    if check.chosen != comparison.chosen:
-        comparison.chosen = parent
-        comparison.reason = (f"{structure.comparison.reason}; head '{head_name}' passed on configuration regions but "
-                             "not on blocks of measurement order: it learned what changed while the series was "
-                             "measured, not the robot")
+    rows = [{**row, "name": f"{row['name']} [time blocks]", "head": check.heads.get(row["name"])} for row in check.rows]
+    rows += [{**_stopped_row(f"{parent}+{name} [time blocks]", why), "head": name} for name, why in heads.stopped.items()]
+    passed = check.chosen_head == head_name
+    return blocks.description, rows, passed
 
 
 def structure_tolerance() -> float:

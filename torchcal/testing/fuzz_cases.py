@@ -272,6 +272,28 @@ def urdf_nan_limit(fx: Fixtures, w: Path) -> Case:
     return Case(_fit(fx, fx.train, w / "out", robot=robot), 2, "must be finite numbers", w / "out")
 
 
+def _yaml_last_joint(fx: Fixtures, w: Path, entries: str) -> Path:
+    """The twin's robot YAML with the last joint's limits (``min: .., max: ..``) replaced by ``entries``."""
+    import re
+
+    lines = fx.robot.read_text().splitlines()
+    last = max(i for i, line in enumerate(lines) if "min:" in line)
+    lines[last] = re.sub(r"min: [^,}]+, max: [^,}]+", entries, lines[last])
+    robot = w / "robot.yaml"
+    robot.write_text("\n".join(lines) + "\n")
+    return robot
+
+
+def yaml_continuous_with_limits(fx: Fixtures, w: Path) -> Case:
+    robot = _yaml_last_joint(fx, w, "continuous: true, min: -170, max: 170")
+    return Case(_fit(fx, fx.train, w / "out", robot=robot), 2, "continuous and has min/max", w / "out")
+
+
+def yaml_continuous_not_boolean(fx: Fixtures, w: Path) -> Case:
+    robot = _yaml_last_joint(fx, w, "continuous: 1")
+    return Case(_fit(fx, fx.train, w / "out", robot=robot), 2, "'continuous' must be true or false", w / "out")
+
+
 def yaml_deeply_nested(fx: Fixtures, w: Path) -> Case:
     robot = w / "robot.yaml"
     robot.write_text("name: " + "[" * 20000 + "]" * 20000 + "\n" + fx.robot.read_text().split("\n", 1)[1])
@@ -664,7 +686,12 @@ def boolean_given_number(fx: Fixtures, w: Path) -> Case:
 
 
 def evaluate_interpolation(fx: Fixtures, w: Path) -> Case:
-    return Case(_evaluate(fx.model, fx.test, "split=${oc.env:HOME}"), 2, "interpolation", None)
+    return Case(_evaluate(fx.model, fx.test, "joint_unit=${oc.env:HOME}"), 2, "interpolation", None)
+
+
+def evaluate_fit_option(fx: Fixtures, w: Path) -> Case:
+    return Case(_evaluate(fx.model, fx.test, "--json", str(w / "m.json"), "residual=mlp"), 2,
+                "residual is an option of fit, not of evaluate", w / "m.json")
 
 
 def simulate_interpolation(fx: Fixtures, w: Path) -> Case:
@@ -696,7 +723,7 @@ CASES: dict[str, Callable[[Fixtures, Path], Case]] = {f.__name__: f for f in (
     csv_latin1, csv_binary, csv_nul, csv_huge_field, csv_metres, csv_radians, csv_1e300, csv_underscore, csv_nan,
     csv_duplicate, csv_missing_column, csv_semicolon, csv_wide_header, csv_million_rows,
     yaml_latin1, yaml_binary, yaml_alias_bomb, yaml_python_tag, yaml_wrong_sign, urdf_nan_origin, urdf_zero_axis,
-    urdf_nan_limit, yaml_deeply_nested,
+    urdf_nan_limit, yaml_deeply_nested, yaml_continuous_with_limits, yaml_continuous_not_boolean,
     model_json_truncated, model_json_invalid_sealed, model_json_missing_key_sealed, safetensors_bitflip,
     safetensors_bad_header_sealed, safetensors_nan_sealed, safetensors_foreign_sealed, model_stale_residual,
     model_no_checksums, robot_file_absolute, robot_file_parent, robot_file_of_another_model_sealed,
@@ -707,7 +734,7 @@ CASES: dict[str, Callable[[Fixtures, Path], Case]] = {f.__name__: f for f in (
     json_onto_checksums, json_onto_user_file, report_into_model, report_onto_export, report_onto_user_folder,
     refit_over_user_file, export_out_inside_model, fit_file_too_large, export_file_too_large, run_name_parent,
     run_name_slash, run_name_huge, study_name_parent, seed_beyond_32_bits, seed_negative, device_meta,
-    device_unknown, boolean_given_number, evaluate_interpolation, simulate_interpolation, study_workers_zero,
+    device_unknown, boolean_given_number, evaluate_interpolation, evaluate_fit_option, simulate_interpolation, study_workers_zero,
     study_trials_zero, export_iterations_huge, hidden_units_huge, simulate_huge, fit_points_of_other_poses,
     evaluate_points_of_other_poses, evaluate_instrument_moved, rows_with_mistyped_angle, rows_in_metres,
     joint_never_moves, orientation_garbage, simulate_negative_mass, simulate_zero_stiffness,
@@ -729,11 +756,12 @@ _BY_CLASS: dict[str, tuple[str, ...]] = {
         "robot_file_of_another_model_sealed"),
     "options that crash deep": (
         "seed_beyond_32_bits", "seed_negative", "device_meta", "device_unknown", "boolean_given_number",
-        "evaluate_interpolation", "simulate_interpolation", "study_workers_zero", "study_trials_zero",
+        "evaluate_interpolation", "evaluate_fit_option", "simulate_interpolation", "study_workers_zero", "study_trials_zero",
         "threshold_negative", "threshold_nan", "residual_unknown", "unknown_option", "simulate_zero",
         "simulate_negative"),
     "bad rows and contradictory inputs": ("rows_with_mistyped_angle", "rows_in_metres", "csv_semicolon",
-                                          "joint_never_moves", "orientation_garbage", "urdf_nan_limit", "yaml_deeply_nested", "simulate_negative_mass",
+                                          "joint_never_moves", "orientation_garbage", "urdf_nan_limit", "yaml_deeply_nested", "yaml_continuous_with_limits",
+                                          "yaml_continuous_not_boolean", "simulate_negative_mass",
                                           "simulate_zero_stiffness"),
     "a file of another robot or set-up": ("yaml_wrong_sign", "fit_points_of_other_poses", "evaluate_points_of_other_poses",
                                           "evaluate_instrument_moved"),

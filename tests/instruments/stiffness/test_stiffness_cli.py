@@ -158,7 +158,7 @@ def test_evaluate_needs_a_stiffness_stage(case, tmp_path, capsys):
 
 
 def test_geometry_and_stiffness_in_one_model_folder(tmp_path):
-    """Tracker fit, then model=<it> on a stiffness file of the same true robot, then export.
+    """Tracker fit, then model_dir=<it> on a stiffness file of the same true robot, then export.
 
     The exported compensator (run by the onnxruntime-only runner) corrects geometry and load
     together: the true loaded TCP lands on the nominal target.
@@ -171,7 +171,7 @@ def test_geometry_and_stiffness_in_one_model_folder(tmp_path):
     gen = torch.Generator().manual_seed(6)
     write_stiffness_csv(tmp_path / "load.csv", rig.sample(100, gen))
     combined = tmp_path / "combined"
-    assert main(["fit", "--robot", str(geo_case["robot.yaml"]), "--data", str(tmp_path / "load.csv"), "--out", str(combined), f"model={geo}"]) == 0
+    assert main(["fit", "--robot", str(geo_case["robot.yaml"]), "--data", str(tmp_path / "load.csv"), "--out", str(combined), f"model_dir={geo}"]) == 0
     stored = load_model(combined)
     assert stored.stiffness is not None
     assert torch.equal(stored.x, load_model(geo).x)  # the geometry is the tracker fit's

@@ -19,7 +19,7 @@ from torchcal.config.schema import FitConfig
 from torchcal.core.errors import ModelError, TorchcalError
 from torchcal.core.folder import verify_folder, write_member_json, write_member_text
 from torchcal.core.metrics import distance_summary
-from torchcal.core.overrides import apply_overrides, split_foreign_keys
+from torchcal.core.overrides import apply_overrides, renamed_keys, split_foreign_keys
 from torchcal.instruments.base import FitOutcome
 from torchcal.instruments.profile.closed_form import (
     ClosedFormResult,
@@ -49,7 +49,7 @@ class ProfileFitConfig:
 
     Attributes:
         joint_unit / length_unit: units of the file's ``q*`` and ``u, w`` (``deg``/``rad``, ``mm``/``m``).
-        model: calibrated model folder (``torchcal fit`` output) giving the flange poses;
+        model_dir: calibrated model folder (``torchcal fit`` output) giving the flange poses;
             default: the nominal robot.
         start: ``auto`` (closed form; the rotation search only when no scans are pure
             translations of each other), ``closed_form`` or ``search``.
@@ -61,7 +61,7 @@ class ProfileFitConfig:
 
     joint_unit: str = "deg"
     length_unit: str = "mm"
-    model: str | None = None
+    model_dir: str | None = None
     start: str = "auto"
     orientation_tol_deg: float = 0.1
     max_iterations: int = 100
@@ -71,6 +71,7 @@ class ProfileFitConfig:
 
 def profile_config(overrides: list[str]) -> ProfileFitConfig:
     """Merge ``key=value`` overrides; robot-fit keys (``residual=``, ``method=``...) are ignored with a warning."""
+    overrides = renamed_keys(overrides, {"model": "model_dir"}, what="a profile file")
     kept = split_foreign_keys(overrides, ProfileFitConfig, FitConfig, what="a profile file")
     config = apply_overrides(ProfileFitConfig(), kept)
     if config.start not in ("auto", "closed_form", "search"):
@@ -225,7 +226,7 @@ def fit_profile(robot_path, data_path, out_dir, overrides: list[str], *, base_li
     config = profile_config(overrides)
     robot = load_robot(robot_path, base_link=base_link, end_link=end_link)
     data = load_profile_file(data_path, robot, config)
-    T, source = flange_poses(data.q, robot, config.model)
+    T, source = flange_poses(data.q, robot, config.model_dir)
     seed, result = estimate(data, T, config)
     doc = sensor_document(data, seed, result, T, config)
     folder = Path(out_dir)
@@ -237,7 +238,7 @@ def fit_profile(robot_path, data_path, out_dir, overrides: list[str], *, base_li
     doc["flange_poses"] = {
         "source": source,
         "robot_file": robot_file,
-        "model": str(Path(config.model).resolve()) if config.model else None,
+        "model": str(Path(config.model_dir).resolve()) if config.model_dir else None,
     }
     write_member_json(folder, SENSOR_FILE, doc)
     return FitOutcome(folder)
@@ -272,7 +273,7 @@ def evaluate_profile(model_dir, data_path, overrides: list[str], *, register: bo
     config = profile_config(overrides)
     folder = Path(model_dir)
     doc = load_sensor(folder)
-    model = config.model
+    model = config.model_dir
     if model is None and (folder / "calibration.json").is_file():
         model = str(folder)
     if model is None:

@@ -134,8 +134,7 @@ def _reach(model: ErrorModel, x: torch.Tensor, targets: torch.Tensor, q0: torch.
     coarse = solve_ik(model, x, targets, q0, damping=0.05, max_iterations=60)
     fine = solve_ik(model, x, targets, coarse.q, max_iterations=30)
     # revolute joints: a solution 2 pi away is the same pose, so wrap towards the middle of the range
-    lim = model.robot.joint_limits.to(fine.q)
-    mid = lim.mean(-1)
+    mid = model.robot.turn_limits.to(fine.q).mean(-1)
     q = fine.q - 2 * math.pi * torch.round((fine.q - mid) / (2 * math.pi))
     ok = fine.converged & model.robot.within_limits(q)
     return q, ok

@@ -50,6 +50,9 @@ class ProfileInstrument(Instrument):
 
         return ProfileFitConfig
 
+    def evaluate_options(self) -> tuple[str, ...]:
+        return ("joint_unit", "length_unit", "check_limits", "device", "model_dir")
+
     def twin(self) -> TwinSpec:
         from torchcal.instruments.profile.twin import ProfileTwinConfig, write_profile_case
 

@@ -53,6 +53,9 @@ class SocketsInstrument(Instrument):
 
         return SocketsFitConfig
 
+    def evaluate_options(self) -> tuple[str, ...]:
+        return ("joint_unit", "check_limits", "placements", "distance_mm")
+
     def twin(self) -> TwinSpec:
         from torchcal.instruments.sockets.twin import SocketsTwinConfig, write_sockets_case
 

@@ -40,7 +40,7 @@ from torchcal.core.errors import DataError, IdentifiabilityWarning, TorchcalErro
 from torchcal.core.folder import remove_member, write_member_json
 from torchcal.core.hashing import sha256_file
 from torchcal.core.metrics import distance_summary
-from torchcal.core.overrides import apply_overrides, split_foreign_keys
+from torchcal.core.overrides import apply_overrides, renamed_keys, split_foreign_keys
 from torchcal.data.folds import SPLITS, Folds, make_folds
 from torchcal.instruments.base import FitOutcome
 from torchcal.instruments.stiffness.data import StiffnessData, load_stiffness
@@ -72,7 +72,7 @@ class StiffnessFitConfig:
     Attributes:
         joint_unit / length_unit: units of the file's ``q*`` (``deg`` | ``rad``) and of its
             ``d*``, ``x, y, z`` (``mm`` | ``m``).
-        model: calibrated model folder whose geometry the stiffness is added to (default: the
+        model_dir: calibrated model folder whose geometry the stiffness is added to (default: the
             nominal robot of ``--robot``).
         parameters: ``auto`` (default: the one of ``classic`` and ``full`` chosen by
             cross-validation, see the module docstring), ``classic`` (one spring about each
@@ -95,7 +95,7 @@ class StiffnessFitConfig:
 
     joint_unit: str = "deg"
     length_unit: str = "mm"
-    model: str | None = None
+    model_dir: str | None = None
     parameters: str = "auto"
     split: str = "grouped"
     cv_folds: int = 5
@@ -113,6 +113,7 @@ class StiffnessFitConfig:
 
 def stiffness_config(overrides: list[str]) -> StiffnessFitConfig:
     """Merge ``key=value`` overrides; tracker-fit keys that mean nothing here are ignored with a warning."""
+    overrides = renamed_keys(overrides, {"model": "model_dir"}, what="a stiffness file")
     kept = split_foreign_keys(overrides, StiffnessFitConfig, FitConfig, what="a stiffness file")
     config = apply_overrides(StiffnessFitConfig(), kept)
     if config.wrench_frame not in ("tool", "instrument"):
@@ -232,10 +233,10 @@ def fit_stiffness(
     out = Path(out_dir)
     robot = with_tool(load_robot(robot_path, base_link=base_link, end_link=end_link), config)  # type: ignore[arg-type]  # reads only tool_mm
     stored = None
-    if config.model is not None:
-        stored = load_model(config.model, device=config.device)
+    if config.model_dir is not None:
+        stored = load_model(config.model_dir, device=config.device)
         if stored.robot.dof != robot.dof:
-            raise TorchcalError(f"model {config.model} has {stored.robot.dof} joints but {robot_path} has {robot.dof}")
+            raise TorchcalError(f"model {config.model_dir} has {stored.robot.dof} joints but {robot_path} has {robot.dof}")
         if config.tool_mm is not None:
             warnings.warn("tool_mm is ignored with model=: the calibrated tool of the model is used", stacklevel=2)
     data = load_stiffness_file(data_path, robot.dof, config)
@@ -266,14 +267,14 @@ def fit_stiffness(
             "max_force_n": float(wrench[:, :3].norm(dim=-1).max()),
             "max_torque_nm": float(wrench[:, 3:].norm(dim=-1).max()),
         },
-        "geometry": {"source": "calibrated model", "model": str(config.model)} if stored else {"source": "nominal robot", "robot": str(robot_path)},
+        "geometry": {"source": "calibrated model", "model": str(config.model_dir)} if stored else {"source": "nominal robot", "robot": str(robot_path)},
         "fit_metrics": deflection_metrics(estimate, data),
     }
     if selection is not None:
         meta["model_selection"] = selection
-    if config.model is not None:  # stored was loaded from it
-        if out.resolve() != Path(config.model).resolve():
-            copy_model(config.model, out)
+    if config.model_dir is not None:  # stored was loaded from it
+        if out.resolve() != Path(config.model_dir).resolve():
+            copy_model(config.model_dir, out)
     else:
         # no geometric calibration: the nominal table, the loading set-up's instrument frame
         model = ErrorModel(robot, T_instrument_base=estimate.model.T_reference, device=config.device)

@@ -51,6 +51,9 @@ class StiffnessInstrument(Instrument):
 
         return StiffnessFitConfig
 
+    def evaluate_options(self) -> tuple[str, ...]:
+        return ("joint_unit", "length_unit", "device")
+
     def twin(self) -> TwinSpec:
         from torchcal.instruments.stiffness.twin_case import (
             StiffnessCaseConfig,

@@ -55,6 +55,10 @@ class TracerInstrument(Instrument):
 
         return TracerFitConfig
 
+    def evaluate_options(self) -> tuple[str, ...]:
+        return ("joint_unit", "length_unit", "max_iterations", "sigma_constant_um", "sigma_per_m_um",
+                "triangle_tolerance_mm")
+
     def twin(self) -> TwinSpec:
         from torchcal.instruments.tracer.twin_case import TracerTwinConfig, write_tracer_case
 

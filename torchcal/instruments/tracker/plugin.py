@@ -119,6 +119,9 @@ class TrackerInstrument(Instrument):
 
         return FitConfig
 
+    def evaluate_options(self) -> tuple[str, ...]:
+        return ("joint_unit", "length_unit")
+
     def twin(self) -> TwinSpec:
         from torchcal.sim.twin import TwinConfig, write_twin_case
 

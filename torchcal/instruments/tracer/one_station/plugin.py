@@ -62,6 +62,9 @@ class LengthStationInstrument(Instrument):
 
         return LengthStationConfig
 
+    def evaluate_options(self) -> tuple[str, ...]:
+        return ("joint_unit", "length_unit", "check_limits", "max_iterations", "refit_anchor")
+
     def twin(self) -> TwinSpec:
         from torchcal.instruments.tracer.one_station.twin import (
             LengthStationTwinConfig,

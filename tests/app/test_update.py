@@ -1,0 +1,180 @@
+"""torchcal update on a twin whose truth changed after calibration (or did not).
+
+Truth: the twin's true parameters, changed by a known amount in one group (tool swapped, joint
+re-mastered, link bent) or moved as a whole (only the frame changes). The update from 12 new
+poses must free what changed, recover the change, and predict new poses of the changed robot as
+well as the old model predicted the unchanged one.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+
+import pytest
+import torch
+
+from torchcal.app.update import update_data, write_update
+from torchcal.cli import main
+from torchcal.config.schema import FitConfig
+from torchcal.core.folder import staged_folder
+from torchcal.core.hashing import sha256_file
+from torchcal.data.measurements import write_measurements_csv
+from torchcal.sim.twin import Twin, TwinConfig
+from torchcal.stages.geometry import held_out_errors
+from torchcal.stages.pipeline import fit_model
+from torchcal.stages.prediction_uncertainty import stored_prediction
+from torchcal.stages.store import load_model
+
+MM, DEG = 1e-3, math.pi / 180
+
+
+@pytest.fixture(scope="module")
+def calibrated(tmp_path_factory):
+    twin = Twin.create(TwinConfig(seed=3))
+    train = twin.sample(150, torch.Generator().manual_seed(11))
+    folder = tmp_path_factory.mktemp("update") / "model"
+    fit_model(folder, twin.robot, train, FitConfig(residual="none", progress=False))
+    return twin, load_model(folder)
+
+
+def _changed(twin: Twin, **deltas: float) -> Twin:
+    x = twin.x_true.clone()
+    for name, delta in deltas.items():
+        x[twin.model.layout.index(name)] += delta
+    return dataclasses.replace(twin, x_true=x)
+
+
+def _rms_mm(errors: torch.Tensor) -> float:
+    return float(errors.norm(dim=-1).pow(2).mean().sqrt()) * 1e3
+
+
+CASES = {
+    "nothing": ({}, []),
+    "robot moved": ({"base_x": 50 * MM, "base_y": -20 * MM, "base_rz": 1.0 * DEG}, []),
+    "tool swapped": ({"tool_x": 1.0 * MM, "tool_y": -0.5 * MM, "tool_z": 2.0 * MM}, ["tool_x", "tool_y", "tool_z"]),
+    "joint 3 re-mastered": ({"theta3": 0.05 * DEG}, ["theta3"]),
+    "link 3 bent": ({"alpha3": 0.05 * DEG, "a3": 0.3 * MM}, ["alpha3", "a3"]),
+}
+
+
+@pytest.mark.parametrize("case", list(CASES))
+def test_update_recovers_the_change(calibrated, case, tmp_path):
+    twin, stored = calibrated
+    deltas, names = CASES[case]
+    robot = _changed(twin, **deltas)
+    result = update_data(stored, robot.sample(12, torch.Generator().manual_seed(101)))
+    assert set(names) <= set(result.freed) and (names or not result.freed)
+    changes = {c["name"]: c for c in result.changes()}
+    for name, delta in deltas.items():
+        if name in changes:  # the change the update found, against the truth's (mm or deg), within 4 sigma
+            unit = 1 / DEG if changes[name]["unit"] == "deg" else 1e3
+            assert abs(changes[name]["change"] - delta * unit) < 4 * changes[name]["sigma"] + 1e-9
+    with staged_folder(tmp_path / "new") as staging:
+        write_update(staging, result)
+    new = load_model(tmp_path / "new")
+    test = robot.sample(300, torch.Generator().manual_seed(5))
+    before = _rms_mm(held_out_errors(stored, twin.sample(300, torch.Generator().manual_seed(5)), register=True))
+    own = held_out_errors(new, test)  # the updated model's own frame: what a user sees on new poses
+    assert _rms_mm(own) < 1.3 * before
+    inside = (own.norm(dim=-1) * 1e3 <= stored_prediction(new, test.q).p95_mm).double().mean()
+    assert inside >= 0.85
+
+
+def test_update_cli_writes_a_whole_folder_with_provenance(calibrated, tmp_path, capsys):
+    twin, stored = calibrated
+    data = _changed(twin, theta3=0.05 * DEG).sample(12, torch.Generator().manual_seed(7))
+    write_measurements_csv(tmp_path / "few.csv", data.q, data.position)
+    out = tmp_path / "new"
+    assert main(["update", "--model", str(stored.folder), "--data", str(tmp_path / "few.csv"), "--out", str(out)]) == 0
+    meta = json.loads((out / "calibration.json").read_text())
+    update = meta["update"]
+    assert update["parent"]["checksums_sha256"] == sha256_file(stored.folder / "checksums.json")
+    assert update["freed"] == ["theta3"] and update["data"]["n_poses"] == 12 and update["evidence"]["verdict"] == "changed"
+    assert json.loads((out / "uncertainty.json").read_text())["n_poses"] == 12
+    assert (out / "calibrated_robot.urdf").is_file() and (out / "report.html").is_file()
+    assert "freed: theta3" in capsys.readouterr().out
+    new = load_model(out)  # whole: checksums verified
+    assert new.training_q is not None and len(new.training_q) == len(stored.training_q) + 12
+    # free= overrides the evidence
+    assert main(["update", "--model", str(stored.folder), "--data", str(tmp_path / "few.csv"), "--out",
+                 str(tmp_path / "tool"), "free=tool"]) == 0
+    assert json.loads((tmp_path / "tool" / "calibration.json").read_text())["update"]["freed"] == ["tool_x", "tool_y", "tool_z"]
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["free=wrist9"], "unknown 'wrist9'"),
+    (["speed=3"], "unknown option 'speed=3'"),
+])
+def test_update_refuses_bad_options_in_one_line(calibrated, tmp_path, capsys, argv, message):
+    twin, stored = calibrated
+    data = twin.sample(12, torch.Generator().manual_seed(7))
+    write_measurements_csv(tmp_path / "few.csv", data.q, data.position)
+    code = main(["update", "--model", str(stored.folder), "--data", str(tmp_path / "few.csv"), "--out",
+                 str(tmp_path / "new"), *argv])
+    err = capsys.readouterr().err
+    assert code == 2 and message in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "new").exists()
+
+
+def test_update_never_writes_into_its_parent(calibrated, tmp_path, capsys):
+    twin, stored = calibrated
+    data = twin.sample(12, torch.Generator().manual_seed(7))
+    write_measurements_csv(tmp_path / "few.csv", data.q, data.position)
+    code = main(["update", "--model", str(stored.folder), "--data", str(tmp_path / "few.csv"), "--out", str(stored.folder)])
+    assert code == 2 and "names the parent model" in capsys.readouterr().err
+
+
+def test_check_and_update_name_and_refit_a_changed_compliance(tmp_path):
+    """A heavier payload at the wrist (10 -> 30 kg) changes the gravity sag, not the geometry."""
+    twin = Twin.create(TwinConfig(seed=3, gravity=True))
+    fit_model(tmp_path / "old", twin.robot, twin.sample(150, torch.Generator().manual_seed(11)),
+              FitConfig(residual="none", progress=False))
+    old = load_model(tmp_path / "old")
+    assert old.metadata.get("gravity_compliance")
+    heavy = dataclasses.replace(twin, config=dataclasses.replace(twin.config, link_masses_kg=[25.0, 15.0, 30.0]))
+    result = update_data(old, heavy.sample(12, torch.Generator().manual_seed(300)))
+    assert result.check is not None and result.check.changed == ["gravity_compliance"]
+    assert result.freed == ["gravity_compliance"] and result.scales["gravity_compliance"] > 0.5  # the sag grew
+    with staged_folder(tmp_path / "new") as staging:
+        write_update(staging, result)
+    new = load_model(tmp_path / "new")
+    test = heavy.sample(300, torch.Generator().manual_seed(5))
+    before = _rms_mm(held_out_errors(old, test, register=True))
+    after = _rms_mm(held_out_errors(new, test))
+    # one scale for the whole term takes most of the change (the true change is at one mass point only)
+    assert after < 0.5 * before
+
+
+def test_a_head_is_kept_while_it_helps_and_dropped_when_its_error_is_gone(tmp_path):
+    """Truth: a twin with gear errors (which a head learns), and the same twin with the gearboxes replaced."""
+    from torchcal.residual import HEADS
+    from torchcal.residual.selection import fit_before_gate
+    from torchcal.stages.geometry import model_joints
+    from torchcal.stages.residual import make_features, residual_targets_mm
+    from torchcal.stages.residual_store import StoredResidual, save_residual
+
+    geared = Twin.create(TwinConfig(seed=3, gear=True, gear_amplitude_deg=0.05))
+    replaced = Twin.create(TwinConfig(seed=3))
+    assert torch.equal(geared.x_true, replaced.x_true)
+    data = geared.sample(600, torch.Generator().manual_seed(11))
+    config = FitConfig(residual="none", progress=False, gravity_compliance="none", joint_harmonics="none")
+    fit_model(tmp_path / "old", geared.robot, data, config)
+    stored = load_model(tmp_path / "old")
+    head = HEADS["elm"].from_options(config)  # a head on every pose (the gate is the fit's business, not this test's)
+    features = make_features(stored.robot, data)
+    fit_before_gate(head, features(data.q, data.temperature),
+                    residual_targets_mm(stored.model, stored.x, data, model_joints(stored, data.q)), seed=0)
+    save_residual(tmp_path / "old", StoredResidual(head, features, {"decision": "fitted for this test"}))
+    stored = load_model(tmp_path / "old")
+    kept = update_data(stored, geared.sample(16, torch.Generator().manual_seed(300)), free="frame")
+    dropped = update_data(stored, replaced.sample(16, torch.Generator().manual_seed(300)), free="frame")
+    assert kept.head_kept is True and "kept" in (kept.head_line or "")
+    assert dropped.head_kept is False and "dropped" in (dropped.head_line or "")
+    with staged_folder(tmp_path / "new") as staging:
+        write_update(staging, dropped)
+    assert load_model(tmp_path / "new").residual is None
+    with staged_folder(tmp_path / "new2") as staging:
+        write_update(staging, kept)
+    assert load_model(tmp_path / "new2").residual is not None

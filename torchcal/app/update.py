@@ -1,0 +1,458 @@
+"""``torchcal update``: a new model folder from an earlier one and a few new poses.
+
+The robot's life after its calibration changes a part of it (a tool swapped, a joint re-mastered,
+a link bent, the robot moved). ``update`` keeps what still holds and re-identifies the rest from a
+handful of new poses (12-20 measured with the tracker wherever it now stands):
+
+* **the instrument frame** is always re-registered (no prior: the tracker stands elsewhere);
+* **what else is freed**: by default the group that :func:`torchcal.app.check.check_data` names
+  (the same refits and the same BIC threshold, so ``check`` and ``update`` never disagree); none
+  when the check names none (the robot moved, or nothing changed). ``free=`` overrides:
+  ``frame`` (nothing else), ``tool``, ``offsets`` (every joint's zero offset), ``all`` (every
+  parameter of the MDH table and the tool), or a comma list of check groups and parameter names
+  (``free=tool,theta3``, ``free=link3``, ``free=a2,d4``);
+* **the freed parameters** get the manufacturing-tolerance prior (:mod:`torchcal.identify.prior`)
+  centred on the old model's values: the old model's posterior covariance says the opposite of
+  the truth about a part that changed (it was pinned to the old value by hundreds of poses);
+* **everything not freed stays fixed at the old model**, joint-space terms (gravity compliance,
+  harmonics) included, and keeps the old covariance. A prior from that covariance would be the
+  same in practice: the old fit saw 20 to 200 times more poses than the update, so its
+  posterior sigmas are far below what the new poses could resolve; fixing keeps the fit as small
+  as the new poses can carry (frame + freed group).
+
+**Prediction uncertainty** (``uncertainty.json``) is recalibrated on the new poses: each pose's
+error predicted by a fit of the others (leave-one-out, frame and freed group refitted each time;
+with 12-20 poses every pose is its own region) gives the model discrepancy ``sigma_d`` as in
+:mod:`torchcal.stages.prediction_uncertainty`. The *shape* of the 95 % region (the conformal
+quantile of the normalised scores) is kept from the old model, calibrated on hundreds of
+out-of-fold errors: 12-20 scores cannot place a 95th percentile (the split-conformal quantile of
+12 is their largest), but they do estimate a scale (the variance from ``3n`` coordinates, about
++-20 % in sigma at ``n = 12``). A model without one takes both from the new poses and says so.
+
+**A learned residual head** of the old model is kept only if it still helps on the new poses: the
+update is made with and without the head's correction and the head is kept when the
+leave-one-out RMS with it is lower; otherwise it is dropped with a line saying so. **Joint
+stiffness** (a property of the joints, not measured by position poses) is kept as it was.
+
+Provenance (``calibration.json`` ``update`` and the report): the parent folder and the SHA-256 of
+its ``checksums.json`` (which pins every file of it), what was freed and why, the poses, the
+check's evidence, the head decision and the uncertainty protocol.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from torchcal.app.check import (
+    BIC_CHANGED,
+    TERM_GROUPS,
+    CheckResult,
+    check_data,
+    check_report,
+    groups_of,
+    refit,
+    term_deflections,
+)
+from torchcal.core.errors import DataError, IdentifiabilityWarning, ModelError
+from torchcal.core.folder import CHECKSUMS, write_member
+from torchcal.core.hashing import sha256_file
+from torchcal.data.measurements import Measurements, load_measurements
+from torchcal.identify.calibrate import CalibrationResult, calibrate
+from torchcal.identify.joint_errors import JointSpaceErrors
+from torchcal.identify.prior import EarlierModel, PriorSpec, resolve_tolerances
+from torchcal.report.document import Paragraph, Preformatted, Report, Section, Table, write_report
+from torchcal.stages.base import ResidualStage
+from torchcal.stages.geometry import model_joints
+from torchcal.stages.prediction_uncertainty import (
+    ErrorCalibration,
+    calibrate_errors,
+    load_uncertainty,
+    point_jacobian,
+    write_uncertainty,
+)
+from torchcal.stages.prior_options import prior_metadata
+from torchcal.stages.residual_store import save_residual
+from torchcal.stages.store import StoredModel, load_model, save_model
+
+#: The keywords of ``free=`` besides group and parameter names.
+FREE_KEYWORDS = ("auto", "frame", "tool", "offsets", "all")
+#: Fewest new poses an update accepts (the frame takes 6 of their 3n coordinates, the LOO one more pose).
+MIN_POSES = 6
+UNCERTAINTY_PROTOCOL = ("leave-one-out over the new poses (frame and freed parameters refitted without each pose): "
+                        "discrepancy sigma from their errors; shape of the 95 % region (conformal quantile) {shape}")
+
+
+@dataclass
+class UpdateResult:
+    """What an update found and fitted (SI inside; mm and deg in lines and metadata)."""
+
+    stored: StoredModel
+    data: Measurements
+    freed: list[str]
+    how: str
+    check: CheckResult | None
+    fit: CalibrationResult
+    free: torch.Tensor
+    covariance: torch.Tensor
+    loo_errors_mm: np.ndarray
+    uncertainty: ErrorCalibration
+    head_kept: bool | None
+    head_line: str | None
+    parent_sha256: str
+    notes: list[str] = field(default_factory=list)
+    scales: dict[str, float] = field(default_factory=dict)
+    used: StoredModel | None = None
+
+    @property
+    def terms_of(self) -> StoredModel:
+        """The parent with its joint-space terms as the update uses them (rescaled where freed)."""
+        return self.used if self.used is not None else self.stored
+
+    @property
+    def fit_rms_mm(self) -> float:
+        q = model_joints(self.terms_of, self.data.q)
+        errors = self.data.position - self.fit.model.tcp_position(q, self.fit.x) - self._head_offset()
+        return float(errors.norm(dim=-1).pow(2).mean().sqrt()) * 1e3
+
+    @property
+    def loo_rms_mm(self) -> float:
+        return float(np.sqrt(np.mean(np.sum(self.loo_errors_mm**2, axis=-1))))
+
+    def _head_offset(self) -> torch.Tensor:
+        if not self.head_kept or self.stored.residual is None:
+            return torch.zeros_like(self.data.position)
+        return _head_offset(self.stored, self.fit, self.data)
+
+    def changes(self) -> list[dict]:
+        """Per freed parameter: old and new value, change and new 1-sigma (mm or deg)."""
+        layout = self.fit.model.layout
+        scale = layout.unit_scale()
+        angle = layout.is_angle()
+        sigma = self.fit.covariance.diagonal().clamp_min(0).sqrt()
+        position = {int(i): k for k, i in enumerate(self.fit.free.tolist())}
+        rows = []
+        for name in self.freed:
+            if name in self.scales:
+                s = self.scales[name]
+                rows.append({"name": f"{name} scale", "unit": "", "old": 1.0, "new": 1.0 + s, "change": s, "sigma": math.nan})
+                continue
+            i = layout.index(name)
+            old, new = float(self.stored.x[i] * scale[i]), float(self.fit.x[i] * scale[i])
+            rows.append({"name": name, "unit": "deg" if bool(angle[i]) else "mm", "old": old, "new": new,
+                         "change": new - old, "sigma": float(sigma[position[i]] * scale[i]) if i in position else 0.0})
+        return rows
+
+    def provenance(self) -> dict:
+        """``calibration.json`` ``update``."""
+        return {
+            "parent": {"folder": str(self.stored.folder), "checksums_sha256": self.parent_sha256,
+                       "data": (self.stored.metadata.get("data") or {})},
+            "data": {"file": self.data.source, "sha256": self.data.sha256, "n_poses": len(self.data)},
+            "frame": "re-registered (no prior)",
+            "freed": self.freed,
+            "freed_by": self.how,
+            "prior_of_freed": "manufacturing tolerances centred on the parent's values",
+            "kept": "every other parameter, joint-space terms included, fixed at the parent's values with its covariance",
+            "joint_space_term_scales": {k: 1.0 + v for k, v in self.scales.items()},
+            "changes": self.changes(),
+            "fit_rms_mm": self.fit_rms_mm,
+            "leave_one_out_rms_mm": self.loo_rms_mm,
+            "evidence": None if self.check is None else self.check.to_dict(),
+            "uncertainty": self.uncertainty.protocol,
+            "residual_head": self.head_line,
+            "notes": self.notes,
+        }
+
+    def lines(self) -> list[str]:
+        out = [(f"parent model {self.stored.folder} (checksums SHA-256 {self.parent_sha256[:12]}...); "
+                f"{len(self.data)} new poses from {self.data.source}; frame re-registered")]
+        if self.check is not None:
+            out += self.check.lines()
+        out.append(f"freed: {', '.join(self.freed) if self.freed else 'nothing besides the frame'} ({self.how})")
+        for c in self.changes():
+            out.append(f"  {c['name']}: {c['old']:+.4f} -> {c['new']:+.4f} {c['unit']} (change {c['change']:+.4f}, "
+                       f"1-sigma {c['sigma']:.4f})")
+        out.append(f"updated model on its {len(self.data)} poses: RMS {self.fit_rms_mm:.3f} mm; leave-one-out "
+                   f"(each pose predicted by a fit of the others) {self.loo_rms_mm:.3f} mm")
+        out.append(f"prediction uncertainty recalibrated: discrepancy sigma {self.uncertainty.discrepancy_sigma_mm:.3f} mm "
+                   f"per coordinate ({self.uncertainty.protocol})")
+        if self.head_line:
+            out.append(self.head_line)
+        out += self.notes
+        return out
+
+
+def parent_sha256(folder: Path) -> str:
+    """SHA-256 of a model folder's ``checksums.json`` (it lists every file's SHA-256: the folder's identity)."""
+    return sha256_file(Path(folder) / CHECKSUMS)
+
+
+def resolve_free(spec: str, stored: StoredModel, check: CheckResult | None) -> tuple[list[str], str]:
+    """The parameter names ``free=spec`` frees besides the frame, and how they were chosen (one phrase)."""
+    model = stored.model
+    layout, active = model.layout, model.default_active()
+    names = list(layout.names)
+    tool = ["tool_x", "tool_y", "tool_z"]
+    table = [n for i, n in enumerate(names) if layout.table_slice.start <= i < layout.table_slice.stop and bool(active[i])]
+    text = str(spec).strip()
+    if text == "auto":
+        if check is None:
+            raise ModelError("free=auto needs the check's evidence")
+        best = check.best
+        if check.changed and best is not None:
+            return list(best.names), (f"chosen by the check's evidence: group {best.group}, dBIC {best.delta_bic:+.1f} "
+                                      f"> {BIC_CHANGED:g}")
+        return [], "chosen by the check's evidence: no group named (the robot moved or nothing changed)"
+    if text == "frame":
+        return [], "free=frame"
+    if text == "tool":
+        return tool, "free=tool"
+    if text == "offsets":
+        return [n for n in table if n.startswith("theta")], "free=offsets"
+    if text == "all":
+        return table + tool, "free=all"
+    groups = groups_of(model, stored.metadata)
+    chosen: list[str] = []
+    for item in (t.strip() for t in text.split(",")):
+        if item in groups:
+            members = groups[item]
+        elif (item in names and not item.startswith("base_")) or item in groups.get("compliance", []) + groups.get("harmonics", []):
+            members = [item]
+        else:
+            raise DataError(f"free={spec}: unknown '{item}'; give auto, frame, tool, offsets, all, a group "
+                            f"({', '.join(g for g, m in groups.items() if m)}) or parameter names")
+        chosen += [m for m in members if m not in chosen]
+    return chosen, f"free={text}"
+
+
+def _fit(stored: StoredModel, data: Measurements, names: list[str]) -> CalibrationResult:
+    """MAP fit of the frame and ``names`` from the old model, every other parameter fixed at its old value.
+
+    ``data``'s joints are the commanded ones: the old model's joint-space terms are applied here.
+    """
+    effective = replace(data, q=model_joints(stored, data.q))
+    layout = stored.model.layout
+    fixed = tuple(n for n in layout.names if not n.startswith("base_") and n not in names)
+    empty = torch.zeros(0, dtype=torch.long)
+    earlier = EarlierModel(x=stored.x.detach().cpu().to(torch.float64), indices=empty,
+                           covariance=torch.zeros(0, 0, dtype=torch.float64), label=str(stored.folder))
+    spec = PriorSpec(tolerances=resolve_tolerances(stored.robot.source), scale=1.0, earlier=earlier)
+    with warnings.catch_warnings():
+        # the rank diagnostic of a group fit is a note of the result; every freed name has its prior
+        warnings.simplefilter("ignore", IdentifiabilityWarning)
+        return calibrate(stored.robot, effective, use_orientation=False, fixed=fixed, prior=spec,
+                         parallel_threshold_deg=stored.model.parallel_threshold_deg)
+
+
+def _rescaled(stored: StoredModel, scales: dict[str, float]) -> StoredModel:
+    """``stored`` with each joint-space term in ``scales`` (by its ``calibration.json`` key) multiplied by ``1 + s``."""
+    terms = JointSpaceErrors.from_metadata(stored.metadata)
+    compliance, harmonics = terms.compliance, terms.harmonics
+    if compliance is not None and TERM_GROUPS["compliance"] in scales:
+        compliance = replace(compliance, coefficients=compliance.coefficients * (1.0 + scales[TERM_GROUPS["compliance"]]))
+    if harmonics is not None and TERM_GROUPS["harmonics"] in scales:
+        factor = 1.0 + scales[TERM_GROUPS["harmonics"]]
+        harmonics = replace(harmonics, coefficients=harmonics.coefficients * factor,
+                            sigma=None if harmonics.sigma is None else harmonics.sigma * abs(factor))
+    return replace(stored, metadata={**stored.metadata, **JointSpaceErrors(compliance, harmonics).to_metadata()})
+
+
+def _fit_all(stored: StoredModel, data: Measurements, names: list[str]) -> tuple[StoredModel, CalibrationResult, dict]:
+    """The update's fit: freed joint-space terms first (each as a whole, one scale, with the frame and the
+    freed geometry, by least squares: :func:`torchcal.app.check.refit`), then the MAP fit of the frame and
+    the freed geometry on the joints of the rescaled terms. Returns ``(terms model, fit, scales)``."""
+    keys = [n for n in names if n in TERM_GROUPS.values()]
+    geometry = [n for n in names if n not in keys]
+    if not keys:
+        return stored, _fit(stored, data, geometry), {}
+    _, x, model = refit(stored, data, names, torch.ones(len(data), dtype=torch.float64))
+    present = list(term_deflections(stored, data.q))
+    scales = {k: float(x[model.layout.size + present.index(k)]) for k in keys}
+    used = _rescaled(stored, scales)
+    return used, _fit(used, data, geometry), scales
+
+
+def _loo_errors(stored: StoredModel, data: Measurements, names: list[str]) -> np.ndarray:
+    """``(n, 3)`` mm: each pose's error predicted by the update fitted to the other poses."""
+    n = len(data)
+    out = np.zeros((n, 3))
+    for i in range(n):
+        rest = [k for k in range(n) if k != i]
+        used, fit, _ = _fit_all(stored, data.subset(rest), names)
+        q = model_joints(used, data.q[i : i + 1])
+        out[i] = ((data.position[i : i + 1] - fit.model.tcp_position(q, fit.x)) * 1e3).numpy()[0]
+    return out
+
+
+def _head_offset(stored: StoredModel, fit: CalibrationResult, data: Measurements) -> torch.Tensor:
+    """The old head's correction at ``data``'s poses in the instrument frame of ``fit`` (m)."""
+    assert stored.residual is not None
+    stage = ResidualStage(stored.residual, fit.model.T_reference[:3, :3])
+    offset = stage.tcp_offset(data.q, temperature=data.temperature)
+    return torch.zeros_like(data.position) if offset is None else offset.to(data.position)
+
+
+def _union(stored: StoredModel, fit: CalibrationResult, joints: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The new folder's estimated indices and joint covariance (the fit's and the parent's, linked).
+
+    The fit estimated ``f`` (frame and freed group) with the kept parameters ``k`` fixed at the
+    parent's values; their error ``dk`` (covariance ``S_k``, the parent's) is partly absorbed by
+    ``f``: to first order ``df = e_f - A dk`` with ``A`` the least-squares map of the kept
+    parameters' effect at the new poses (``joints``) onto ``f``'s and ``e_f`` the fit's own error
+    (covariance ``S_f``). So ``Cov(f) = S_f + A S_k A^T``, ``Cov(f, k) = -A S_k``: a point's
+    predicted error ``J_f e_f + (J_k - J_f A) dk`` keeps only what the refit cannot absorb (row 1
+    of an arm, which the frame takes over entirely, adds nothing).
+    """
+    new = fit.free.tolist()
+    fitted = set(new)
+    old = stored.free.tolist()
+    kept = [k for k, i in enumerate(old) if i not in fitted]
+    free = new + [old[k] for k in kept]
+    jac = point_jacobian(fit.model, fit.x, torch.tensor(free, dtype=torch.long), joints).reshape(-1, len(free))
+    nf = len(new)
+    s_f = fit.covariance.detach().cpu().to(torch.float64)
+    take = torch.tensor(kept, dtype=torch.long)
+    s_k = stored.covariance.detach().cpu().to(torch.float64)[take][:, take]
+    a = torch.linalg.lstsq(jac[:, :nf], jac[:, nf:], driver="gelsd").solution if kept else torch.zeros(nf, 0, dtype=torch.float64)
+    cov = torch.zeros(len(free), len(free), dtype=torch.float64)
+    cov[:nf, :nf] = s_f + a @ s_k @ a.T
+    cov[:nf, nf:] = -a @ s_k
+    cov[nf:, :nf] = cov[:nf, nf:].T
+    cov[nf:, nf:] = s_k
+    order = torch.argsort(torch.tensor(free))
+    return torch.tensor(free, dtype=torch.long)[order], cov[order][:, order]
+
+
+def _uncertainty(stored: StoredModel, data: Measurements, fit: CalibrationResult, free: torch.Tensor,
+                 cov: torch.Tensor, loo_mm: np.ndarray) -> ErrorCalibration:
+    """Recalibrated prediction uncertainty (module docstring)."""
+    old = load_uncertainty(stored.folder)
+    joints = model_joints(stored, data.q)
+    jac = point_jacobian(fit.model, fit.x, free, joints)
+    norms = np.linalg.norm(loo_mm, axis=-1)
+    method = old.method if old is not None else "conformal"
+    if old is None:
+        return calibrate_errors(jac, cov, norms, UNCERTAINTY_PROTOCOL.format(
+            shape=f"from these {len(norms)} poses too (the parent has no uncertainty.json): coarse"), method)
+    fresh = calibrate_errors(jac, cov, norms, "", method)
+    return ErrorCalibration(method, fresh.discrepancy_sigma_mm, old.conformal_q, old.score_quantiles, fresh.cv_rms_mm,
+                            len(norms), UNCERTAINTY_PROTOCOL.format(
+                                shape=f"kept from the parent (its {old.n_poses} out-of-fold errors)"))
+
+
+def update_data(stored: StoredModel, data: Measurements, free: str = "auto") -> UpdateResult:
+    """The update of ``stored`` from ``data`` (see the module docstring); nothing is written."""
+    n = len(data)
+    if n < MIN_POSES:
+        raise DataError(f"{n} poses; update needs at least {MIN_POSES} (12-20 advisable)", path=data.source)
+    spec = str(free).strip()
+    if not spec:
+        raise DataError("free= is empty; give auto, frame, tool, offsets, all or names")
+    check = check_data(stored, data) if spec == "auto" or load_has_uncertainty(stored) else None
+    names, how = resolve_free(spec, stored, check)
+    if 3 * (n - 1) <= 6:
+        raise DataError(f"{n} poses are too few for the frame", path=data.source)
+    notes: list[str] = []
+    work = data
+    head_kept: bool | None = None
+    head_line = None
+    used, fit, scales = _fit_all(stored, work, names)
+    loo = _loo_errors(stored, work, names)
+    if stored.residual is not None:
+        corrected = replace(data, position=data.position - _head_offset(stored, fit, data))
+        used_h, fit_h, scales_h = _fit_all(stored, corrected, names)
+        loo_h = _loo_errors(stored, corrected, names)
+        without, with_head = (float(np.sqrt(np.mean(np.sum(e**2, axis=-1)))) for e in (loo, loo_h))
+        head_kept = with_head < without
+        if head_kept:
+            used, fit, scales, loo = used_h, fit_h, scales_h, loo_h
+            head_line = (f"residual head ({stored.residual.head.name}) kept: leave-one-out RMS "
+                         f"{with_head:.3f} mm with it, {without:.3f} mm without")
+        else:
+            head_line = (f"residual head ({stored.residual.head.name}) dropped: leave-one-out RMS "
+                         f"{with_head:.3f} mm with it, {without:.3f} mm without (it no longer helps on this robot)")
+    if stored.stiffness is not None:
+        notes.append("joint stiffness kept from the parent (position poses do not measure it)")
+    union_free, cov = _union(stored, fit, model_joints(used, data.q))
+    uncertainty = _uncertainty(used, data, fit, union_free, cov, loo)
+    for key, scale in scales.items():
+        notes.append(f"{key} refitted as a whole: scaled by {1.0 + scale:.3f} (with the frame and the freed geometry)")
+    return UpdateResult(stored=stored, data=data, freed=names, how=how, check=check, fit=fit, free=union_free,
+                        covariance=cov, loo_errors_mm=loo, uncertainty=uncertainty, head_kept=head_kept,
+                        head_line=head_line, parent_sha256=parent_sha256(stored.folder), notes=notes, scales=scales,
+                        used=used)
+
+
+def load_has_uncertainty(stored: StoredModel) -> bool:
+    """Whether the folder has a prediction uncertainty (the check's evidence needs one)."""
+    return load_uncertainty(stored.folder) is not None
+
+
+def write_update(folder: Path, result: UpdateResult) -> Path:
+    """Write the updated model folder into ``folder`` (a staging folder: the caller swaps it in)."""
+    stored, fit, data = result.stored, result.fit, result.data
+    meta = {
+        "method": "update",
+        "data": {"file": data.source, "sha256": data.sha256, "n_poses": len(data)},
+        "identifiability": fit.identifiability.to_metadata(),
+        "residual_sigma_mm": fit.sigma_residual_m * 1e3,
+        "solver": {"iterations": fit.solve.iterations, "message": fit.solve.message, "cost_history": fit.solve.history},
+        "notes": [*fit.notes, *result.notes] + ([result.head_line] if result.head_line else []),
+        "prior": prior_metadata(fit),
+        "update": result.provenance(),
+        **JointSpaceErrors.from_metadata(result.terms_of.metadata).to_metadata(),
+    }
+    training = data.q if stored.training_q is None else torch.cat([stored.training_q.to(data.q), data.q])
+    save_model(folder, stored.robot, fit.model, fit.x, result.free, result.covariance, meta, training_q=training)
+    write_uncertainty(folder, result.uncertainty)
+    if result.head_kept and stored.residual is not None:
+        save_residual(folder, stored.residual)
+    for name in ("stiffness.safetensors", "stiffness.json"):
+        if stored.stiffness is not None and (stored.folder / name).is_file():
+            write_member(folder, name, (stored.folder / name).read_bytes())
+    write_report(folder, update_report(result), member=True)
+    return folder
+
+
+def update_report(result: UpdateResult) -> Report:
+    """The report of an update: provenance, what changed, the evidence, the recalibrated uncertainty."""
+    changes = Table("changes", ["parameter", "parent", "updated", "change", "1-sigma", "unit"],
+                    [[c["name"], f"{c['old']:+.4f}", f"{c['new']:+.4f}", f"{c['change']:+.4f}", f"{c['sigma']:.4f}", c["unit"]]
+                     for c in result.changes()], caption="freed parameters (all others kept at the parent's values)")
+    sections = [
+        Section("Update", [Paragraph(f"Parent model: {result.stored.folder} (SHA-256 of its checksums.json "
+                                     f"{result.parent_sha256}). New poses: {result.data.source} ({len(result.data)})."),
+                           Preformatted("\n".join(result.lines()))]),
+        Section("What changed", [changes, Paragraph(
+            "Frame re-registered without a prior. Freed parameters: manufacturing-tolerance prior centred on the "
+            "parent's values. Everything else, joint-space terms included, fixed at the parent's values with its covariance.")]),
+        Section("Prediction uncertainty", [Paragraph(
+            f"{result.uncertainty.protocol}: leave-one-out RMS {result.loo_rms_mm:.3f} mm, discrepancy sigma "
+            f"{result.uncertainty.discrepancy_sigma_mm:.3f} mm per coordinate. With {len(result.data)} poses the scale is "
+            f"known to about +-{100 / math.sqrt(2 * 3 * len(result.data)):.0f} % (1 sigma).")]),
+    ]
+    if result.check is not None:
+        sections += check_report(result.check, result.stored.folder).sections[1:2]
+    return Report(f"Update of {Path(result.stored.folder).name} from {Path(result.data.source).name}", sections)
+
+
+def update_model(model_dir: str | Path, data_file: str | Path, out: str | Path, free: str = "auto") -> UpdateResult:
+    """Load, update and write ``out`` whole (staged: an interrupted update leaves what was there)."""
+    from torchcal.core.folder import check_output_folder, staged_folder
+
+    out = Path(out)
+    if out.resolve() == Path(model_dir).resolve():
+        raise DataError(f"{out}: --out names the parent model; an update writes a new folder")
+    check_output_folder(out, "--out", purpose="model")
+    stored = load_model(model_dir)
+    data = load_measurements(data_file, stored.robot)
+    result = update_data(stored, data, free)
+    with staged_folder(out, "--out", purpose="model") as staging:
+        write_update(staging, result)
+    return result
