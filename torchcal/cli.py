@@ -518,5 +518,21 @@ def _main(argv: list[str] | None) -> int:
         warnings.showwarning = show
 
 
+def _exit_as_module(status: int) -> None:
+    """End ``python -m torchcal.cli`` with ``status``, also after Ctrl-C or SIGTERM.
+
+    Under ``-m``, CPython remembers a ``KeyboardInterrupt`` that ended any code run from a string
+    (``exec`` of source text, as ``dataclasses`` and other libraries do) even when it was caught,
+    and at exit kills the interpreter with SIGINT instead of returning the status: a terminated
+    command would say "terminated" and end as if interrupted (seen as status -2). The outputs are
+    already cleaned up when ``main`` returns, so a stopped command ends here with its own status.
+    """
+    if status in (130, 143):
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(status)
+    raise SystemExit(status)
+
+
 if __name__ == "__main__":
-    raise SystemExit(main())
+    _exit_as_module(main())

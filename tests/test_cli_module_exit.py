@@ -1,0 +1,40 @@
+"""``python -m torchcal.cli`` ends with the status its message gives, also after SIGTERM."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import textwrap
+
+# Started as ``python -m torchcal.cli simulate``, the instrument lookup first runs source text that
+# ends in a caught KeyboardInterrupt (as a library's ``exec`` hit by Ctrl-C would), then the process
+# gets SIGTERM: CPython's remembered Ctrl-C must not turn "terminated" (143) into a SIGINT death.
+SITECUSTOMIZE = textwrap.dedent("""
+    import os, signal, time
+    from torchcal.instruments import registry
+
+    _get = registry.get
+
+    def get(name):
+        try:
+            exec("raise KeyboardInterrupt")
+        except KeyboardInterrupt:
+            pass
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(10)
+        return _get(name)
+
+    registry.get = get
+""")
+
+
+def test_a_terminated_module_run_exits_143_after_a_caught_ctrl_c_in_exec_code(tmp_path):
+    (tmp_path / "site").mkdir()
+    (tmp_path / "site" / "sitecustomize.py").write_text(SITECUSTOMIZE)
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path / "site"), os.environ.get("PYTHONPATH", "")])}
+    proc = subprocess.run([sys.executable, "-m", "torchcal.cli", "simulate", "--out", str(tmp_path / "twin")],
+                          capture_output=True, text=True, env=env, timeout=120)
+    assert "terminated (SIGTERM)" in proc.stderr, proc.stderr
+    assert proc.returncode == 143, (proc.returncode, proc.stderr)
+    assert not (tmp_path / "twin").exists()
