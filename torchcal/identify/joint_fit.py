@@ -39,6 +39,7 @@ from torchcal.identify.harmonics import (
     term_order,
 )
 from torchcal.identify.identifiability import analyze
+from torchcal.identify.joint_columns import position_and_columns
 from torchcal.identify.joint_errors import JointSpaceErrors
 from torchcal.identify.lm import LevenbergMarquardt
 from torchcal.identify.prior import log_evidence, solve_map
@@ -87,20 +88,12 @@ class JointErrorProblem:
     def jacobian(self, xe: torch.Tensor, columns: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         columns = self.free if columns is None else columns
         x, q = self._split(xe)
-        layout = self.model.layout
-        theta = torch.tensor([layout.index(f"theta{j + 1}") for j in range(self.model.robot.dof)])
-        geo = columns[columns < self.size]
-        pred, jac = self.model.position_jacobian(q, x, torch.cat([geo, theta]), method="analytic")
-        jac_geo, jac_theta = jac[..., : len(geo)], jac[..., len(geo) :]
-        parts, g = [], 0
-        for col in columns.tolist():
-            if col < self.size:
-                parts.append(jac_geo[..., g])
-                g += 1
-            else:
-                k, j = self.columns[col - self.size]
-                parts.append(jac_theta[..., j] * self.basis[:, k, j : j + 1])
-        full = torch.stack(parts, -1)
+
+        def joint_column(i: int, jac_theta: torch.Tensor) -> torch.Tensor:
+            k, j = self.columns[i]
+            return jac_theta[..., j] * self.basis[:, k, j : j + 1]
+
+        pred, full = position_and_columns(self.model, q, x, columns, self.size, joint_column)
         r = (self.data.position - pred).reshape(-1)
         return r, -full.reshape(-1, full.shape[-1])
 

@@ -16,6 +16,7 @@ from __future__ import annotations
 import torch
 
 from torchcal.data.measurements import Measurements
+from torchcal.identify.joint_columns import position_and_columns
 from torchcal.kinematics.error_model import ErrorModel
 
 
@@ -56,20 +57,9 @@ class TermScaleProblem:
 
     def jacobian(self, xe: torch.Tensor, columns: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         columns = self.free if columns is None else columns
-        layout = self.model.layout
-        theta = torch.tensor([layout.index(f"theta{j + 1}") for j in range(self.model.robot.dof)])
-        geo = columns[columns < self.size]
-        pred, jac = self.model.position_jacobian(self.joints(xe), xe[: self.size], torch.cat([geo, theta]),
-                                                 method="analytic")
-        jac_geo, jac_theta = jac[..., : len(geo)], jac[..., len(geo) :]
-        parts, g = [], 0
-        for col in columns.tolist():
-            if col < self.size:
-                parts.append(jac_geo[..., g])
-                g += 1
-            else:
-                parts.append((jac_theta * self.terms[col - self.size][:, None, :].to(jac_theta)).sum(-1))
-        full = torch.stack(parts, -1)
+        pred, full = position_and_columns(
+            self.model, self.joints(xe), xe[: self.size], columns, self.size,
+            lambda i, jac_theta: (jac_theta * self.terms[i][:, None, :].to(jac_theta)).sum(-1))
         r = self._weigh(self.data.position - pred).reshape(-1)
         return r, -self._weigh(full).reshape(-1, full.shape[-1])
 
