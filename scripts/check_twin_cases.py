@@ -11,7 +11,6 @@ Prints one line per case (the figures of docs/lifecycle.md).
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import math
 import tempfile
 import time
@@ -30,13 +29,6 @@ from torchcal.stages.store import load_model
 MM, DEG = 1e-3, math.pi / 180
 
 
-def changed(twin: Twin, **deltas: float) -> Twin:
-    x = twin.x_true.clone()
-    for name, delta in deltas.items():
-        x[twin.model.layout.index(name)] += delta
-    return dataclasses.replace(twin, x_true=x)
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=20)
@@ -47,10 +39,10 @@ def main() -> None:
     train = twin.sample(300, torch.Generator().manual_seed(11))
     cases = {
         "nothing": twin,
-        "tool": changed(twin, tool_x=1.0 * MM, tool_y=-0.5 * MM, tool_z=2.0 * MM),
-        "theta3": changed(twin, theta3=0.05 * DEG),
-        "link3": changed(twin, alpha3=0.05 * DEG, a3=0.3 * MM),
-        "moved": changed(twin, base_x=50 * MM, base_y=-20 * MM, base_rz=1.0 * DEG),
+        "tool": twin.changed(tool_x=1.0 * MM, tool_y=-0.5 * MM, tool_z=2.0 * MM),
+        "theta3": twin.changed(theta3=0.05 * DEG),
+        "link3": twin.changed(alpha3=0.05 * DEG, a3=0.3 * MM),
+        "moved": twin.changed(base_x=50 * MM, base_y=-20 * MM, base_rz=1.0 * DEG),
     }
     with tempfile.TemporaryDirectory() as tmp:
         fit_model(Path(tmp) / "model", twin.robot, train, FitConfig(residual="none", progress=False))

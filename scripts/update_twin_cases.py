@@ -45,15 +45,6 @@ CHANGES = {
 }
 
 
-def changed(twin: Twin, **deltas: float) -> Twin:
-    import dataclasses
-
-    x = twin.x_true.clone()
-    for name, delta in deltas.items():
-        x[twin.model.layout.index(name)] += delta
-    return dataclasses.replace(twin, x_true=x)
-
-
 def rms(errors: torch.Tensor) -> float:
     return float(errors.norm(dim=-1).pow(2).mean().sqrt()) * 1e3
 
@@ -72,7 +63,7 @@ def main() -> None:
         fit_model(Path(tmp) / "old", twin.robot, twin.sample(300, torch.Generator().manual_seed(11)), config)
         old = load_model(Path(tmp) / "old")
         for name in args.cases.split(","):
-            robot = changed(twin, **CHANGES[name])
+            robot = twin.changed(**CHANGES[name])
             test = robot.sample(500, torch.Generator().manual_seed(77))
             fit_model(Path(tmp) / f"full_{name}", robot.robot, robot.sample(300, torch.Generator().manual_seed(12)), config)
             full = load_model(Path(tmp) / f"full_{name}")

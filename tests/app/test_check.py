@@ -7,7 +7,6 @@ joint re-mastered, a link bent) or moved as a whole (the robot moved: only the f
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import math
 
@@ -34,13 +33,6 @@ def calibrated(tmp_path_factory):
     return twin, load_model(folder)
 
 
-def _changed(twin: Twin, **deltas: float) -> Twin:
-    x = twin.x_true.clone()
-    for name, delta in deltas.items():
-        x[twin.model.layout.index(name)] += delta
-    return dataclasses.replace(twin, x_true=x)
-
-
 CASES = {
     "nothing": ({}, "valid", []),
     "robot moved": ({"base_x": 50 * MM, "base_y": -20 * MM, "base_rz": 1.0 * DEG}, "valid", []),
@@ -54,7 +46,7 @@ CASES = {
 def test_check_names_what_changed(calibrated, case):
     twin, stored = calibrated
     deltas, verdict, names = CASES[case]
-    result = check_data(stored, _changed(twin, **deltas).sample(12, torch.Generator().manual_seed(101)))
+    result = check_data(stored, twin.changed(**deltas).sample(12, torch.Generator().manual_seed(101)))
     assert result.verdict == verdict
     assert set(names) <= set(result.changed) and (names or not result.changed)
     if verdict == "changed":
@@ -63,7 +55,7 @@ def test_check_names_what_changed(calibrated, case):
 
 def test_check_cli_writes_verdict_and_changed(calibrated, tmp_path, capsys):
     twin, stored = calibrated
-    data = _changed(twin, theta3=0.05 * DEG).sample(12, torch.Generator().manual_seed(7))
+    data = twin.changed(theta3=0.05 * DEG).sample(12, torch.Generator().manual_seed(7))
     write_measurements_csv(tmp_path / "few.csv", data.q, data.position)
     code = main(["check", "--model", str(stored.folder), "--data", str(tmp_path / "few.csv"),
                  "--json", str(tmp_path / "check.json"), "--report", str(tmp_path / "report")])

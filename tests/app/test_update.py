@@ -39,13 +39,6 @@ def calibrated(tmp_path_factory):
     return twin, load_model(folder)
 
 
-def _changed(twin: Twin, **deltas: float) -> Twin:
-    x = twin.x_true.clone()
-    for name, delta in deltas.items():
-        x[twin.model.layout.index(name)] += delta
-    return dataclasses.replace(twin, x_true=x)
-
-
 def _rms_mm(errors: torch.Tensor) -> float:
     return float(errors.norm(dim=-1).pow(2).mean().sqrt()) * 1e3
 
@@ -63,7 +56,7 @@ CASES = {
 def test_update_recovers_the_change(calibrated, case, tmp_path):
     twin, stored = calibrated
     deltas, names = CASES[case]
-    robot = _changed(twin, **deltas)
+    robot = twin.changed(**deltas)
     result = update_data(stored, robot.sample(12, torch.Generator().manual_seed(101)))
     assert set(names) <= set(result.freed) and (names or not result.freed)
     changes = {c["name"]: c for c in result.changes()}
@@ -84,7 +77,7 @@ def test_update_recovers_the_change(calibrated, case, tmp_path):
 
 def test_update_cli_writes_a_whole_folder_with_provenance(calibrated, tmp_path, capsys):
     twin, stored = calibrated
-    data = _changed(twin, theta3=0.05 * DEG).sample(12, torch.Generator().manual_seed(7))
+    data = twin.changed(theta3=0.05 * DEG).sample(12, torch.Generator().manual_seed(7))
     write_measurements_csv(tmp_path / "few.csv", data.q, data.position)
     out = tmp_path / "new"
     assert main(["update", "--model", str(stored.folder), "--data", str(tmp_path / "few.csv"), "--out", str(out)]) == 0

@@ -20,7 +20,7 @@ The noise floor of a 3-D position RMS is ``sqrt(3 (sigma_tracker^2 + sigma_repea
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import torch
@@ -228,6 +228,14 @@ class Twin:
     def sample(self, n: int, generator: torch.Generator) -> Measurements:
         q = self.robot.sample_joints(n, generator, margin=math.radians(self.config.margin_deg))
         return Measurements(q=q, position=self.measure(q, generator))
+
+    def changed(self, **deltas: float) -> Twin:
+        """The same twin with true parameters moved by ``deltas`` (layout names, SI units: m, rad),
+        as after a tool swap, a re-mastered joint or a bent link."""
+        x = self.x_true.clone()
+        for name, delta in deltas.items():
+            x[self.model.layout.index(name)] += delta
+        return replace(self, x_true=x)
 
     def truth_dict(self) -> dict:
         names = self.model.layout.names
