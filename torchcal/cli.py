@@ -63,16 +63,24 @@ def _cmd_simulate(args) -> int:
 
 def _cmd_fit(args) -> int:
 
+    from torchcal.core.errors import DataError
     from torchcal.instruments.base import FitRequest, check_fit_paths, fit_committed
     from torchcal.instruments.registry import recognise
 
-    check_fit_paths(Path(args.out), Path(args.data), Path(args.robot))
-    instrument = recognise(args.data)
+    files = [Path(d) for d in args.data]  # --data repeated: several series of one robot
+    for file in files:
+        check_fit_paths(Path(args.out), file, Path(args.robot))
+    instrument = recognise(files[0])
+    for file in files[1:]:
+        if recognise(file).name != instrument.name:
+            raise DataError(f"a {recognise(file).name} file, but {files[0]} is a {instrument.name} file: "
+                            "several --data files must be series of one kind", path=str(file))
     console = _console()
     with console.status(f"fitting {instrument.name} data") as status:
         outcome = fit_committed(instrument, FitRequest(
-            robot=Path(args.robot), data=Path(args.data), out=Path(args.out), overrides=list(args.overrides),
-            base_link=args.base_link, end_link=args.end_link, progress=_progress(status)))
+            robot=Path(args.robot), data=files[0], out=Path(args.out), overrides=list(args.overrides),
+            base_link=args.base_link, end_link=args.end_link, progress=_progress(status),
+            more_data=tuple(files[1:])))
     for line in outcome.lines:
         console.print(line, markup=False, highlight=False)
     print(f"model: {outcome.folder}")
@@ -322,7 +330,9 @@ def build_parser(with_options: bool | str = False) -> argparse.ArgumentParser:
 
     p = add("fit", help="identify a robot from a measurement file")
     p.add_argument("--robot", required=True, help="robot YAML (MDH) or URDF")
-    p.add_argument("--data", required=True, help="measurement CSV")
+    p.add_argument("--data", required=True, action="append",
+                   help="measurement CSV; repeat --data for further series of the same robot (tracker points: "
+                        "one fit, each series with its own instrument frame; series_tool=per_series for re-mounted probes)")
     p.add_argument("--out", required=True, help="model folder to write")
     p.add_argument("--base-link", default=None, help="URDF link of the robot base (default: root)")
     p.add_argument("--end-link", default=None, help="URDF link of the flange (default: last link)")

@@ -72,6 +72,9 @@ class FitConfig:
         tolerance_joint_offset_deg: prior 1-sigma of joint zero offsets theta (deg; default 0.1).
         tolerance_tool_mm: prior 1-sigma of the tool point per axis (mm; default 10).
         tolerance_tool_deg: prior 1-sigma of the tool rotation, orientation data only (deg; default 5).
+        series_tool: with several measurement files (each its own instrument frame,
+            :mod:`torchcal.stages.series`): ``shared`` (default: one tool for every series, the probe
+            stayed on its mount) or ``per_series`` (a tool offset per series: re-mounted probes).
     """
 
     method: str = "lm"
@@ -102,6 +105,7 @@ class FitConfig:
     tolerance_joint_offset_deg: float | None = None
     tolerance_tool_mm: float | None = None
     tolerance_tool_deg: float | None = None
+    series_tool: str = "shared"
 
     def __post_init__(self) -> None:
         """Refuse out-of-range values where they are defined (before any file is read)."""

@@ -174,15 +174,60 @@ def random_folds(n: int, k: int = 5, *, seed: int = 0) -> Folds:
 
 
 def make_folds(kind: str, robot, q: torch.Tensor, *, k: int = 5, seed: int = 0, order: np.ndarray | None = None,
-               groups: int = 20, twin_radius_mm: float = 2.0) -> Folds:
-    """Folds of ``kind`` for poses ``q (n, N)`` rad; ``order`` defaults to the row order."""
+               groups: int = 20, twin_radius_mm: float = 2.0, series: np.ndarray | torch.Tensor | None = None) -> Folds:
+    """Folds of ``kind`` for poses ``q (n, N)`` rad; ``order`` defaults to the row order.
+
+    ``series``: ``(n,)`` index of each pose's measurement series (:mod:`torchcal.data.series`);
+    with several, each series is split on its own (:func:`series_folds`).
+    """
     n = len(q)
     if kind not in SPLITS:
         raise DataError(f"unknown split '{kind}'; choose one of {', '.join(SPLITS)}")
     if n < 2 * k:
         raise DataError(f"{k}-fold cross-validation needs at least {2 * k} poses, got {n}")
+    if series is not None and kind != "random" and len(np.unique(np.asarray(series))) > 1:
+        return series_folds(kind, robot, q, np.asarray(series), k=k, seed=seed, order=order, groups=groups,
+                            twin_radius_mm=twin_radius_mm)
     if kind == "random":
         return random_folds(n, k, seed=seed)
     if kind == "blocks":
         return block_folds(np.arange(n) if order is None else order, k)
     return grouped_folds(robot, q, k, seed=seed, groups=groups, twin_radius_mm=twin_radius_mm)
+
+
+def series_folds(kind: str, robot, q: torch.Tensor, series: np.ndarray, *, k: int = 5, seed: int = 0,
+                 order: np.ndarray | None = None, groups: int = 20, twin_radius_mm: float = 2.0) -> Folds:
+    """Folds of pooled series: each series split on its own, fold ``f`` the union of every series' fold ``f``.
+
+    ``grouped``: each series' configuration regions (its share of ``groups``, at least ``k``) are
+    clustered and assigned within it, so no region straddles two series and every held-out fold
+    holds regions of each series (its frame stays identified by the rest). ``blocks``: each
+    series' measurement order cut into ``k`` blocks (order is defined within a file only).
+    Near-twin configurations measured in two series are not merged: they are different set-ups.
+    """
+    n = len(q)
+    order = np.arange(n) if order is None else np.asarray(order)
+    fold = np.empty(n, dtype=np.int64)
+    group_of = np.empty(n, dtype=np.int64) if kind == "grouped" else None
+    ids = np.unique(series)
+    offset = 0
+    for s in ids:
+        rows = np.flatnonzero(series == s)
+        if len(rows) < 2 * k:
+            raise DataError(f"{k}-fold cross-validation needs at least {2 * k} poses in each series; "
+                            f"series {int(s) + 1} has {len(rows)}")
+        if kind == "blocks":
+            fold[rows] = block_folds(order[rows], k).fold
+            continue
+        share = max(k, round(groups * len(rows) / n))
+        part = grouped_folds(robot, q[torch.as_tensor(rows)], k, seed=seed, groups=share, twin_radius_mm=twin_radius_mm)
+        assert part.groups is not None and group_of is not None
+        fold[rows] = part.fold
+        group_of[rows] = part.groups + offset
+        offset += int(part.groups.max()) + 1
+    if kind == "blocks":
+        return Folds(fold, "blocks", f"{k}-fold CV over contiguous blocks of measurement order within each of "
+                                     f"{len(ids)} series")
+    desc = (f"{k}-fold CV over {offset} configuration regions within each of {len(ids)} series (k-means on "
+            f"lever-arm-weighted joints per series; whole regions held out, twins within {twin_radius_mm:g} mm merged)")
+    return Folds(fold, "grouped", desc, group_of)

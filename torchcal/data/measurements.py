@@ -40,6 +40,8 @@ class Measurements:
         wrench: ``(n, 6)`` applied wrench at the tool (N, N*m), or ``None``.
         temperature: ``(n,)`` deg C, or ``None``.
         source: file path, and ``line_numbers`` of each pose in it.
+        series: ``(n,)`` long index of the measurement series (file) of each pose when several
+            series of one robot are pooled (:mod:`torchcal.data.series`), else ``None``.
     """
 
     q: torch.Tensor
@@ -50,6 +52,7 @@ class Measurements:
     source: str = "<memory>"
     line_numbers: tuple[int, ...] = field(default_factory=tuple)
     sha256: str = ""
+    series: torch.Tensor | None = None
 
     def __len__(self) -> int:
         return int(self.q.shape[0])
@@ -64,7 +67,7 @@ class Measurements:
         return Measurements(
             q=self.q[idx], position=self.position[idx], rotation=pick(self.rotation),
             wrench=pick(self.wrench), temperature=pick(self.temperature), source=self.source,
-            line_numbers=lines, sha256=self.sha256,
+            line_numbers=lines, sha256=self.sha256, series=pick(self.series),
         )
 
     def to(self, device: str | torch.device) -> Measurements:
@@ -74,7 +77,7 @@ class Measurements:
         return Measurements(
             q=self.q.to(device), position=self.position.to(device), rotation=move(self.rotation),
             wrench=move(self.wrench), temperature=move(self.temperature), source=self.source,
-            line_numbers=self.line_numbers, sha256=self.sha256,
+            line_numbers=self.line_numbers, sha256=self.sha256, series=self.series,
         )
 
 

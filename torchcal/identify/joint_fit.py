@@ -43,6 +43,7 @@ from torchcal.identify.joint_columns import position_and_columns
 from torchcal.identify.joint_errors import JointSpaceErrors
 from torchcal.identify.lm import LevenbergMarquardt
 from torchcal.identify.prior import log_evidence, solve_map
+from torchcal.identify.series_frames import per_series_registered
 from torchcal.identify.uncertainty import covariance
 from torchcal.kinematics.error_model import ErrorModel
 from torchcal.kinematics.robot import RobotModel
@@ -83,7 +84,7 @@ class JointErrorProblem:
 
     def residuals(self, xe: torch.Tensor) -> torch.Tensor:
         x, q = self._split(xe)
-        return (self.data.position - self.model.tcp_position(q, x)).reshape(-1)
+        return per_series_registered(self.data, (self.data.position - self.model.tcp_position(q, x)).reshape(-1))[0]
 
     def jacobian(self, xe: torch.Tensor, columns: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         columns = self.free if columns is None else columns
@@ -94,8 +95,9 @@ class JointErrorProblem:
             return jac_theta[..., j] * self.basis[:, k, j : j + 1]
 
         pred, full = position_and_columns(self.model, q, x, columns, self.size, joint_column)
-        r = (self.data.position - pred).reshape(-1)
-        return r, -full.reshape(-1, full.shape[-1])
+        r, jac = per_series_registered(self.data, (self.data.position - pred).reshape(-1), -full.reshape(-1, full.shape[-1]))
+        assert jac is not None
+        return r, jac
 
     def with_free(self, free: torch.Tensor) -> JointErrorProblem:
         return JointErrorProblem(self.model, self.data, self.basis, free, self.columns, self.column_names)

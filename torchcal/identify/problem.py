@@ -14,6 +14,7 @@ from typing import Protocol
 import torch
 
 from torchcal.data.measurements import Measurements
+from torchcal.identify.series_frames import per_series_registered
 from torchcal.kinematics import transforms as tf
 from torchcal.kinematics.error_model import ErrorModel
 
@@ -92,7 +93,8 @@ class CalibrationProblem:
         q = self.data.q.to(x)
         if not self.use_orientation:
             r = (self.data.position.to(x) - self.model.tcp_position(q, x)).unsqueeze(-1)
-            return self._whiten(r).reshape(-1)
+            # pooled series: each series after the first at its own registered frame (identify.series_frames)
+            return per_series_registered(self.data, self._whiten(r).reshape(-1))[0]
         pose = self.model.tcp_pose(q, x)
         dp = self.data.position.to(x) - pose[..., :3, 3]
         dr = tf.so3_log(self._rotation().to(x) @ pose[..., :3, :3].transpose(-1, -2))
@@ -109,7 +111,9 @@ class CalibrationProblem:
             # the screw-based Jacobian equals the autodiff one (tested) at a fraction of the cost
             pred, jac = self.model.position_jacobian(q, x, columns, method="analytic")
             r = self._whiten((self.data.position.to(x) - pred).unsqueeze(-1)).reshape(-1)
-            return r, -self._whiten(jac).reshape(-1, jac.shape[-1])
+            registered, projected = per_series_registered(self.data, r, -self._whiten(jac).reshape(-1, jac.shape[-1]))
+            assert projected is not None
+            return registered, projected
         pose, jac = self.model.pose_jacobian(q, x, columns)
         dp = self.data.position.to(x) - pose[..., :3, 3]
         dr = tf.so3_log(self._rotation().to(x) @ pose[..., :3, :3].transpose(-1, -2))

@@ -47,6 +47,8 @@ class FitRequest:
         previous: the folder the result will replace when ``out`` is a staging folder
             (:func:`fit_committed`); an instrument that adds a stage to an existing model reads it
             from there. ``None``: nothing is replaced.
+        more_data: further measurement series of the same robot (``--data`` repeated), each in its
+            own instrument frame; only instruments with :attr:`Instrument.multi_series` take them.
     """
 
     robot: Path
@@ -57,6 +59,7 @@ class FitRequest:
     end_link: str | None = None
     progress: Callable[[str], None] = lambda _text: None
     previous: Path | None = None
+    more_data: tuple[Path, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -160,12 +163,14 @@ class Instrument(ABC):
         required_columns: columns (lower case) whose presence marks a file of this kind. Where the
             columns of several instruments are present, the one requiring most of them wins (a
             stiffness file with ``x, y, z`` is a stiffness file).
+        multi_series: ``fit`` takes several files of one robot, each its own set-up (``--data`` repeated).
     """
 
     name: ClassVar[str]
     description: ClassVar[str]
     stage: ClassVar[str]
     required_columns: ClassVar[frozenset[str]]
+    multi_series: ClassVar[bool] = False
 
     def recognises(self, columns: set[str]) -> bool:
         """Whether a header with ``columns`` (lower case) is a file of this instrument."""
@@ -249,7 +254,12 @@ def fit_committed(instrument: Instrument, request: FitRequest) -> FitOutcome:
     earlier result never mix with the new ones.
     """
     out = Path(request.out)
-    check_fit_paths(out, Path(request.data), Path(request.robot))
+    for data in (request.data, *request.more_data):
+        check_fit_paths(out, Path(data), Path(request.robot))
+    if request.more_data and not instrument.multi_series:
+        from torchcal.core.errors import DataError
+
+        raise DataError(f"{instrument.name} files are fitted one at a time: give one --data", path=str(request.more_data[0]))
     previous = out if out.is_dir() else None
     with staged_folder(out, purpose="model") as staging:
         outcome = instrument.fit(replace(request, out=staging, previous=previous))

@@ -109,7 +109,7 @@ def make_config_folds(robot: RobotModel, data: Measurements, config: FitConfig):
     """The folds every data-driven choice of this fit is judged on (``config.split``)."""
     order = np.asarray(data.line_numbers) if data.line_numbers else None
     return make_folds(config.split, robot, data.q, k=config.cv_folds, seed=config.seed, order=order,
-                      groups=config.cv_groups)
+                      groups=config.cv_groups, series=data.series)
 
 
 def geometry_fitter(robot: RobotModel, config: FitConfig, prior=None, cache: dict | None = None,
@@ -241,7 +241,8 @@ def _learned_time_check(robot: RobotModel, data: Measurements, config: FitConfig
     if progress is not None:
         progress("checking the learned joint-space model on blocks of measurement order")
     order = np.asarray(data.line_numbers) if data.line_numbers else None
-    blocks = make_folds("blocks", robot, data.q, k=config.cv_folds, seed=config.seed, order=order)
+    blocks = make_folds("blocks", robot, data.q, k=config.cv_folds, seed=config.seed, order=order,
+                        series=data.series)
     check = cross_validate_structures(robot, data, geometry, [rival, chosen], blocks,
                                       harmonic_min_range_deg=config.harmonic_min_range_deg)
     rows = ", ".join(f"{r['name']} {r['cv_rms_mm']:.4f} mm" for r in check.comparison.rows)

@@ -155,7 +155,7 @@ def _check_on_time_blocks(robot, data: Measurements, structure: StructureCV, hea
     assert structure.comparison is not None
     parent = structure.comparison.chosen
     order = torch.as_tensor(data.line_numbers).numpy() if data.line_numbers else None
-    blocks = make_folds("blocks", robot, data.q, k=config.cv_folds, order=order)
+    blocks = make_folds("blocks", robot, data.q, k=config.cv_folds, order=order, series=data.series)
     timed = cross_validate_structures(robot, data, geometry_fitter(robot, config, structure.prior, start=structure.prior_start), [structure.chosen], blocks,
                                       harmonic_min_range_deg=config.harmonic_min_range_deg,
                                       progress=progress)

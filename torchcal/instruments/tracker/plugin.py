@@ -30,6 +30,7 @@ class TrackerInstrument(Instrument):
     description: ClassVar[str] = "laser-tracker points (train.csv, test.csv)"
     stage: ClassVar[str] = "geometry"
     required_columns: ClassVar[frozenset[str]] = frozenset({"x", "y", "z"})
+    multi_series: ClassVar[bool] = True
 
     def load(self, path: Path, robot: Any, overrides: list[str] | None = None) -> Any:
         from torchcal.config.compose import compose_fit_config
@@ -42,39 +43,66 @@ class TrackerInstrument(Instrument):
         from torchcal.config.compose import compose_fit_config
         from torchcal.core.metrics import position_metrics
         from torchcal.identify.joint_fit import predicted_positions
-        from torchcal.identify.outliers import check_orientation_columns, find_outlier_rows
         from torchcal.kinematics.robot import load_robot
         from torchcal.stages.geometry import NOMINAL_PROTOCOL, nominal_errors, with_tool
         from torchcal.stages.pipeline import fit_model
 
         config = compose_fit_config(request.overrides)
         robot = with_tool(load_robot(request.robot, base_link=request.base_link, end_link=request.end_link), config)
-        data = self.load(request.data, robot, request.overrides)
+        files = (request.data, *request.more_data)
+        series, set_aside = [], {}
+        for file in files:
+            data, aside = self._checked(file, robot, request, config)
+            series.append(data)
+            if aside:
+                set_aside[str(file)] = aside
+        if len(files) == 1:
+            set_aside = set_aside.get(str(request.data), {})
+
+        def fit_metrics(result: Any, nominal=None) -> dict:
+            before = position_metrics(nominal if nominal is not None else nominal_errors(robot, data))
+            after = position_metrics(data.position - predicted_positions(result, data.q))
+            return {"fit_metrics": {"protocol": f"training poses, optimistic; nominal: {NOMINAL_PROTOCOL}",
+                                    "nominal": before, "geometry_stage": after}, **set_aside}
+
+        if len(series) == 1:
+            request.progress(f"identifying {robot.name} from {len(data)} poses")
+            run = fit_model(request.out, robot, data, config, metadata=fit_metrics, progress=request.progress)
+        else:
+            import torch
+
+            from torchcal.stages.series import fit_series, series_metadata
+
+            request.progress(f"identifying {robot.name} from {len(series)} series ({sum(map(len, series))} poses)")
+            fitted = fit_series(robot, series, config, progress=request.progress)
+            data = fitted.pooled  # every series in the first one's frame (what the folder and the heads see)
+            nominal = torch.cat([nominal_errors(robot, s) for s in series])  # each series with its own frame and tool
+            run = fit_model(request.out, robot, data, config, fitted=(fitted.result, fitted.structure),
+                            metadata=lambda result: {**fit_metrics(result, nominal), **series_metadata(series, fitted)},
+                            progress=request.progress)
+        lines = run.lines()
+        request.progress("writing the report")
+        lines.append(_write_fit_report(run.folder, data, run.structure, lines, config))
+        return FitOutcome(folder=run.folder, lines=lines, report=run.folder / "report.md")
+
+    def _checked(self, file: Path, robot: Any, request: FitRequest, config: Any) -> tuple[Any, dict]:
+        """One file loaded, its rows the geometry cannot explain set aside; returns the poses and what was set aside."""
+        from torchcal.identify.outliers import check_orientation_columns, find_outlier_rows
+
+        data = self.load(file, robot, request.overrides)
         still = still_joints(data, robot.joint_names)
         for line in still:
-            warnings.warn(f"{request.data}: {line}", stacklevel=2)
+            warnings.warn(f"{file}: {line}", stacklevel=3)
         request.progress(f"checking {len(data)} poses for rows the geometry cannot explain")
         outliers = find_outlier_rows(robot, data, parallel_threshold_deg=config.parallel_threshold_deg)
         check_orientation_columns(robot, data, parallel_threshold_deg=config.parallel_threshold_deg)
         set_aside: dict = {"joints_not_moved": still} if still else {}
         if outliers is not None:
-            warnings.warn(outliers.message(str(request.data)), stacklevel=2)
+            warnings.warn(outliers.message(str(file)), stacklevel=3)
             data = data.subset([i for i in range(len(data)) if i not in set(outliers.index)])
             set_aside["rows_left_out"] = {"file_lines": list(outliers.lines), "errors_mm": list(outliers.errors_mm),
                                            "median_mm_of_the_others": outliers.median_mm}
-        request.progress(f"identifying {robot.name} from {len(data)} poses")
-
-        def fit_metrics(result: Any) -> dict:
-            before = position_metrics(nominal_errors(robot, data))
-            after = position_metrics(data.position - predicted_positions(result, data.q))
-            return {"fit_metrics": {"protocol": f"training poses, optimistic; nominal: {NOMINAL_PROTOCOL}",
-                                    "nominal": before, "geometry_stage": after}, **set_aside}
-
-        run = fit_model(request.out, robot, data, config, metadata=fit_metrics, progress=request.progress)
-        lines = run.lines()
-        request.progress("writing the report")
-        lines.append(_write_fit_report(run.folder, data, run.structure, lines, config))
-        return FitOutcome(folder=run.folder, lines=lines, report=run.folder / "report.md")
+        return data, set_aside
 
     def evaluate(self, request: EvaluateRequest) -> EvaluateOutcome:
         from torchcal.config.schema import FitConfig

@@ -1,0 +1,63 @@
+"""Several measurement series of one robot pooled into one set (each series keeps its index).
+
+A series is one file: one instrument placement (its own frame) and possibly its own tool mount.
+The pooled set carries ``series`` (the index of each pose's file, in the order given), so that the
+folds of every choice keep each series' regions and measurement order apart
+(:func:`torchcal.data.folds.make_folds`) and the fit registers a frame per series
+(:mod:`torchcal.stages.series`).
+"""
+
+from __future__ import annotations
+
+import hashlib
+
+import torch
+
+from torchcal.core.errors import DataError
+from torchcal.data.measurements import Measurements
+
+
+def pool_series(series: list[Measurements]) -> Measurements:
+    """The poses of every series in one set, in the order given; ``series`` holds each pose's file index.
+
+    Positions stay in each series' own instrument frame (aligning them is the fit's job). Line
+    numbers are each file's own; the pooled ``sha256`` is that of the files' digests in order.
+
+    Raises:
+        DataError: no series, or series that disagree in joint count or in which optional columns they have.
+    """
+    if not series:
+        raise DataError("no measurement series given")
+    first = series[0]
+    for other in series[1:]:
+        if other.q.shape[1] != first.q.shape[1]:
+            raise DataError(f"{other.q.shape[1]} joints, but {first.source} has {first.q.shape[1]}", path=other.source)
+        for name in ("rotation", "wrench", "temperature"):
+            if (getattr(other, name) is None) != (getattr(first, name) is None):
+                raise DataError(f"series differ in their columns: {name} in one file and not in {first.source}; "
+                                "pool files with the same columns", path=other.source)
+
+    def cat(name: str) -> torch.Tensor | None:
+        parts = [getattr(s, name) for s in series]
+        return None if parts[0] is None else torch.cat(parts)
+
+    digest = hashlib.sha256("".join(s.sha256 for s in series).encode()).hexdigest()
+    index = torch.cat([torch.full((len(s),), i, dtype=torch.long) for i, s in enumerate(series)])
+    return Measurements(
+        q=torch.cat([s.q for s in series]), position=torch.cat([s.position for s in series]),
+        rotation=cat("rotation"), wrench=cat("wrench"), temperature=cat("temperature"),
+        source=" + ".join(s.source for s in series),
+        line_numbers=tuple(line for s in series for line in s.line_numbers), sha256=digest, series=index,
+    )
+
+
+def split_series(data: Measurements) -> list[Measurements]:
+    """The series of a pooled set, in index order (``[data]`` for a single series)."""
+    if data.series is None:
+        return [data]
+    return [data.subset(torch.nonzero(data.series == i).squeeze(-1)) for i in range(int(data.series.max()) + 1)]
+
+
+def series_count(data: Measurements) -> int:
+    """How many series ``data`` pools (1 for a plain file)."""
+    return 1 if data.series is None else int(data.series.max()) + 1
