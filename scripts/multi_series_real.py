@@ -1,7 +1,8 @@
 """Several UR10 series fitted together: ``python scripts/multi_series_real.py --data-root ../shared/data/real``.
 
 Fits series B alone, series C alone and B and C together (:mod:`torchcal.stages.series`: one
-robot, a frame per series, one tool: B and C share the probe mount, ``SOURCE.txt``), each with the
+robot, one tool: B and C share the probe mount, ``SOURCE.txt``), with a frame per series (the
+default) and with one frame (B and C were measured from one tracker placement), each with the
 default structure gate (``FitConfig(residual="none")``, as ``scripts/joint_models_real.py``:
 heads are refused on every UR10 row), and scores each model on all of series A and all of series
 D, each re-registered (the tracker frame fitted on the scored series, as ``torchcal evaluate
@@ -15,6 +16,7 @@ import json
 import tempfile
 import time
 import warnings
+from dataclasses import replace
 from pathlib import Path
 
 from torchcal.app.validation import UR10, _structure_name
@@ -30,7 +32,9 @@ from torchcal.stages.series import fit_series, series_metadata
 from torchcal.stages.store import load_model
 
 FILES = {"A": "poses_A_grid.csv", "B": "poses_B_joint.csv", "C": "poses_C_random.csv", "D": "poses_D_iso.csv"}
-FITS = (("B",), ("C",), ("B", "C"))
+#: (series, series_frame): B and C together with a frame each (the default), and with one frame
+#: (SOURCE.txt: B and C were measured from one tracker placement)
+FITS = ((("B",), ""), (("C",), ""), (("B", "C"), "per_series"), (("B", "C"), "shared"))
 SCORED = ("A", "D")
 
 
@@ -46,21 +50,21 @@ def main() -> None:
     rows = []
     with tempfile.TemporaryDirectory() as tmp, warnings.catch_warnings():
         warnings.simplefilter("ignore", IdentifiabilityWarning)
-        for names in FITS:
+        for names, frame in FITS:
             start = time.perf_counter()
-            target = Path(tmp) / "".join(names)
+            target = Path(tmp) / ("".join(names) + frame)
             extra: dict = {}
             if len(names) == 1:
                 run = fit_model(target, robot, data[names[0]], config)
             else:
                 series = [data[n] for n in names]
-                fitted = fit_series(robot, series, config)
+                fitted = fit_series(robot, series, replace(config, series_frame=frame))
                 extra = series_metadata(series, fitted)["series"]
                 run = fit_model(target, robot, fitted.pooled, config, fitted=(fitted.result, fitted.structure))
             seconds = time.perf_counter() - start
             stored = load_model(target)
             scores = {k: position_metrics(held_out_errors(stored, data[k], register=True)) for k in SCORED}
-            row = {"fit": "+".join(names), "poses": sum(len(data[n]) for n in names), "chosen": _structure_name(run.result),
+            row = {"fit": "+".join(names) + (f" (series_frame={frame})" if frame else ""), "poses": sum(len(data[n]) for n in names), "chosen": _structure_name(run.result),
                    "structure_note": next((n for n in run.result.notes if n.startswith("structure chosen")), ""),
                    "seconds": seconds, "scores": scores, "series": extra}
             print(row["fit"], row["chosen"], {k: round(v["position_rms_mm"], 4) for k, v in scores.items()},

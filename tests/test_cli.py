@@ -142,3 +142,38 @@ def test_each_warning_once_per_command(tmp_path):
     texts = [str(w.message) for w in caught]
     assert any("cannot be identified" in t for t in texts)
     assert len(texts) == len(set(texts)), texts
+
+
+def test_fit_takes_two_series_each_in_its_own_frame(tmp_path, capsys):
+    case = tmp_path / "case"
+    main(["simulate", "--out", str(case), "n_train=120", "n_test=200", "seed=7"])
+    lines = (case / "test.csv").read_text().splitlines()
+    arr = np.array([[float(v) for v in l.split(",")] for l in lines[1:]])
+    c, s = np.cos(0.4), np.sin(0.4)
+    rot = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
+    second, scored = tmp_path / "second.csv", tmp_path / "scored.csv"
+    # the second series: the first 100 test poses, measured from a tracker moved 0.3 m and turned 23 deg
+    moved = arr[:100].copy()
+    moved[:, 6:9] = moved[:, 6:9] @ rot.T + np.array([300.0, -80.0, 25.0])
+    second.write_text("\n".join([lines[0]] + [",".join(f"{v:.10f}" for v in row) for row in moved]) + "\n")
+    scored.write_text("\n".join([lines[0]] + lines[101:]) + "\n")
+    model = tmp_path / "model"
+    assert main(["fit", "--robot", str(case / "robot.yaml"), "--data", str(case / "train.csv"), "--data", str(second),
+                 "--out", str(model), "residual=none"]) == 0
+    meta = json.loads((model / "calibration.json").read_text())
+    files = meta["series"]["files"]
+    assert [f["n_poses"] for f in files] == [120, 100] and meta["series"]["tool"] == "shared"
+    assert all(len(f["sha256"]) == 64 for f in files)
+    # the second frame found: the moved tracker's rotation about z (0.4 rad) and its shift
+    frame = np.array(files[1]["T_series_reference"])
+    assert abs(np.arctan2(frame[1, 0], frame[0, 0]) - 0.4) < 1e-4
+    assert np.allclose(frame[:3, 3], rot @ np.zeros(3) + np.array([0.300, -0.080, 0.025]), atol=1e-4)
+    truth = json.loads((case / "truth.json").read_text())
+    out = tmp_path / "e.json"
+    assert main(["evaluate", "--model", str(model), "--data", str(scored), "--json", str(out)]) == 0
+    assert json.loads(out.read_text())["position_rms_mm"] < 1.2 * truth["noise_floor_rms_mm"]
+    # an instrument without series refuses a second file in one line
+    capsys.readouterr()
+    assert main(["fit", "--robot", str(case / "robot.yaml"), "--data", str(case / "train.csv"), "--data",
+                 str(tmp_path / "nothere.csv"), "--out", str(tmp_path / "m2")]) == 2
+    assert "Traceback" not in capsys.readouterr().err

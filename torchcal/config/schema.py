@@ -75,6 +75,9 @@ class FitConfig:
         series_tool: with several measurement files (each its own instrument frame,
             :mod:`torchcal.stages.series`): ``shared`` (default: one tool for every series, the probe
             stayed on its mount) or ``per_series`` (a tool offset per series: re-mounted probes).
+        series_frame: ``per_series`` (default: each series its own instrument frame, registered in
+            every solve: the tracker moved between series) or ``shared`` (one frame: the tracker
+            stayed; its placement then constrains the fit, which a frame per series gives up).
     """
 
     method: str = "lm"
@@ -106,6 +109,7 @@ class FitConfig:
     tolerance_tool_mm: float | None = None
     tolerance_tool_deg: float | None = None
     series_tool: str = "shared"
+    series_frame: str = "per_series"
 
     def __post_init__(self) -> None:
         """Refuse out-of-range values where they are defined (before any file is read)."""

@@ -41,6 +41,8 @@ from torchcal.stages.geometry import fit_with_selection, nominal_fit
 
 #: ``series_tool`` values: one tool for every series, or a tool offset per series (mounts differ).
 SERIES_TOOLS = ("shared", "per_series")
+#: ``series_frame`` values: a frame per series (the tracker moved), or one frame (it stayed).
+SERIES_FRAMES = ("per_series", "shared")
 #: The alternation stops when no series' mapped points move more than this (RMS, mm).
 TOLERANCE_MM = 1e-3
 #: Alternations at most: with the geometry alone, then with the chosen structure.
@@ -163,6 +165,10 @@ def fit_series(robot: RobotModel, series: list[Measurements], config: FitConfig,
         raise DataError(f"unknown series_tool '{config.series_tool}'; choose one of {', '.join(SERIES_TOOLS)}")
     if len(series) < 2:
         raise DataError("a fit over several series needs at least two measurement files")
+    if config.series_frame not in SERIES_FRAMES:
+        raise DataError(f"unknown series_frame '{config.series_frame}'; choose one of {', '.join(SERIES_FRAMES)}")
+    if config.series_frame == "shared":
+        return _fit_shared_frame(robot, series, config, progress)
     # the frames are registered on points: orientation columns would need a rotation per series too
     series = [replace(s, rotation=None) for s in series]
     per_tool = config.series_tool == "per_series"
@@ -204,12 +210,30 @@ def fit_series(robot: RobotModel, series: list[Measurements], config: FitConfig,
     return SeriesFit(result, structure, pooled, frames, rounds, moved, config.series_tool)
 
 
+def _fit_shared_frame(robot: RobotModel, series: list[Measurements], config: FitConfig, progress) -> SeriesFit:
+    """Series measured from one instrument placement with one tool: the pooled set is one set-up.
+
+    The folds are made over the pooled set (its regions may hold poses of several series: they
+    share the frame); blocks of measurement order follow the files one after the other.
+    """
+    if config.series_tool != "shared":
+        raise DataError("series_frame=shared takes one tool too (series_tool=shared): a re-mounted probe is "
+                        "another set-up, give it its own frame")
+    lines = [line + k * 10**7 for k, s in enumerate(series) for line in s.line_numbers]
+    pooled = replace(pool_series(series), series=None, line_numbers=tuple(lines))
+    result, structure = fit_with_selection(robot, pooled, config, progress=progress)
+    result.notes.append(f"{len(series)} measurement series fitted together in one instrument frame with one tool")
+    identity = SeriesFrame(torch.eye(4, dtype=torch.float64), torch.zeros(3, dtype=torch.float64))
+    return SeriesFit(result, structure, replace(pooled, line_numbers=pool_series(series).line_numbers),
+                     [identity] * len(series), 0, 0.0, "shared")
+
+
 def series_metadata(series: list[Measurements], fit: SeriesFit) -> dict:
     """The ``series`` entry of ``calibration.json``: each file, its hash, rows, frame and tool offset, its RMS."""
-    entries = []
-    for k, (s, frame) in enumerate(zip(series, fit.frames)):
-        mask = fit.pooled.series == k if fit.pooled.series is not None else None
-        part = fit.pooled.subset(torch.nonzero(mask).squeeze(-1)) if mask is not None else fit.pooled
+    entries, start = [], 0
+    for s, frame in zip(series, fit.frames):
+        part = fit.pooled.subset(torch.arange(start, start + len(s)))
+        start += len(s)
         predicted = _tcp_in_reference(fit.result, part.q)[0]
         rms = float((part.position - predicted).norm(dim=-1).pow(2).mean().sqrt()) * 1e3
         entries.append({"file": s.source, "sha256": s.sha256, "n_poses": len(s),
@@ -217,4 +241,5 @@ def series_metadata(series: list[Measurements], fit: SeriesFit) -> dict:
                         "tool_offset_mm": (frame.tool_offset * 1e3).tolist(), "fit_rms_mm": rms})
     return {"series": {"frames": "T_series_reference maps the model's instrument frame (the first series') into "
                                  "each series' instrument frame, m", "tool": fit.tool,
+                       "frame": "shared" if fit.rounds == 0 else "per_series",
                        "rounds": fit.rounds, "last_move_mm": fit.last_move_mm, "files": entries}}
