@@ -69,7 +69,10 @@ def test_per_series_tool_recovers_a_remounted_probe(two_setups):
         fit = fit_series(twin.robot, [first, second], FitConfig(**{**CONFIG.__dict__, "series_tool": "per_series"}))
         # one tool for both mounts cannot explain the points: refused, nothing written
         with pytest.raises(DataError, match="still misses"):
-            fit_series(twin.robot, [first, second], CONFIG)
+            fit_series(twin.robot, [first, second], FitConfig(**{**CONFIG.__dict__, "series_tool": "shared"}))
+        # auto: the nominal fits' tools are 35 mm apart, so a tool each, and a frame each with it
+        auto = fit_series(twin.robot, [first, second], CONFIG)
+    assert auto.tool == "per_series" and any("series_tool=per_series" in n for n in auto.result.notes)
     # the offset is in the TCP frame (the flange's axes for a point tool)
     assert torch.allclose(fit.frames[1].tool_offset, shift, atol=1e-4), fit.frames[1].tool_offset
     assert fit.last_move_mm < 1e-3
@@ -79,3 +82,23 @@ def test_one_series_is_refused(two_setups):
     twin, _, first, _, _ = two_setups
     with pytest.raises(DataError, match="at least two"):
         fit_series(twin.robot, [first], CONFIG)
+
+
+def test_one_tracker_placement_is_one_frame(two_setups):
+    twin, _, first, _, test_q = two_setups
+    again = twin.sample(60, torch.Generator().manual_seed(8))  # the same placement, another 60 poses
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", IdentifiabilityWarning)
+        shared = fit_series(twin.robot, [first, again], FitConfig(**{**CONFIG.__dict__, "series_frame": "shared"}))
+        with pytest.raises(DataError, match="one tool"):
+            fit_series(twin.robot, [first, again], FitConfig(**{**CONFIG.__dict__, "series_frame": "shared",
+                                                                  "series_tool": "per_series"}))
+        alone = fit_with_selection(twin.robot, first, CONFIG)[0]
+    assert shared.pooled.series is None and len(shared.pooled) == 120
+    # auto finds the one placement: the frames fitted with the nominal robot agree within millimetres
+    from torchcal.stages.series import resolve_set_ups
+
+    assert resolve_set_ups(twin.robot, [first, again], CONFIG)[:2] == ("shared", "shared")
+    assert all(torch.equal(f.transform, torch.eye(4, dtype=torch.float64)) for f in shared.frames)
+    in_frame = _rms_mm(twin.true_positions(test_q) - predicted_positions(shared.result, test_q))
+    assert in_frame < _rms_mm(twin.true_positions(test_q) - predicted_positions(alone, test_q))

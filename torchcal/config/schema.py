@@ -72,12 +72,13 @@ class FitConfig:
         tolerance_joint_offset_deg: prior 1-sigma of joint zero offsets theta (deg; default 0.1).
         tolerance_tool_mm: prior 1-sigma of the tool point per axis (mm; default 10).
         tolerance_tool_deg: prior 1-sigma of the tool rotation, orientation data only (deg; default 5).
-        series_tool: with several measurement files (each its own instrument frame,
-            :mod:`torchcal.stages.series`): ``shared`` (default: one tool for every series, the probe
-            stayed on its mount) or ``per_series`` (a tool offset per series: re-mounted probes).
-        series_frame: ``per_series`` (default: each series its own instrument frame, registered in
-            every solve: the tracker moved between series) or ``shared`` (one frame: the tracker
-            stayed; its placement then constrains the fit, which a frame per series gives up).
+        series_tool / series_frame: with several measurement files of one robot (``--data``
+            repeated, :mod:`torchcal.stages.series`): ``series_frame=per_series`` (each series its
+            own instrument frame, registered in every solve: the tracker moved) or ``shared`` (one
+            frame: it stayed); ``series_tool=shared`` (one tool) or ``per_series`` (a tool offset per
+            series: a re-mounted probe). ``auto`` (default, both): from each series' nominal fit,
+            one frame where the frames agree within 10 mm at the points and one tool where the tools
+            agree within 5 mm (:func:`~torchcal.stages.series.resolve_set_ups`).
     """
 
     method: str = "lm"
@@ -108,8 +109,8 @@ class FitConfig:
     tolerance_joint_offset_deg: float | None = None
     tolerance_tool_mm: float | None = None
     tolerance_tool_deg: float | None = None
-    series_tool: str = "shared"
-    series_frame: str = "per_series"
+    series_tool: str = "auto"
+    series_frame: str = "auto"
 
     def __post_init__(self) -> None:
         """Refuse out-of-range values where they are defined (before any file is read)."""

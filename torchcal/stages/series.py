@@ -40,9 +40,16 @@ from torchcal.model_selection.structure import StructureCV
 from torchcal.stages.geometry import fit_with_selection, nominal_fit
 
 #: ``series_tool`` values: one tool for every series, or a tool offset per series (mounts differ).
-SERIES_TOOLS = ("shared", "per_series")
+SERIES_TOOLS = ("auto", "shared", "per_series")
 #: ``series_frame`` values: a frame per series (the tracker moved), or one frame (it stayed).
-SERIES_FRAMES = ("per_series", "shared")
+SERIES_FRAMES = ("auto", "per_series", "shared")
+#: ``auto``: series whose frames, fitted with the nominal robot, move their points less than this
+#: (RMS, mm) share one frame. The nominal robot's own error leaves ~2 mm between series measured
+#: from one placement (UR10 B and C: 1.75 mm); a moved tracker differs by metres (UR10 A, C, D: 1-3.7 m).
+FRAME_AGREEMENT_MM = 10.0
+#: ``auto``: tools fitted with the nominal robot that differ by less than this (mm) are one tool
+#: (UR10 B and C: 0.31 mm apart; D's re-mounted probe: 38 mm from the others).
+TOOL_AGREEMENT_MM = 5.0
 #: The alternation stops when no series' mapped points move more than this (RMS, mm).
 TOLERANCE_MM = 1e-3
 #: Alternations at most: with the geometry alone, then with the chosen structure.
@@ -161,14 +168,15 @@ def fit_series(robot: RobotModel, series: list[Measurements], config: FitConfig,
     offset is not projected: it alternates with the fit until the mapped points move less than
     :data:`TOLERANCE_MM`.
     """
-    if config.series_tool not in SERIES_TOOLS:
-        raise DataError(f"unknown series_tool '{config.series_tool}'; choose one of {', '.join(SERIES_TOOLS)}")
     if len(series) < 2:
         raise DataError("a fit over several series needs at least two measurement files")
-    if config.series_frame not in SERIES_FRAMES:
-        raise DataError(f"unknown series_frame '{config.series_frame}'; choose one of {', '.join(SERIES_FRAMES)}")
+    frame_mode, tool_mode, why = resolve_set_ups(robot, series, config)
+    config = replace(config, series_frame=frame_mode, series_tool=tool_mode)
     if config.series_frame == "shared":
-        return _fit_shared_frame(robot, series, config, progress)
+        fit = _fit_shared_frame(robot, series, config, progress)
+        if why:
+            fit.result.notes.append(why)
+        return fit
     # the frames are registered on points: orientation columns would need a rotation per series too
     series = [replace(s, rotation=None) for s in series]
     per_tool = config.series_tool == "per_series"
@@ -207,7 +215,44 @@ def fit_series(robot: RobotModel, series: list[Measurements], config: FitConfig,
                         + (" and tool offset" if per_tool else " (one tool)")
                         + f"; mapped into the first series' frame by the fit's frames ({rounds} registrations, "
                         f"the last moved the points {moved:.4f} mm RMS)")
+    if why:
+        result.notes.append(why)
     return SeriesFit(result, structure, pooled, frames, rounds, moved, config.series_tool)
+
+
+def resolve_set_ups(robot: RobotModel, series: list[Measurements], config: FitConfig) -> tuple[str, str, str]:
+    """``(series_frame, series_tool, note)`` with ``auto`` resolved from each series' nominal fit (frame and tool).
+
+    One frame where every series' frame moves its points less than :data:`FRAME_AGREEMENT_MM`
+    from the first's and the tools agree within :data:`TOOL_AGREEMENT_MM`; one tool where the
+    tools agree. Why: a frame per series leaves the fit free to turn one series against another,
+    which a tracker that stayed does not (UR10 B and C together: a frame each scores 1.07 mm on
+    series A, one frame 0.46 mm, ``docs/multi_series_real.md``). The note says what was found.
+    """
+    frame_mode, tool_mode = config.series_frame, config.series_tool
+    if frame_mode not in SERIES_FRAMES:
+        raise DataError(f"unknown series_frame '{frame_mode}'; choose one of {', '.join(SERIES_FRAMES)}")
+    if tool_mode not in SERIES_TOOLS:
+        raise DataError(f"unknown series_tool '{tool_mode}'; choose one of {', '.join(SERIES_TOOLS)}")
+    if "auto" not in (frame_mode, tool_mode):
+        return frame_mode, tool_mode, ""
+    fits = [nominal_fit(robot, s) for s in series]
+    _, t0, tool0 = fits[0]
+    frame_mm = max(_rms_mm((s.position @ rel[:3, :3].T + rel[:3, 3]) - s.position)
+                   for s, rel in ((s, t0 @ torch.linalg.inv(t)) for s, (_, t, _) in zip(series[1:], fits[1:])))
+    tool_mm = max(float((tool - tool0).norm()) * 1e3 for _, _, tool in fits[1:])
+    if tool_mode == "auto":
+        tool_mode = "shared" if tool_mm < TOOL_AGREEMENT_MM else "per_series"
+    if frame_mode == "auto":
+        frame_mode = "shared" if frame_mm < FRAME_AGREEMENT_MM and tool_mode == "shared" else "per_series"
+    note = (f"set-ups (auto): the series' frames fitted with the nominal robot differ by up to {frame_mm:.1f} mm "
+            f"at their points (one frame below {FRAME_AGREEMENT_MM:g}), their tools by up to {tool_mm:.1f} mm (one "
+            f"tool below {TOOL_AGREEMENT_MM:g}): series_frame={frame_mode}, series_tool={tool_mode}")
+    return frame_mode, tool_mode, note
+
+
+def _rms_mm(errors: torch.Tensor) -> float:
+    return float(errors.norm(dim=-1).pow(2).mean().sqrt()) * 1e3
 
 
 def _fit_shared_frame(robot: RobotModel, series: list[Measurements], config: FitConfig, progress) -> SeriesFit:
