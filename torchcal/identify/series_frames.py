@@ -60,3 +60,21 @@ def per_series_registered(data: Measurements, r: torch.Tensor,
             block = jac[flat]
             jac[flat] = block - g @ torch.linalg.solve(g.T @ g, g.T @ block)
     return r, jac
+
+
+def held_out_errors(predict, train: Measurements, test: Measurements) -> torch.Tensor:
+    """``test.position - predict(test.q)`` ``(n, 3)`` (m), each later series of ``test`` first mapped by its
+    frame registered on the fold's training poses of that series (``predict(q) -> (k, 3)``: the fold
+    fit's prediction, reference frame): a fold fit placed every series' frame itself, so its
+    held-out poses are scored in that frame, found without them."""
+    predicted = predict(test.q)
+    errors = test.position.to(predicted) - predicted
+    if test.series is None or train.series is None:
+        return errors
+    for s in torch.unique(test.series).tolist():
+        rows, known = torch.nonzero(test.series == s).squeeze(-1), torch.nonzero(train.series == s).squeeze(-1)
+        if s == 0 or len(known) < 3:
+            continue
+        t = rigid_registration(predict(train.q[known]), train.position[known].to(predicted))
+        errors[rows] = (test.position[rows].to(predicted) - t[:3, 3]) @ t[:3, :3] - predicted[rows]
+    return errors

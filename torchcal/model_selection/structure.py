@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import dataclass, field
+from functools import partial
 
 import numpy as np
 import torch
@@ -24,6 +25,7 @@ from torchcal.identify.harmonics import HARMONIC_SETS
 from torchcal.identify.joint_errors import JointSpaceErrors
 from torchcal.identify.joint_fit import fit_joint_errors, option_label, predicted_positions
 from torchcal.identify.prior import PriorSpec
+from torchcal.identify.series_frames import held_out_errors as series_held_out
 from torchcal.model_selection.compare import Candidate, Comparison, compare_candidates
 
 
@@ -83,7 +85,8 @@ def cross_validate_structures(robot, data: Measurements, fit_geometry, options: 
                 label = structure_label(gravity, harmonics)
                 result = fit_joint_errors(robot, train, geometry, POINT_SETS[gravity], HARMONIC_SETS[harmonics],
                                           harmonic_min_range_deg)
-                held_out = test.position - predicted_positions(result, test.q)
+                # pooled series: each later series in the frame the fold fit gives it (identify.series_frames)
+                held_out = series_held_out(partial(predicted_positions, result), train, test)
                 vectors[label][test_idx] = held_out.detach().cpu().numpy() * 1e3
                 fold_results[label].append(result)
     candidates = [Candidate(label, np.linalg.norm(v, axis=1)) for label, v in vectors.items()]
