@@ -84,6 +84,8 @@ from torchcal.stages.store import StoredModel, load_model, save_model
 FREE_KEYWORDS = ("auto", "frame", "tool", "offsets", "all")
 #: Fewest new poses an update accepts (the frame takes 6 of their 3n coordinates, the LOO one more pose).
 MIN_POSES = 6
+#: Poses whose joints all lie within this (deg) of each other are near twins: left out together in the leave-one-out.
+NEAR_TWIN_DEG = 1.0
 UNCERTAINTY_PROTOCOL = ("leave-one-out over the new poses (frame and freed parameters refitted without each pose): "
                         "discrepancy sigma from their errors; shape of the 95 % region (conformal quantile) {shape}")
 
@@ -108,6 +110,7 @@ class UpdateResult:
     notes: list[str] = field(default_factory=list)
     scales: dict[str, float] = field(default_factory=dict)
     used: StoredModel | None = None
+    dropped_terms: list[str] = field(default_factory=list)
 
     @property
     def terms_of(self) -> StoredModel:
@@ -159,6 +162,7 @@ class UpdateResult:
             "freed_by": self.how,
             "prior_of_freed": "manufacturing tolerances centred on the parent's values",
             "kept": "every other parameter, joint-space terms included, fixed at the parent's values with its covariance",
+            "joint_space_terms_dropped": self.dropped_terms,
             "joint_space_term_scales": {k: 1.0 + v for k, v in self.scales.items()},
             "changes": self.changes(),
             "fit_rms_mm": self.fit_rms_mm,
@@ -278,16 +282,74 @@ def _fit_all(stored: StoredModel, data: Measurements, names: list[str]) -> tuple
     return used, _fit(used, data, geometry), scales
 
 
+def near_twin_groups(q: torch.Tensor, within_deg: float = NEAR_TWIN_DEG) -> list[list[int]]:
+    """Poses linked (transitively) by every joint within ``within_deg`` of each other: left out together."""
+    n = len(q)
+    close = (q[:, None, :] - q[None, :, :]).abs().amax(dim=-1) <= math.radians(within_deg)
+    parent = list(range(n))
+
+    def root(i: int) -> int:
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    for i, j in close.nonzero().tolist():
+        parent[root(i)] = root(j)
+    groups: dict[int, list[int]] = {}
+    for i in range(n):
+        groups.setdefault(root(i), []).append(i)
+    return list(groups.values())
+
+
 def _loo_errors(stored: StoredModel, data: Measurements, names: list[str]) -> np.ndarray:
-    """``(n, 3)`` mm: each pose's error predicted by the update fitted to the other poses."""
+    """``(n, 3)`` mm: each pose's error predicted by the update fitted to the other poses (near twins,
+    :func:`near_twin_groups`, left out with it: a twin in the fit would predict its sibling)."""
     n = len(data)
     out = np.zeros((n, 3))
-    for i in range(n):
-        rest = [k for k in range(n) if k != i]
+    for group in near_twin_groups(data.q):
+        rest = [k for k in range(n) if k not in group]
         used, fit, _ = _fit_all(stored, data.subset(rest), names)
-        q = model_joints(used, data.q[i : i + 1])
-        out[i] = ((data.position[i : i + 1] - fit.model.tcp_position(q, fit.x)) * 1e3).numpy()[0]
+        q = model_joints(used, data.q[group])
+        out[group] = ((data.position[group] - fit.model.tcp_position(q, fit.x)) * 1e3).numpy()
     return out
+
+
+def _loo_rms(errors: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(np.sum(errors**2, axis=-1))))
+
+
+def _without(stored: StoredModel, keys: list[str]) -> StoredModel:
+    """``stored`` without the joint-space terms ``keys`` (``calibration.json`` keys)."""
+    return replace(stored, metadata={k: v for k, v in stored.metadata.items() if k not in keys})
+
+
+def _judge_terms(stored: StoredModel, data: Measurements, names: list[str],
+                 loo: np.ndarray) -> tuple[StoredModel, np.ndarray, list[str], list[str]]:
+    """Each joint-space term not freed, re-judged on the new poses: dropped when the update's
+    leave-one-out RMS is lower without it (greedy: the largest gain first, then the others again).
+
+    A term fitted on the old poses may not carry over (another probe mounting, another payload
+    region: docs/validation.md, UR10 A -> D); dropping it fits nothing more, so the two
+    leave-one-out RMS compare like for like. Returns ``(base model, its LOO errors, dropped keys, lines)``.
+    """
+    candidates = [k for k in TERM_GROUPS.values() if stored.metadata.get(k) and k not in names]
+    dropped: list[str] = []
+    lines: list[str] = []
+    base = stored
+    while candidates:
+        trials = {k: _loo_errors(_without(base, [k]), data, names) for k in candidates}
+        key = min(trials, key=lambda k: _loo_rms(trials[k]))
+        now, then = _loo_rms(loo), _loo_rms(trials[key])
+        for k in candidates:
+            verdict = "dropped" if k == key and then < now else "kept"
+            lines.append(f"{k} {verdict}: leave-one-out RMS {_loo_rms(trials[k]):.3f} mm without it, {now:.3f} mm with it")
+        if then >= now:
+            break
+        base, loo = _without(base, [key]), trials[key]
+        dropped.append(key)
+        candidates.remove(key)
+    return base, loo, dropped, lines
 
 
 def _head_offset(stored: StoredModel, fit: CalibrationResult, data: Measurements) -> torch.Tensor:
@@ -362,12 +424,23 @@ def update_data(stored: StoredModel, data: Measurements, free: str = "auto") -> 
     work = data
     head_kept: bool | None = None
     head_line = None
-    used, fit, scales = _fit_all(stored, work, names)
     loo = _loo_errors(stored, work, names)
+    base, loo, dropped, term_lines = _judge_terms(stored, work, names, loo)
+    notes += term_lines
+    if spec == "auto" and names:
+        # the named group must beat the old model (frame only) on the new poses, else it is not freed
+        frame_only = _loo_errors(base, work, [])
+        if _loo_rms(frame_only) <= _loo_rms(loo):
+            how += (f"; not freed: leave-one-out RMS {_loo_rms(loo):.3f} mm with it, {_loo_rms(frame_only):.3f} mm "
+                    "with the frame alone")
+            names, loo = [], frame_only
+        else:
+            how += f"; leave-one-out RMS {_loo_rms(loo):.3f} mm, {_loo_rms(frame_only):.3f} mm with the frame alone"
+    used, fit, scales = _fit_all(base, work, names)
     if stored.residual is not None:
         corrected = replace(data, position=data.position - _head_offset(stored, fit, data))
-        used_h, fit_h, scales_h = _fit_all(stored, corrected, names)
-        loo_h = _loo_errors(stored, corrected, names)
+        used_h, fit_h, scales_h = _fit_all(base, corrected, names)
+        loo_h = _loo_errors(base, corrected, names)
         without, with_head = (float(np.sqrt(np.mean(np.sum(e**2, axis=-1)))) for e in (loo, loo_h))
         head_kept = with_head < without
         if head_kept:
@@ -386,7 +459,7 @@ def update_data(stored: StoredModel, data: Measurements, free: str = "auto") -> 
     return UpdateResult(stored=stored, data=data, freed=names, how=how, check=check, fit=fit, free=union_free,
                         covariance=cov, loo_errors_mm=loo, uncertainty=uncertainty, head_kept=head_kept,
                         head_line=head_line, parent_sha256=parent_sha256(stored.folder), notes=notes, scales=scales,
-                        used=used)
+                        used=used, dropped_terms=dropped)
 
 
 def load_has_uncertainty(stored: StoredModel) -> bool:
