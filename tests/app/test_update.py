@@ -205,3 +205,26 @@ def test_update_of_a_urdf_robot_writes_the_users_urdf_with_the_updated_geometry(
     # the file changed with the update: the tool moved by about the change made to the truth
     moved = (in_base(new) - in_base(old)).norm(dim=-1)
     assert bool(((moved > 1.5 * MM) & (moved < 3.0 * MM)).all())
+
+
+def test_a_joint_space_term_is_kept_while_it_holds_and_dropped_when_it_is_gone(tmp_path):
+    """Truth: a twin with gear errors (the fit's first harmonics model them), and the same twin with the
+    gearboxes replaced (no periodic error left): the update keeps the harmonics on the first, drops them
+    on the second, and the dropped model predicts new poses of the replaced robot better than the kept one."""
+    geared = Twin.create(TwinConfig(seed=3, gear=True, gear_amplitude_deg=0.05, gear_orders=1))
+    replaced = Twin.create(TwinConfig(seed=3))
+    assert torch.equal(geared.x_true, replaced.x_true)
+    config = FitConfig(residual="none", progress=False, gravity_compliance="none", joint_harmonics="first")
+    fit_model(tmp_path / "old", geared.robot, geared.sample(300, torch.Generator().manual_seed(11)), config)
+    stored = load_model(tmp_path / "old")
+    assert stored.metadata.get("joint_harmonics")
+    kept = update_data(stored, geared.sample(16, torch.Generator().manual_seed(300)), free="frame")
+    dropped = update_data(stored, replaced.sample(16, torch.Generator().manual_seed(300)), free="frame")
+    assert kept.dropped_terms == [] and any(n.startswith("joint_harmonics kept") for n in kept.notes)
+    assert dropped.dropped_terms == ["joint_harmonics"]
+    with staged_folder(tmp_path / "new") as staging:
+        write_update(staging, dropped)
+    new = load_model(tmp_path / "new")
+    assert not new.metadata.get("joint_harmonics") and new.metadata["update"]["joint_space_terms_dropped"] == ["joint_harmonics"]
+    test = replaced.sample(300, torch.Generator().manual_seed(5))
+    assert _rms_mm(held_out_errors(new, test, register=True)) < 0.7 * _rms_mm(held_out_errors(stored, test, register=True))

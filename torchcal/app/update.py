@@ -6,8 +6,10 @@ handful of new poses (12-20 measured with the tracker wherever it now stands):
 
 * **the instrument frame** is always re-registered (no prior: the tracker stands elsewhere);
 * **what else is freed**: by default the group that :func:`torchcal.app.check.check_data` names
-  (the same refits and the same BIC threshold, so ``check`` and ``update`` never disagree); none
-  when the check names none (the robot moved, or nothing changed). ``free=`` overrides:
+  (the same refits and the same BIC threshold, so ``check`` and ``update`` never disagree), kept
+  only when the update's leave-one-out RMS with it is lower than with the frame alone (an update is
+  never worse than the old model by the new poses' evidence); none when the check names none (the
+  robot moved, or nothing changed). ``free=`` overrides:
   ``frame`` (nothing else), ``tool``, ``offsets`` (every joint's zero offset), ``all`` (every
   parameter of the MDH table and the tool), or a comma list of check groups and parameter names
   (``free=tool,theta3``, ``free=link3``, ``free=a2,d4``);
@@ -20,9 +22,13 @@ handful of new poses (12-20 measured with the tracker wherever it now stands):
   posterior sigmas are far below what the new poses could resolve; fixing keeps the fit as small
   as the new poses can carry (frame + freed group).
 
+**Joint-space terms not freed are re-judged** on the new poses (:func:`_judge_terms`): dropped
+when the leave-one-out errors are lower without the term by more than one standard error (a term
+fitted on the old poses may not carry over: another probe mounting, another payload region).
+
 **Prediction uncertainty** (``uncertainty.json``) is recalibrated on the new poses: each pose's
-error predicted by a fit of the others (leave-one-out, frame and freed group refitted each time;
-with 12-20 poses every pose is its own region) gives the model discrepancy ``sigma_d`` as in
+error predicted by a fit of the others (leave-one-out, frame and freed group refitted each time,
+near twins left out together; with 12-20 poses every pose is its own region) gives the model discrepancy ``sigma_d`` as in
 :mod:`torchcal.stages.prediction_uncertainty`. The *shape* of the 95 % region (the conformal
 quantile of the normalised scores) is kept from the old model, calibrated on hundreds of
 out-of-fold errors: 12-20 scores cannot place a 95th percentile (the split-conformal quantile of
@@ -161,7 +167,8 @@ class UpdateResult:
             "freed": self.freed,
             "freed_by": self.how,
             "prior_of_freed": "manufacturing tolerances centred on the parent's values",
-            "kept": "every other parameter, joint-space terms included, fixed at the parent's values with its covariance",
+            "kept": ("every other parameter, the joint-space terms not dropped included, fixed at the parent's values "
+                     "with its covariance"),
             "joint_space_terms_dropped": self.dropped_terms,
             "joint_space_term_scales": {k: 1.0 + v for k, v in self.scales.items()},
             "changes": self.changes(),
@@ -517,7 +524,9 @@ def update_report(result: UpdateResult) -> Report:
                            Preformatted("\n".join(result.lines()))]),
         Section("What changed", [changes, Paragraph(
             "Frame re-registered without a prior. Freed parameters: manufacturing-tolerance prior centred on the "
-            "parent's values. Everything else, joint-space terms included, fixed at the parent's values with its covariance.")]),
+            "parent's values. Everything else, joint-space terms included, fixed at the parent's values with its covariance"
+            + (f"; dropped (they no longer hold on the new poses; the lines above say by how much): {', '.join(result.dropped_terms)}."
+               if result.dropped_terms else "."))]),
         Section("Prediction uncertainty", [Paragraph(
             f"{result.uncertainty.protocol}: leave-one-out RMS {result.loo_rms_mm:.3f} mm, discrepancy sigma "
             f"{result.uncertainty.discrepancy_sigma_mm:.3f} mm per coordinate. With {len(result.data)} poses the scale is "
