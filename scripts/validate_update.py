@@ -121,8 +121,8 @@ def main() -> None:
                 "leave_one_out_rms_mm": update["leave_one_out_rms_mm"], "update_s": update_s, "old_fit_s": fit_s,
             })
             print(results[-1])
-    lines = ["| case | free | freed | terms dropped | scored rows | old model, frame from the 20 | old model, re-registered "
-             "| updated, own frame | updated, re-registered | inside predicted 95 % | LOO RMS on the 20 | update time |",
+    lines = [f"| case | free | freed | terms dropped | scored rows | old model, frame from the {args.few} | old model, re-registered "
+             f"| updated, own frame | updated, re-registered | inside predicted 95 % | LOO RMS on the {args.few} | update time |",
              "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in results:
         lines.append(f"| {r['case']} | {r['free']} | {', '.join(r['freed']) or 'frame only'} | "
