@@ -17,7 +17,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from torchcal.app.update import update_data, write_update
+from torchcal.app.update import near_twin_groups, update_data, write_update
 from torchcal.cli import main
 from torchcal.config.schema import FitConfig
 from torchcal.core.folder import staged_folder
@@ -228,3 +228,13 @@ def test_a_joint_space_term_is_kept_while_it_holds_and_dropped_when_it_is_gone(t
     assert not new.metadata.get("joint_harmonics") and new.metadata["update"]["joint_space_terms_dropped"] == ["joint_harmonics"]
     test = replaced.sample(300, torch.Generator().manual_seed(5))
     assert _rms_mm(held_out_errors(new, test, register=True)) < 0.7 * _rms_mm(held_out_errors(stored, test, register=True))
+
+
+def test_near_twins_are_left_out_together():
+    """Poses whose joints all lie within 1 deg of each other form one group, linked transitively; 1.5 deg apart do not."""
+    q = torch.zeros(5, 6, dtype=torch.float64)
+    q[1, 2] = 0.8 * DEG  # a twin of pose 0
+    q[2, 2] = 1.6 * DEG  # a twin of pose 1 (1.6 deg from pose 0): the same group
+    q[3, 0] = 30 * DEG
+    q[4, 0] = 31.5 * DEG  # 1.5 deg from pose 3 in joint 1: its own pose
+    assert sorted(map(sorted, near_twin_groups(q))) == [[0, 1, 2], [3], [4]]

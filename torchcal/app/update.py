@@ -92,7 +92,8 @@ FREE_KEYWORDS = ("auto", "frame", "tool", "offsets", "all")
 MIN_POSES = 6
 #: Poses whose joints all lie within this (deg) of each other are near twins: left out together in the leave-one-out.
 NEAR_TWIN_DEG = 1.0
-UNCERTAINTY_PROTOCOL = ("leave-one-out over the new poses (frame and freed parameters refitted without each pose): "
+UNCERTAINTY_PROTOCOL = ("leave-one-out over the new poses (frame and freed parameters refitted without each pose and its "
+                        "near twins): "
                         "discrepancy sigma from their errors; shape of the 95 % region (conformal quantile) {shape}")
 
 
