@@ -11,16 +11,19 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import xml.etree.ElementTree as ET
+from pathlib import Path
 
 import pytest
 import torch
 
-from torchcal.app.update import update_data, write_update
+from torchcal.app.update import near_twin_groups, update_data, write_update
 from torchcal.cli import main
 from torchcal.config.schema import FitConfig
 from torchcal.core.folder import staged_folder
 from torchcal.core.hashing import sha256_file
 from torchcal.data.measurements import write_measurements_csv
+from torchcal.kinematics.robot import load_robot
 from torchcal.sim.twin import Twin, TwinConfig
 from torchcal.stages.geometry import held_out_errors
 from torchcal.stages.pipeline import fit_model
@@ -171,3 +174,67 @@ def test_a_head_is_kept_while_it_helps_and_dropped_when_its_error_is_gone(tmp_pa
     with staged_folder(tmp_path / "new2") as staging:
         write_update(staging, kept)
     assert load_model(tmp_path / "new2").residual is not None
+
+
+def test_update_of_a_urdf_robot_writes_the_users_urdf_with_the_updated_geometry(tmp_path):
+    """A URDF robot: the updated folder's calibrated_robot.urdf is the user's file (every link kept) and
+    reproduces the updated model's geometric stage (tool point in the base frame) to 1e-9 m."""
+    fixture = Path(__file__).parents[1] / "kinematics" / "fixtures" / "arm6_offset.urdf"
+    twin = Twin.create(TwinConfig(robot=str(fixture), seed=4))
+    fit_model(tmp_path / "old", twin.robot, twin.sample(150, torch.Generator().manual_seed(11)),
+              FitConfig(residual="none", progress=False))
+    data = twin.changed(tool_x=1.0 * MM, tool_z=-2.0 * MM).sample(12, torch.Generator().manual_seed(3))
+    write_measurements_csv(tmp_path / "few.csv", data.q, data.position)
+    out = tmp_path / "new"
+    assert main(["update", "--model", str(tmp_path / "old"), "--data", str(tmp_path / "few.csv"), "--out", str(out)]) == 0
+    new, old = load_model(out), load_model(tmp_path / "old")
+    assert new.metadata["update"]["freed"] == ["tool_x", "tool_y", "tool_z"]
+    text = (out / "calibrated_robot.urdf").read_text()
+    original = ET.fromstring(fixture.read_text())
+    assert {link.get("name") for link in original.iter("link")} <= {link.get("name") for link in ET.fromstring(text).iter("link")}
+    (tmp_path / "r.urdf").write_text(text)
+    calibrated = load_robot(tmp_path / "r.urdf", base_link=twin.robot.base_link,
+                            end_link=f"{twin.robot.end_link}_calibrated_tcp")
+    q = twin.robot.sample_joints(50, torch.Generator().manual_seed(4))
+
+    def in_base(stored):
+        transform = stored.model.instrument_from_base(stored.x)
+        return (stored.model.tcp_position(q, stored.x) - transform[:3, 3]) @ transform[:3, :3]
+
+    assert torch.allclose(calibrated.tcp_position(q), in_base(new), atol=1e-9)
+    # the file changed with the update: the tool moved by about the change made to the truth
+    moved = (in_base(new) - in_base(old)).norm(dim=-1)
+    assert bool(((moved > 1.5 * MM) & (moved < 3.0 * MM)).all())
+
+
+def test_a_joint_space_term_is_kept_while_it_holds_and_dropped_when_it_is_gone(tmp_path):
+    """Truth: a twin with gear errors (the fit's first harmonics model them), and the same twin with the
+    gearboxes replaced (no periodic error left): the update keeps the harmonics on the first, drops them
+    on the second, and the dropped model predicts new poses of the replaced robot better than the kept one."""
+    geared = Twin.create(TwinConfig(seed=3, gear=True, gear_amplitude_deg=0.05, gear_orders=1))
+    replaced = Twin.create(TwinConfig(seed=3))
+    assert torch.equal(geared.x_true, replaced.x_true)
+    config = FitConfig(residual="none", progress=False, gravity_compliance="none", joint_harmonics="first")
+    fit_model(tmp_path / "old", geared.robot, geared.sample(300, torch.Generator().manual_seed(11)), config)
+    stored = load_model(tmp_path / "old")
+    assert stored.metadata.get("joint_harmonics")
+    kept = update_data(stored, geared.sample(16, torch.Generator().manual_seed(300)), free="frame")
+    dropped = update_data(stored, replaced.sample(16, torch.Generator().manual_seed(300)), free="frame")
+    assert kept.dropped_terms == [] and any(n.startswith("joint_harmonics kept") for n in kept.notes)
+    assert dropped.dropped_terms == ["joint_harmonics"]
+    with staged_folder(tmp_path / "new") as staging:
+        write_update(staging, dropped)
+    new = load_model(tmp_path / "new")
+    assert not new.metadata.get("joint_harmonics") and new.metadata["update"]["joint_space_terms_dropped"] == ["joint_harmonics"]
+    test = replaced.sample(300, torch.Generator().manual_seed(5))
+    assert _rms_mm(held_out_errors(new, test, register=True)) < 0.7 * _rms_mm(held_out_errors(stored, test, register=True))
+
+
+def test_near_twins_are_left_out_together():
+    """Poses whose joints all lie within 1 deg of each other form one group, linked transitively; 1.5 deg apart do not."""
+    q = torch.zeros(5, 6, dtype=torch.float64)
+    q[1, 2] = 0.8 * DEG  # a twin of pose 0
+    q[2, 2] = 1.6 * DEG  # a twin of pose 1 (1.6 deg from pose 0): the same group
+    q[3, 0] = 30 * DEG
+    q[4, 0] = 31.5 * DEG  # 1.5 deg from pose 3 in joint 1: its own pose
+    assert sorted(map(sorted, near_twin_groups(q))) == [[0, 1, 2], [3], [4]]

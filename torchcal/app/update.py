@@ -6,8 +6,10 @@ handful of new poses (12-20 measured with the tracker wherever it now stands):
 
 * **the instrument frame** is always re-registered (no prior: the tracker stands elsewhere);
 * **what else is freed**: by default the group that :func:`torchcal.app.check.check_data` names
-  (the same refits and the same BIC threshold, so ``check`` and ``update`` never disagree); none
-  when the check names none (the robot moved, or nothing changed). ``free=`` overrides:
+  (the same refits and the same BIC threshold, so ``check`` and ``update`` never disagree), kept
+  only when the update's leave-one-out RMS with it is lower than with the frame alone (an update is
+  never worse than the old model by the new poses' evidence); none when the check names none (the
+  robot moved, or nothing changed). ``free=`` overrides:
   ``frame`` (nothing else), ``tool``, ``offsets`` (every joint's zero offset), ``all`` (every
   parameter of the MDH table and the tool), or a comma list of check groups and parameter names
   (``free=tool,theta3``, ``free=link3``, ``free=a2,d4``);
@@ -20,9 +22,13 @@ handful of new poses (12-20 measured with the tracker wherever it now stands):
   posterior sigmas are far below what the new poses could resolve; fixing keeps the fit as small
   as the new poses can carry (frame + freed group).
 
+**Joint-space terms not freed are re-judged** on the new poses (:func:`_judge_terms`): dropped
+when the leave-one-out errors are lower without the term by more than one standard error (a term
+fitted on the old poses may not carry over: another probe mounting, another payload region).
+
 **Prediction uncertainty** (``uncertainty.json``) is recalibrated on the new poses: each pose's
-error predicted by a fit of the others (leave-one-out, frame and freed group refitted each time;
-with 12-20 poses every pose is its own region) gives the model discrepancy ``sigma_d`` as in
+error predicted by a fit of the others (leave-one-out, frame and freed group refitted each time,
+near twins left out together; with 12-20 poses every pose is its own region) gives the model discrepancy ``sigma_d`` as in
 :mod:`torchcal.stages.prediction_uncertainty`. The *shape* of the 95 % region (the conformal
 quantile of the normalised scores) is kept from the old model, calibrated on hundreds of
 out-of-fold errors: 12-20 scores cannot place a 95th percentile (the split-conformal quantile of
@@ -84,7 +90,10 @@ from torchcal.stages.store import StoredModel, load_model, save_model
 FREE_KEYWORDS = ("auto", "frame", "tool", "offsets", "all")
 #: Fewest new poses an update accepts (the frame takes 6 of their 3n coordinates, the LOO one more pose).
 MIN_POSES = 6
-UNCERTAINTY_PROTOCOL = ("leave-one-out over the new poses (frame and freed parameters refitted without each pose): "
+#: Poses whose joints all lie within this (deg) of each other are near twins: left out together in the leave-one-out.
+NEAR_TWIN_DEG = 1.0
+UNCERTAINTY_PROTOCOL = ("leave-one-out over the new poses (frame and freed parameters refitted without each pose and its "
+                        "near twins): "
                         "discrepancy sigma from their errors; shape of the 95 % region (conformal quantile) {shape}")
 
 
@@ -108,6 +117,7 @@ class UpdateResult:
     notes: list[str] = field(default_factory=list)
     scales: dict[str, float] = field(default_factory=dict)
     used: StoredModel | None = None
+    dropped_terms: list[str] = field(default_factory=list)
 
     @property
     def terms_of(self) -> StoredModel:
@@ -158,7 +168,9 @@ class UpdateResult:
             "freed": self.freed,
             "freed_by": self.how,
             "prior_of_freed": "manufacturing tolerances centred on the parent's values",
-            "kept": "every other parameter, joint-space terms included, fixed at the parent's values with its covariance",
+            "kept": ("every other parameter, the joint-space terms not dropped included, fixed at the parent's values "
+                     "with its covariance"),
+            "joint_space_terms_dropped": self.dropped_terms,
             "joint_space_term_scales": {k: 1.0 + v for k, v in self.scales.items()},
             "changes": self.changes(),
             "fit_rms_mm": self.fit_rms_mm,
@@ -278,16 +290,87 @@ def _fit_all(stored: StoredModel, data: Measurements, names: list[str]) -> tuple
     return used, _fit(used, data, geometry), scales
 
 
+def near_twin_groups(q: torch.Tensor, within_deg: float = NEAR_TWIN_DEG) -> list[list[int]]:
+    """Poses linked (transitively) by every joint within ``within_deg`` of each other: left out together."""
+    n = len(q)
+    close = (q[:, None, :] - q[None, :, :]).abs().amax(dim=-1) <= math.radians(within_deg)
+    parent = list(range(n))
+
+    def root(i: int) -> int:
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    for i, j in close.nonzero().tolist():
+        parent[root(i)] = root(j)
+    groups: dict[int, list[int]] = {}
+    for i in range(n):
+        groups.setdefault(root(i), []).append(i)
+    return list(groups.values())
+
+
 def _loo_errors(stored: StoredModel, data: Measurements, names: list[str]) -> np.ndarray:
-    """``(n, 3)`` mm: each pose's error predicted by the update fitted to the other poses."""
+    """``(n, 3)`` mm: each pose's error predicted by the update fitted to the other poses (near twins,
+    :func:`near_twin_groups`, left out with it: a twin in the fit would predict its sibling)."""
     n = len(data)
     out = np.zeros((n, 3))
-    for i in range(n):
-        rest = [k for k in range(n) if k != i]
+    for group in near_twin_groups(data.q):
+        rest = [k for k in range(n) if k not in group]
         used, fit, _ = _fit_all(stored, data.subset(rest), names)
-        q = model_joints(used, data.q[i : i + 1])
-        out[i] = ((data.position[i : i + 1] - fit.model.tcp_position(q, fit.x)) * 1e3).numpy()[0]
+        q = model_joints(used, data.q[group])
+        out[group] = ((data.position[group] - fit.model.tcp_position(q, fit.x)) * 1e3).numpy()
     return out
+
+
+def _loo_rms(errors: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(np.sum(errors**2, axis=-1))))
+
+
+def _without(stored: StoredModel, keys: list[str]) -> StoredModel:
+    """``stored`` without the joint-space terms ``keys`` (``calibration.json`` keys)."""
+    return replace(stored, metadata={k: v for k, v in stored.metadata.items() if k not in keys})
+
+
+def _clearly_better(base: np.ndarray, other: np.ndarray) -> tuple[bool, float, float]:
+    """Whether ``other``'s leave-one-out errors beat ``base``'s by more than one standard error of the
+    per-pose difference of squared errors (the one-standard-error rule: with 12-20 poses a smaller RMS
+    alone is often noise). Returns ``(better, mean gain, its standard error)`` in mm^2."""
+    gain = np.sum(base**2, axis=-1) - np.sum(other**2, axis=-1)
+    se = float(np.std(gain, ddof=1) / math.sqrt(len(gain))) if len(gain) > 1 else math.inf
+    return float(gain.mean()) > se, float(gain.mean()), se
+
+
+def _judge_terms(stored: StoredModel, data: Measurements, names: list[str],
+                 loo: np.ndarray) -> tuple[StoredModel, np.ndarray, list[str], list[str]]:
+    """Each joint-space term not freed, re-judged on the new poses: dropped when the update's
+    leave-one-out errors are clearly lower without it (:func:`_clearly_better`; greedy: the largest
+    gain first, then the others again without it).
+
+    A term fitted on the old poses may not carry over (another probe mounting, another payload
+    region: docs/validation.md, UR10 A -> D); dropping it fits nothing more, so the two
+    leave-one-out errors compare like for like; the term was chosen on hundreds of poses, so it
+    goes only when the new poses show more than noise. Returns ``(base model, its LOO errors,
+    dropped keys, lines)``.
+    """
+    candidates = [k for k in TERM_GROUPS.values() if stored.metadata.get(k) and k not in names]
+    dropped: list[str] = []
+    lines: list[str] = []
+    base = stored
+    while candidates:
+        trials = {k: _loo_errors(_without(base, [k]), data, names) for k in candidates}
+        key = min(trials, key=lambda k: _loo_rms(trials[k]))
+        better, gain, se = _clearly_better(loo, trials[key])
+        already = f" ({', '.join(dropped)} dropped)" if dropped else ""
+        lines.append(f"{key} {'dropped' if better else 'kept'}{already}: leave-one-out RMS {_loo_rms(trials[key]):.3f} mm "
+                     f"without it, {_loo_rms(loo):.3f} mm with it (gain {gain:+.4f} mm^2 per pose, one standard "
+                     f"error {se:.4f}: dropped above one)")
+        if not better:
+            break
+        base, loo = _without(base, [key]), trials[key]
+        dropped.append(key)
+        candidates.remove(key)
+    return base, loo, dropped, lines
 
 
 def _head_offset(stored: StoredModel, fit: CalibrationResult, data: Measurements) -> torch.Tensor:
@@ -362,12 +445,23 @@ def update_data(stored: StoredModel, data: Measurements, free: str = "auto") -> 
     work = data
     head_kept: bool | None = None
     head_line = None
-    used, fit, scales = _fit_all(stored, work, names)
     loo = _loo_errors(stored, work, names)
+    base, loo, dropped, term_lines = _judge_terms(stored, work, names, loo)
+    notes += term_lines
+    if spec == "auto" and names:
+        # the named group must beat the old model (frame only) on the new poses, else it is not freed
+        frame_only = _loo_errors(base, work, [])
+        if _loo_rms(frame_only) <= _loo_rms(loo):
+            how += (f"; not freed: leave-one-out RMS {_loo_rms(loo):.3f} mm with it, {_loo_rms(frame_only):.3f} mm "
+                    "with the frame alone")
+            names, loo = [], frame_only
+        else:
+            how += f"; leave-one-out RMS {_loo_rms(loo):.3f} mm, {_loo_rms(frame_only):.3f} mm with the frame alone"
+    used, fit, scales = _fit_all(base, work, names)
     if stored.residual is not None:
         corrected = replace(data, position=data.position - _head_offset(stored, fit, data))
-        used_h, fit_h, scales_h = _fit_all(stored, corrected, names)
-        loo_h = _loo_errors(stored, corrected, names)
+        used_h, fit_h, scales_h = _fit_all(base, corrected, names)
+        loo_h = _loo_errors(base, corrected, names)
         without, with_head = (float(np.sqrt(np.mean(np.sum(e**2, axis=-1)))) for e in (loo, loo_h))
         head_kept = with_head < without
         if head_kept:
@@ -386,7 +480,7 @@ def update_data(stored: StoredModel, data: Measurements, free: str = "auto") -> 
     return UpdateResult(stored=stored, data=data, freed=names, how=how, check=check, fit=fit, free=union_free,
                         covariance=cov, loo_errors_mm=loo, uncertainty=uncertainty, head_kept=head_kept,
                         head_line=head_line, parent_sha256=parent_sha256(stored.folder), notes=notes, scales=scales,
-                        used=used)
+                        used=used, dropped_terms=dropped)
 
 
 def load_has_uncertainty(stored: StoredModel) -> bool:
@@ -431,7 +525,9 @@ def update_report(result: UpdateResult) -> Report:
                            Preformatted("\n".join(result.lines()))]),
         Section("What changed", [changes, Paragraph(
             "Frame re-registered without a prior. Freed parameters: manufacturing-tolerance prior centred on the "
-            "parent's values. Everything else, joint-space terms included, fixed at the parent's values with its covariance.")]),
+            "parent's values. Everything else, joint-space terms included, fixed at the parent's values with its covariance"
+            + (f"; dropped (they no longer hold on the new poses; the lines above say by how much): {', '.join(result.dropped_terms)}."
+               if result.dropped_terms else "."))]),
         Section("Prediction uncertainty", [Paragraph(
             f"{result.uncertainty.protocol}: leave-one-out RMS {result.loo_rms_mm:.3f} mm, discrepancy sigma "
             f"{result.uncertainty.discrepancy_sigma_mm:.3f} mm per coordinate. With {len(result.data)} poses the scale is "
