@@ -1,9 +1,9 @@
 """MLP residual head: Adam on shuffled mini-batches, early stopping on the validation loss, the best epoch kept.
 
 The training loop is plain torch. The network is small (three layers of 64 on a batch of 128)
-and a step costs well under a millisecond, so a trainer's per-step hooks (callbacks, logging,
-closures) cost more than the step: with Lightning's ``Trainer`` the same training took about
-three times as long (docs/benchmarks.md). The loop computes exactly what that trainer computed
+and a step costs about a millisecond; a trainer's per-step hooks (callbacks, logging, closures)
+cost as much again: with Lightning's ``Trainer`` the same training took about twice as long
+(docs/benchmarks.md). The loop computes exactly what that trainer computed
 (same initialization, batches, optimizer and scheduler steps, stopping rule and kept epoch;
 ``tests/residual/test_heads.py`` checks this against Lightning when it is installed).
 """
