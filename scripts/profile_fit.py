@@ -189,7 +189,8 @@ def main() -> None:
                       f"load {r['load_before']:.1f}", flush=True)
     stages = list(dict.fromkeys(s for _, _, s in STAGES)) + ["rest"]
     lines = ["# Where a fit's time goes", "",
-             f"`scripts/profile_fit.py`: median of {args.repeats} run(s) per case, each a fresh process; wall and "
+             f"`scripts/profile_fit.py`: median of the runs listed under each table (up to {args.repeats}), each a fresh "
+             "process; wall and "
              "CPU (all threads) seconds per stage, exclusive of nested stages. Load average (1 min) before "
              "each run in the last column: the machine has 2 cores shared with other work, so wall times "
              "move with load; CPU seconds move less.", ""]

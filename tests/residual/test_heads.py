@@ -82,9 +82,72 @@ def test_mlp_fits_the_smooth_function():
     assert rms(head.predict(xt) - yt) < 0.35 * rms(yt)
 
 
+def _lightning_mlp(head: MLPHead, x_train, y_train, x_val, y_val) -> torch.nn.Sequential:
+    """The reference: the same training by Lightning's ``Trainer`` (seeded initialization, shuffled
+    batches, Adam, plateau halving, early stopping and the best checkpoint as callbacks)."""
+    import tempfile
+    import warnings
+
+    import lightning as L
+    from lightning.pytorch.callbacks import EarlyStopping, ModelCheckpoint
+
+    from torchcal.residual.mlp import make_network
+
+    warnings.filterwarnings("ignore", message=".*(treespec|many workers).*")
+    L.seed_everything(head.seed, verbose=False)
+    network = make_network(x_train.shape[1], y_train.shape[1], head.width, head.depth,
+                           float(y_train.std().clamp_min(1e-12))).to(x_train.dtype)
+
+    class Module(L.LightningModule):
+        def __init__(self):
+            super().__init__()
+            self.net = network
+
+        def training_step(self, batch, _):
+            return torch.nn.functional.mse_loss(self.net(batch[0]), batch[1])
+
+        def validation_step(self, batch, _):
+            self.log("val_loss", torch.nn.functional.mse_loss(self.net(batch[0]), batch[1]))
+
+        def configure_optimizers(self):
+            optimizer = torch.optim.Adam(self.parameters(), lr=head.learning_rate)
+            plateau = torch.optim.lr_scheduler.ReduceLROnPlateau(optimizer, factor=0.5, patience=max(2, head.patience // 4))
+            return {"optimizer": optimizer, "lr_scheduler": {"scheduler": plateau, "monitor": "val_loss"}}
+
+    train = torch.utils.data.TensorDataset(x_train, y_train)
+    shuffle = torch.utils.data.RandomSampler(train, generator=torch.Generator().manual_seed(head.seed))
+    loader = torch.utils.data.DataLoader(train, batch_size=None,
+                                         sampler=torch.utils.data.BatchSampler(shuffle, head.batch_size, drop_last=False))
+    val = torch.utils.data.DataLoader(torch.utils.data.TensorDataset(x_val, y_val), batch_size=len(x_val))
+    with tempfile.TemporaryDirectory() as tmp:
+        best = ModelCheckpoint(dirpath=tmp, monitor="val_loss", save_top_k=1, save_weights_only=True)
+        trainer = L.Trainer(max_epochs=head.max_epochs, callbacks=[EarlyStopping("val_loss", patience=head.patience), best],
+                            enable_progress_bar=False, enable_model_summary=False, logger=False, accelerator="cpu",
+                            devices=1, default_root_dir=tmp, num_sanity_val_steps=0)
+        trainer.fit(Module(), loader, val)
+        state = torch.load(best.best_model_path, weights_only=True)["state_dict"]
+    network.load_state_dict({k.removeprefix("net."): v for k, v in state.items()})
+    return network
+
+
+@pytest.mark.parametrize("max_epochs, patience", [(25, 40), (60, 3)])
+def test_mlp_trains_exactly_as_the_lightning_trainer(max_epochs, patience):
+    """The plain training loop against Lightning's: the same weights to the bit, whether training ran to
+    ``max_epochs`` or stopped early."""
+    pytest.importorskip("lightning")
+    x, y = _smooth_problem(400, seed=4)
+    head = MLPHead(width=16, depth=2, max_epochs=max_epochs, patience=patience, batch_size=64, seed=2)
+    reference = _lightning_mlp(head, x[:300], y[:300], x[300:], y[300:])
+    head.fit(x[:300], y[:300], x[300:], y[300:])
+    assert (head.epochs_trained < max_epochs) == (patience < max_epochs)
+    for name, value in reference.state_dict().items():
+        assert torch.equal(head.module().state_dict()[name], value), name
+
+
 def test_ctrl_c_during_mlp_training_is_a_keyboard_interrupt(monkeypatch):
-    """Lightning turns Ctrl-C into its own shutdown and ``sys.exit(1)``; the head raises
-    ``KeyboardInterrupt`` instead, so that the command says what it kept and exits 130."""
+    """Ctrl-C during training is a ``KeyboardInterrupt`` with SIGINT's handler left as it was (a trainer
+    that turned it into its own shutdown and ``sys.exit(1)`` made the command exit 1 without a word);
+    the command then says what it kept and exits 130."""
     import signal
 
     x, y = _smooth_problem(200, seed=1)
@@ -95,7 +158,7 @@ def test_ctrl_c_during_mlp_training_is_a_keyboard_interrupt(monkeypatch):
     monkeypatch.setattr(torch.optim.Adam, "step", interrupted)
     with pytest.raises(KeyboardInterrupt):
         MLPHead(max_epochs=3, patience=2, seed=0).fit(x[:150], y[:150], x[150:], y[150:])
-    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # Lightning had left it ignored
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
 
 
 @pytest.mark.parametrize("name", sorted(HEADS))

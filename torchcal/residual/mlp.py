@@ -1,17 +1,21 @@
-"""MLP residual head trained with Lightning (early stopping on validation loss, best checkpoint).
+"""MLP residual head: Adam on shuffled mini-batches, early stopping on the validation loss, the best epoch kept.
 
-Lightning is imported inside :meth:`MLPHead.fit` only: commands that do not train stay light.
-The best checkpoint is reloaded with ``torch.load(..., weights_only=True)``.
+The training loop is plain torch. The network is small (three layers of 64 on a batch of 128)
+and a step costs about a millisecond; a trainer's per-step hooks (callbacks, logging, closures)
+cost as much again: with Lightning's ``Trainer`` the same training took about twice as long
+(docs/benchmarks.md). The loop computes exactly what that trainer computed
+(same initialization, batches, optimizer and scheduler steps, stopping rule and kept epoch;
+``tests/residual/test_heads.py`` checks this against Lightning when it is installed).
 """
 
 from __future__ import annotations
 
-import tempfile
-from pathlib import Path
+import math
 from typing import Any
 
 import torch
 
+from torchcal.optimize.base import progress_bar
 from torchcal.residual.base import ResidualHead
 
 
@@ -27,6 +31,12 @@ class Scale(torch.nn.Module):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return x * self.factor
+
+
+def _epoch_mean(loss: torch.Tensor, n: int) -> torch.Tensor:
+    """The epoch's validation loss as a trainer's metric logger reduces one batch of ``n``: ``(0 + loss n) / n``
+    (not always ``loss`` to the last bit; kept so that the stopping rule sees the same numbers)."""
+    return (torch.tensor(0.0) + loss * n) / torch.tensor(n)
 
 
 def make_network(n_in: int, n_out: int, width: int, depth: int, output_scale: float = 1.0) -> torch.nn.Sequential:
@@ -68,73 +78,46 @@ class MLPHead(ResidualHead):
         self.epochs_trained = 0
 
     def fit(self, x_train, y_train, x_val, y_val) -> MLPHead:
-        import logging
-        import warnings
-
-        import lightning as L
-        from lightning.pytorch.callbacks import EarlyStopping, ModelCheckpoint
-
-        # Lightning's informational banners (devices, tips) say nothing about this fit
-        for name in ("lightning", "lightning.pytorch", "lightning.fabric"):
-            logging.getLogger(name).setLevel(logging.WARNING)
-        warnings.filterwarnings("ignore", message=".*treespec.*")
-        warnings.filterwarnings("ignore", message=".*does not have many workers.*")
-
-        L.seed_everything(self.seed, verbose=False)
+        """Train on ``(x_train, y_train)``; ``(x_val, y_val)`` steers the step size, early stopping and the
+        kept epoch (the one of lowest validation loss)."""
         self.output_scale = float(y_train.std().clamp_min(1e-12))
-        network = make_network(x_train.shape[1], y_train.shape[1], self.width, self.depth, self.output_scale).to(x_train.dtype)
-        head = self
-
-        class Module(L.LightningModule):
-            def __init__(self) -> None:
-                super().__init__()
-                self.net = network
-
-            def forward(self, x):
-                return self.net(x)
-
-            def training_step(self, batch, _):
-                x, y = batch
-                # not logged: nothing reads it, and a log call per step costs more than the step
-                return torch.nn.functional.mse_loss(self.net(x), y)
-
-            def validation_step(self, batch, _):
-                x, y = batch
-                self.log("val_loss", torch.nn.functional.mse_loss(self.net(x), y), prog_bar=True)
-
-            def configure_optimizers(self):
-                optimizer = torch.optim.Adam(self.parameters(), lr=head.learning_rate, weight_decay=head.weight_decay)
-                # halve the step when validation stalls: Adam's noise floor, not the model, limits the fit
-                plateau = torch.optim.lr_scheduler.ReduceLROnPlateau(optimizer, factor=0.5, patience=max(2, head.patience // 4))
-                return {"optimizer": optimizer, "lr_scheduler": {"scheduler": plateau, "monitor": "val_loss"}}
-
-        class Data(L.LightningDataModule):
-            def train_dataloader(self):
-                ds = torch.utils.data.TensorDataset(x_train, y_train)
-                gen = torch.Generator().manual_seed(head.seed)
-                # the batches of shuffle=True, fetched as one index list per batch (``batch_size=None``):
-                # the same batches without a per-sample fetch and collate, which cost more than the step
-                batches = torch.utils.data.BatchSampler(torch.utils.data.RandomSampler(ds, generator=gen), head.batch_size, drop_last=False)
-                return torch.utils.data.DataLoader(ds, batch_size=None, sampler=batches)
-
-            def val_dataloader(self):
-                ds = torch.utils.data.TensorDataset(x_val, y_val)
-                whole = torch.utils.data.BatchSampler(torch.utils.data.SequentialSampler(ds), len(ds), drop_last=False)
-                return torch.utils.data.DataLoader(ds, batch_size=None, sampler=whole)
-
-        with tempfile.TemporaryDirectory() as tmp:
-            checkpoint = ModelCheckpoint(dirpath=tmp, monitor="val_loss", mode="min", save_top_k=1, save_weights_only=True)
-            trainer = L.Trainer(
-                max_epochs=self.max_epochs, callbacks=[EarlyStopping("val_loss", patience=self.patience), checkpoint],
-                enable_progress_bar=self.progress, enable_model_summary=False, logger=False, accelerator="cpu",
-                devices=1, deterministic=True, default_root_dir=tmp, num_sanity_val_steps=0,
-            )
-            module = Module()
-            _fit_interruptible(trainer, module, Data())
-            self.epochs_trained = int(trainer.current_epoch)
-            best = torch.load(Path(checkpoint.best_model_path), weights_only=True, map_location="cpu")
-            state = {k.removeprefix("net."): v for k, v in best["state_dict"].items()}
-            network.load_state_dict(state)
+        with torch.random.fork_rng(devices=[]):  # the seeded initialization leaves the global generator alone
+            torch.manual_seed(self.seed)
+            network = make_network(x_train.shape[1], y_train.shape[1], self.width, self.depth, self.output_scale).to(x_train.dtype)
+        optimizer = torch.optim.Adam(network.parameters(), lr=self.learning_rate, weight_decay=self.weight_decay)
+        # halve the step when validation stalls: Adam's noise floor, not the model, limits the fit
+        plateau = torch.optim.lr_scheduler.ReduceLROnPlateau(optimizer, factor=0.5, patience=max(2, self.patience // 4))
+        # the batches of a shuffling loader: one seeded permutation per epoch, cut into batches in order
+        order = torch.Generator().manual_seed(self.seed)
+        batches = torch.utils.data.BatchSampler(torch.utils.data.RandomSampler(range(len(x_train)), generator=order),
+                                                self.batch_size, drop_last=False)
+        best_loss, best_state, stalled, epoch = math.inf, None, 0, 0
+        with progress_bar(self.progress, self.max_epochs, "MLP training") as bar:
+            while epoch < self.max_epochs:
+                network.train()
+                for idx in batches:
+                    optimizer.zero_grad()
+                    torch.nn.functional.mse_loss(network(x_train[idx]), y_train[idx]).backward()
+                    optimizer.step()
+                network.eval()
+                with torch.no_grad():
+                    loss = float(_epoch_mean(torch.nn.functional.mse_loss(network(x_val), y_val), len(x_val)))
+                epoch += 1
+                bar.advance()
+                if best_state is None or loss < best_loss:  # the kept epoch: strictly lower validation loss
+                    best_state = {k: v.detach().clone() for k, v in network.state_dict().items()}
+                if not math.isfinite(loss):
+                    break
+                if loss < best_loss:  # early stopping: ``patience`` epochs without a strictly lower loss
+                    best_loss, stalled = loss, 0
+                else:
+                    stalled += 1
+                    if stalled >= self.patience:
+                        break
+                plateau.step(loss)
+        self.epochs_trained = epoch
+        assert best_state is not None
+        network.load_state_dict(best_state)
         self.network = network.eval()
         return self
 
@@ -160,23 +143,3 @@ class MLPHead(ResidualHead):
         head.network = net.eval()
         head.output_scale = float(settings["output_scale"])
         return head
-
-
-def _fit_interruptible(trainer, module, data) -> None:
-    """``trainer.fit``, with Ctrl-C raised as ``KeyboardInterrupt`` like everywhere else.
-
-    Lightning answers Ctrl-C with its own shutdown, which leaves SIGINT ignored and ends in
-    ``sys.exit(1)``: a command interrupted during training would exit 1 without a word instead of
-    saying what it kept (exit 130).
-    """
-    import signal
-    import threading
-
-    try:
-        trainer.fit(module, datamodule=data)
-    except SystemExit:
-        if not trainer.interrupted:
-            raise
-        if threading.current_thread() is threading.main_thread():
-            signal.signal(signal.SIGINT, signal.default_int_handler)
-        raise KeyboardInterrupt from None
