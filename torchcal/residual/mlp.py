@@ -1,11 +1,13 @@
-"""MLP residual head: Adam on shuffled mini-batches, early stopping on the validation loss, the best epoch kept.
+"""MLP residual head trained with Lightning Fabric: Adam on shuffled mini-batches, early stopping on the
+validation loss, the best epoch kept.
 
-The training loop is plain torch. The network is small (three layers of 64 on a batch of 128)
-and a step costs about a millisecond; a trainer's per-step hooks (callbacks, logging, closures)
-cost as much again: with Lightning's ``Trainer`` the same training took about twice as long
-(docs/benchmarks.md). The loop computes exactly what that trainer computed
-(same initialization, batches, optimizer and scheduler steps, stopping rule and kept epoch;
-``tests/residual/test_heads.py`` checks this against Lightning when it is installed).
+The network is small (three layers of 64 on a batch of 128) and a step costs well under a
+millisecond, so a ``Trainer``'s per-step hooks (callbacks, logging, closures, checkpoint files) cost
+more than the step: with it the same training took about three times as long (docs/benchmarks.md).
+Fabric keeps Lightning's device, precision and backward handling and leaves the loop to this module,
+which computes exactly what that trainer computed (same initialization, batches, optimizer and
+scheduler steps, stopping rule and kept epoch; ``tests/residual/test_heads.py`` checks this against
+the ``Trainer``).
 """
 
 from __future__ import annotations
@@ -85,6 +87,11 @@ class MLPHead(ResidualHead):
             torch.manual_seed(self.seed)
             network = make_network(x_train.shape[1], y_train.shape[1], self.width, self.depth, self.output_scale).to(x_train.dtype)
         optimizer = torch.optim.Adam(network.parameters(), lr=self.learning_rate, weight_decay=self.weight_decay)
+        # imported here, not at the top: commands that do not train an MLP skip Lightning's import time
+        from lightning.fabric import Fabric
+
+        fabric = Fabric(accelerator="cpu", devices=1)
+        trained, fabric_optimizer = fabric.setup(network, optimizer)
         # halve the step when validation stalls: Adam's noise floor, not the model, limits the fit
         plateau = torch.optim.lr_scheduler.ReduceLROnPlateau(optimizer, factor=0.5, patience=max(2, self.patience // 4))
         # the batches of a shuffling loader: one seeded permutation per epoch, cut into batches in order
@@ -96,9 +103,9 @@ class MLPHead(ResidualHead):
             while epoch < self.max_epochs:
                 network.train()
                 for idx in batches:
-                    optimizer.zero_grad()
-                    torch.nn.functional.mse_loss(network(x_train[idx]), y_train[idx]).backward()
-                    optimizer.step()
+                    fabric_optimizer.zero_grad()
+                    fabric.backward(torch.nn.functional.mse_loss(trained(x_train[idx]), y_train[idx]))
+                    fabric_optimizer.step()
                 network.eval()
                 with torch.no_grad():
                     loss = float(_epoch_mean(torch.nn.functional.mse_loss(network(x_val), y_val), len(x_val)))
