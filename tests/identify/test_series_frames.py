@@ -36,7 +36,7 @@ def test_projected_jacobian_is_the_derivative_of_the_registered_residual_at_a_ze
     twin, pooled = _two_placements()
     free = twin.model.default_active().nonzero().squeeze(-1)
     problem = CalibrationProblem(twin.model, pooled, free)
-    r, jac = problem.jacobian(twin.x_true)
+    _, jac = problem.jacobian(twin.x_true)
     step = 1e-7
     for k in (0, 5, 9, 14, len(free) - 1):
         x_plus, x_minus = twin.x_true.clone(), twin.x_true.clone()
@@ -47,7 +47,7 @@ def test_projected_jacobian_is_the_derivative_of_the_registered_residual_at_a_ze
 
 
 def test_a_single_series_is_untouched():
-    twin, pooled = _two_placements()
+    _, pooled = _two_placements()
     r = torch.randn(len(pooled) * 3, dtype=torch.float64)
     single = Measurements(q=pooled.q, position=pooled.position)
     assert torch.equal(per_series_registered(single, r)[0], r)
@@ -55,7 +55,7 @@ def test_a_single_series_is_untouched():
 
 def test_held_out_poses_of_a_later_series_are_scored_in_the_frame_of_its_training_poses():
     twin, pooled = _two_placements()
-    train, test = pooled.subset(list(range(0, 30)) + list(range(40, 70))), pooled.subset(list(range(30, 40)) + list(range(70, 80)))
+    train, test = pooled.subset(list(range(30)) + list(range(40, 70))), pooled.subset(list(range(30, 40)) + list(range(70, 80)))
 
     def predict(q):
         return twin.model.tcp_position(q, twin.x_true)
