@@ -156,9 +156,14 @@ def test_ctrl_c_during_mlp_training_is_a_keyboard_interrupt(monkeypatch):
         raise KeyboardInterrupt
 
     monkeypatch.setattr(torch.optim.Adam, "step", interrupted)
-    with pytest.raises(KeyboardInterrupt):
-        MLPHead(max_epochs=3, patience=2, seed=0).fit(x[:150], y[:150], x[150:], y[150:])
-    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    # a command's handler, whatever an earlier test in this worker process left
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            MLPHead(max_epochs=3, patience=2, seed=0).fit(x[:150], y[:150], x[150:], y[150:])
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    finally:
+        signal.signal(signal.SIGINT, previous)
 
 
 @pytest.mark.parametrize("name", sorted(HEADS))
