@@ -132,7 +132,7 @@ def _lightning_mlp(head: MLPHead, x_train, y_train, x_val, y_val) -> torch.nn.Se
 
 @pytest.mark.parametrize("max_epochs, patience", [(25, 40), (60, 3)])
 def test_mlp_trains_exactly_as_the_lightning_trainer(max_epochs, patience):
-    """The plain training loop against Lightning's: the same weights to the bit, whether training ran to
+    """The Fabric training loop against Lightning's Trainer: the same weights to the bit, whether training ran to
     ``max_epochs`` or stopped early."""
     pytest.importorskip("lightning")
     x, y = _smooth_problem(400, seed=4)
