@@ -92,9 +92,11 @@ class CalibrationProblem:
         """``(n * rows_per_pose,)`` residual vector at full parameter vector ``x``."""
         q = self.data.q.to(x)
         if not self.use_orientation:
-            r = (self.data.position.to(x) - self.model.tcp_position(q, x)).unsqueeze(-1)
-            # pooled series: each series after the first at its own registered frame (identify.series_frames)
-            return per_series_registered(self.data, self._whiten(r).reshape(-1))[0]
+            r = (self.data.position.to(x) - self.model.tcp_position(q, x)).reshape(-1)
+            # pooled series: each series after the first at its own registered frame (identify.series_frames),
+            # registered on the points in metres, then whitened
+            registered = per_series_registered(self.data, r)[0]
+            return self._whiten(registered.reshape(-1, 3, 1)).reshape(-1)
         pose = self.model.tcp_pose(q, x)
         dp = self.data.position.to(x) - pose[..., :3, 3]
         dr = tf.so3_log(self._rotation().to(x) @ pose[..., :3, :3].transpose(-1, -2))
@@ -110,10 +112,12 @@ class CalibrationProblem:
         if not self.use_orientation:
             # the screw-based Jacobian equals the autodiff one (tested) at a fraction of the cost
             pred, jac = self.model.position_jacobian(q, x, columns, method="analytic")
-            r = self._whiten((self.data.position.to(x) - pred).unsqueeze(-1)).reshape(-1)
-            registered, projected = per_series_registered(self.data, r, -self._whiten(jac).reshape(-1, jac.shape[-1]))
+            registered, projected = per_series_registered(self.data, (self.data.position.to(x) - pred).reshape(-1),
+                                                          -jac.reshape(-1, jac.shape[-1]))
             assert projected is not None
-            return registered, projected
+            n = len(self.data)
+            return (self._whiten(registered.reshape(n, 3, 1)).reshape(-1),
+                    self._whiten(projected.reshape(n, 3, -1)).reshape(-1, projected.shape[-1]))
         pose, jac = self.model.pose_jacobian(q, x, columns)
         dp = self.data.position.to(x) - pose[..., :3, 3]
         dr = tf.so3_log(self._rotation().to(x) @ pose[..., :3, :3].transpose(-1, -2))
