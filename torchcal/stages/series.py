@@ -125,9 +125,15 @@ def register_series(predicted: torch.Tensor, rotation: torch.Tensor, data: Measu
     return SeriesFrame(transform, offset)
 
 
-def _initial_frames(robot: RobotModel, series: list[Measurements], per_series_tool: bool):
-    """Frames from the nominal robot with frame and tool fitted to each series (the first is the reference)."""
-    fits = [nominal_fit(robot, s) for s in series]
+def _nominal_fits(robot: RobotModel, series: list[Measurements]) -> list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]]:
+    """:func:`~torchcal.stages.geometry.nominal_fit` of each series (frame and tool fitted, positions only)."""
+    return [nominal_fit(robot, s) for s in series]
+
+
+def _initial_frames(robot: RobotModel, series: list[Measurements], per_series_tool: bool, fits=None):
+    """Frames from the nominal robot with frame and tool fitted to each series (the first is the reference);
+    ``fits``: the series' :func:`_nominal_fits` where already computed."""
+    fits = _nominal_fits(robot, series) if fits is None else fits
     _, t0, tool0 = fits[0]
     frames = [SeriesFrame(t @ torch.linalg.inv(t0), (tool - tool0) if per_series_tool else torch.zeros(3, dtype=tool.dtype))
               for _, t, tool in fits]
@@ -152,7 +158,7 @@ def _reregister(result, series: list[Measurements], frames: list[SeriesFrame], p
         frame = register_series(predicted, rotation, s, per_series_tool)
         before = map_to_reference(s, frames[k], rotation).position
         after = map_to_reference(s, frame, rotation).position
-        moved = max(moved, float((after - before).norm(dim=-1).pow(2).mean().sqrt()) * 1e3)
+        moved = max(moved, _rms_mm(after - before))
         new.append(frame)
     return new, rotations, moved
 
@@ -170,7 +176,9 @@ def fit_series(robot: RobotModel, series: list[Measurements], config: FitConfig,
     """
     if len(series) < 2:
         raise DataError("a fit over several series needs at least two measurement files")
-    frame_mode, tool_mode, why = resolve_set_ups(robot, series, config)
+    # the nominal fits decide ``auto`` and start the frames: computed once for both
+    fits = _nominal_fits(robot, series) if "auto" in (config.series_frame, config.series_tool) else None
+    frame_mode, tool_mode, why = resolve_set_ups(robot, series, config, fits)
     config = replace(config, series_frame=frame_mode, series_tool=tool_mode)
     if config.series_frame == "shared":
         fit = _fit_shared_frame(robot, series, config, progress)
@@ -180,7 +188,7 @@ def fit_series(robot: RobotModel, series: list[Measurements], config: FitConfig,
     # the frames are registered on points: orientation columns would need a rotation per series too
     series = [replace(s, rotation=None) for s in series]
     per_tool = config.series_tool == "per_series"
-    frames, rotations = _initial_frames(robot, series, per_tool)
+    frames, rotations = _initial_frames(robot, series, per_tool, fits)
     quiet = replace(config, residual="none", uncertainty="none", progress=False)
     geometry_only = replace(quiet, gravity_compliance="none", joint_harmonics="none")
     rounds, moved = 0, float("inf")
@@ -220,7 +228,8 @@ def fit_series(robot: RobotModel, series: list[Measurements], config: FitConfig,
     return SeriesFit(result, structure, pooled, frames, rounds, moved, config.series_tool)
 
 
-def resolve_set_ups(robot: RobotModel, series: list[Measurements], config: FitConfig) -> tuple[str, str, str]:
+def resolve_set_ups(robot: RobotModel, series: list[Measurements], config: FitConfig,
+                    fits=None) -> tuple[str, str, str]:
     """``(series_frame, series_tool, note)`` with ``auto`` resolved from each series' nominal fit (frame and tool).
 
     One frame where every series' frame moves its points less than :data:`FRAME_AGREEMENT_MM`
@@ -228,6 +237,7 @@ def resolve_set_ups(robot: RobotModel, series: list[Measurements], config: FitCo
     tools agree. Why: a frame per series leaves the fit free to turn one series against another,
     which a tracker that stayed does not (UR10 B and C together scored on series A: one frame
     0.4637 mm, a frame each 0.4726, ``docs/multi_series_real.md``). The note says what was found.
+    ``fits``: the series' :func:`_nominal_fits` where already computed.
     """
     frame_mode, tool_mode = config.series_frame, config.series_tool
     if frame_mode not in SERIES_FRAMES:
@@ -236,7 +246,7 @@ def resolve_set_ups(robot: RobotModel, series: list[Measurements], config: FitCo
         raise DataError(f"unknown series_tool '{tool_mode}'; choose one of {', '.join(SERIES_TOOLS)}")
     if "auto" not in (frame_mode, tool_mode):
         return frame_mode, tool_mode, ""
-    fits = [nominal_fit(robot, s) for s in series]
+    fits = _nominal_fits(robot, series) if fits is None else fits
     _, t0, tool0 = fits[0]
     frame_mm = max(_rms_mm((s.position @ rel[:3, :3].T + rel[:3, 3]) - s.position)
                    for s, rel in ((s, t0 @ torch.linalg.inv(t)) for s, (_, t, _) in zip(series[1:], fits[1:])))
@@ -265,11 +275,12 @@ def _fit_shared_frame(robot: RobotModel, series: list[Measurements], config: Fit
         raise DataError("series_frame=shared takes one tool too (series_tool=shared): a re-mounted probe is "
                         "another set-up, give it its own frame")
     lines = [line + k * 10**7 for k, s in enumerate(series) for line in s.line_numbers]
-    pooled = replace(pool_series(series), series=None, line_numbers=tuple(lines))
+    in_files = pool_series(series)
+    pooled = replace(in_files, series=None, line_numbers=tuple(lines))
     result, structure = fit_with_selection(robot, pooled, config, progress=progress)
     result.notes.append(f"{len(series)} measurement series fitted together in one instrument frame with one tool")
     identity = SeriesFrame(torch.eye(4, dtype=torch.float64), torch.zeros(3, dtype=torch.float64))
-    return SeriesFit(result, structure, replace(pooled, line_numbers=pool_series(series).line_numbers),
+    return SeriesFit(result, structure, replace(pooled, line_numbers=in_files.line_numbers),
                      [identity] * len(series), 0, 0.0, "shared")
 
 
@@ -280,7 +291,7 @@ def series_metadata(series: list[Measurements], fit: SeriesFit) -> dict:
         part = fit.pooled.subset(torch.arange(start, start + len(s)))
         start += len(s)
         predicted = _tcp_in_reference(fit.result, part.q)[0]
-        rms = float((part.position - predicted).norm(dim=-1).pow(2).mean().sqrt()) * 1e3
+        rms = _rms_mm(part.position - predicted)
         entries.append({"file": s.source, "sha256": s.sha256, "n_poses": len(s),
                         "T_series_reference": frame.transform.tolist(),
                         "tool_offset_mm": (frame.tool_offset * 1e3).tolist(), "fit_rms_mm": rms})
