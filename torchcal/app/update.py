@@ -68,6 +68,7 @@ from torchcal.app.check import (
 from torchcal.core.errors import DataError, IdentifiabilityWarning, ModelError
 from torchcal.core.folder import CHECKSUMS, write_member
 from torchcal.core.hashing import sha256_file
+from torchcal.core.metrics import repeated_groups
 from torchcal.data.measurements import Measurements, load_measurements
 from torchcal.identify.calibrate import CalibrationResult, calibrate
 from torchcal.identify.joint_errors import JointSpaceErrors
@@ -132,7 +133,7 @@ class UpdateResult:
 
     @property
     def loo_rms_mm(self) -> float:
-        return float(np.sqrt(np.mean(np.sum(self.loo_errors_mm**2, axis=-1))))
+        return _loo_rms(self.loo_errors_mm)
 
     def _head_offset(self) -> torch.Tensor:
         if not self.head_kept or self.stored.residual is None:
@@ -291,23 +292,11 @@ def _fit_all(stored: StoredModel, data: Measurements, names: list[str]) -> tuple
 
 
 def near_twin_groups(q: torch.Tensor, within_deg: float = NEAR_TWIN_DEG) -> list[list[int]]:
-    """Poses linked (transitively) by every joint within ``within_deg`` of each other: left out together."""
-    n = len(q)
-    close = (q[:, None, :] - q[None, :, :]).abs().amax(dim=-1) <= math.radians(within_deg)
-    parent = list(range(n))
-
-    def root(i: int) -> int:
-        while parent[i] != i:
-            parent[i] = parent[parent[i]]
-            i = parent[i]
-        return i
-
-    for i, j in close.nonzero().tolist():
-        parent[root(i)] = root(j)
-    groups: dict[int, list[int]] = {}
-    for i in range(n):
-        groups.setdefault(root(i), []).append(i)
-    return list(groups.values())
+    """Poses linked (transitively) by every joint within ``within_deg`` of each other: left out together
+    (:func:`torchcal.core.metrics.repeated_groups`, each other pose a group of its own)."""
+    twins = [group.tolist() for group in repeated_groups(q, within_deg)]
+    linked = {i for group in twins for i in group}
+    return twins + [[i] for i in range(len(q)) if i not in linked]
 
 
 def _loo_errors(stored: StoredModel, data: Measurements, names: list[str]) -> np.ndarray:
@@ -324,6 +313,7 @@ def _loo_errors(stored: StoredModel, data: Measurements, names: list[str]) -> np
 
 
 def _loo_rms(errors: np.ndarray) -> float:
+    """RMS of ``(n, 3)`` errors (mm) over the poses."""
     return float(np.sqrt(np.mean(np.sum(errors**2, axis=-1))))
 
 
@@ -462,7 +452,7 @@ def update_data(stored: StoredModel, data: Measurements, free: str = "auto") -> 
         corrected = replace(data, position=data.position - _head_offset(stored, fit, data))
         used_h, fit_h, scales_h = _fit_all(base, corrected, names)
         loo_h = _loo_errors(base, corrected, names)
-        without, with_head = (float(np.sqrt(np.mean(np.sum(e**2, axis=-1)))) for e in (loo, loo_h))
+        without, with_head = _loo_rms(loo), _loo_rms(loo_h)
         head_kept = with_head < without
         if head_kept:
             used, fit, scales, loo = used_h, fit_h, scales_h, loo_h
