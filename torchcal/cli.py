@@ -72,8 +72,9 @@ def _cmd_fit(args) -> int:
         check_fit_paths(Path(args.out), file, Path(args.robot))
     instrument = recognise(files[0])
     for file in files[1:]:
-        if recognise(file).name != instrument.name:
-            raise DataError(f"a {recognise(file).name} file, but {files[0]} is a {instrument.name} file: "
+        kind = recognise(file).name
+        if kind != instrument.name:
+            raise DataError(f"a {kind} file, but {files[0]} is a {instrument.name} file: "
                             "several --data files must be series of one kind", path=str(file))
     console = _console()
     with console.status(f"fitting {instrument.name} data") as status:
