@@ -173,3 +173,20 @@ def test_a_study_is_not_resumed_with_another_search_space(tmp_path):
     with pytest.raises(TorchcalError, match="another search space"):
         run_study(base, _study("space", 2, space=other))
     assert len(_trials(first, "space")) == 1
+
+
+def test_a_new_trial_taken_after_the_lock_was_lost_is_given_up(tmp_path):
+    """A server restart can end the lock's session mid-step: another worker may then read the same
+    counts and seed its sampler alike. The new trial is failed before it draws parameters, and the
+    budget is met by trials drawn afterwards, each configuration once."""
+    from torchcal.studies.worker import Worker
+
+    config = _study("lost", 2)
+    worker = Worker(_base(tmp_path), config, tmp_path)
+    held, answers = worker.lock.held, [False]
+    worker.lock.held = lambda: answers.pop() if answers else held()
+    assert worker.run() == 3
+    trials = open_study(config, tmp_path).get_trials()
+    assert [t.state for t in trials] == [TrialState.FAIL, TrialState.COMPLETE, TrialState.COMPLETE]
+    assert trials[0].params == {}
+    assert trials[1].params != trials[2].params

@@ -11,6 +11,11 @@ them creates a fresh trial past the budget. The lock makes the decision and the 
 * SQLite (one machine): ``flock`` on ``<database>.lock`` beside the database file; the kernel
   releases it when the process dies.
 * Other database servers: no lock; two workers may then finish a trial more than the budget.
+
+A server restart ends every session, and with it an advisory lock its holder still thinks it has:
+another worker can then take the lock and read the same counts. :meth:`StudyLock.held` tells the
+holder, once its trial is taken, whether the lock lasted through the step (the worker then gives a
+new trial up rather than run a configuration another worker may be running too).
 """
 
 from __future__ import annotations
@@ -74,6 +79,28 @@ class StudyLock:
             except BaseException:
                 self._close_conn()
                 raise
+
+    def held(self) -> bool:
+        """Whether this worker still holds the lock it acquired (an advisory lock dies with its session).
+
+        A file lock lasts as long as its open file, so it is held between ``acquire`` and ``release``;
+        with no lock (other servers) there is nothing to lose.
+        """
+        if self._path is not None:
+            return self._file is not None
+        if self.kind != "advisory":
+            return True
+        if self._conn is None:
+            return False
+        import sqlalchemy
+        from sqlalchemy.exc import SQLAlchemyError
+
+        try:
+            rows = self._conn.execute(sqlalchemy.text(
+                "SELECT count(*) FROM pg_locks WHERE locktype = 'advisory' AND granted AND pid = pg_backend_pid()"))
+            return bool(rows.scalar())
+        except SQLAlchemyError:  # the session is gone (a server restart, a terminated backend)
+            return False
 
     def release(self) -> None:
         """Give the lock up (idempotent; a lost connection has released it already)."""

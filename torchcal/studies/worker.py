@@ -11,7 +11,9 @@ as WAITING, with its parameters), counts the trials as the database has them and
   only then samples a new one. The lock is handed back as soon as the trial is taken.
 
 A queued retry therefore counts as a slot still to fill, and is run by whichever worker reaches it
-first: one that kept running or one started again. A database server that goes away is retried for
+first: one that kept running or one started again. A new trial taken after the lock was lost (a
+server restart ends the lock's session) is failed before it draws its parameters: another worker may
+have read the same counts and drawn the same configuration. A database server that goes away is retried for
 ``reconnect_s``; past that the worker stops with a one-line message and the study resumes when the
 command is run again.
 """
@@ -31,6 +33,10 @@ from torchcal.studies.spec import StudyConfig
 from torchcal.studies.storage import make_sampler, open_study, shown_url, storage_url
 
 MAX_CONSECUTIVE_FAILURES = 3
+
+
+class LockLostError(TorchcalError):
+    """The study lock was lost (its database session ended) between reading the counts and taking a trial."""
 
 
 def counts(study) -> dict[str, int]:
@@ -140,10 +146,19 @@ class Worker:
         self.lock = StudyLock(self.url, config.name, self.study_dir)
         self.objective = StudyObjective(base, config, self.study_dir, on_start=self._taken)
         self.current: int | None = None
+        self.counted = 0  # trials in the database when this worker last decided to run one
+        self.lock_lost = False
 
     def _taken(self, trial) -> None:
         self.current = trial.number
+        held = self.lock.held()
         self.lock.release()
+        # A queued trial was taken atomically by Optuna (its number is below the count). A new one's
+        # sampler was seeded from counts another worker may have read too once the lock was gone.
+        self.lock_lost = not held and trial.number >= self.counted
+        if self.lock_lost:
+            raise LockLostError(f"the study lock was lost (the database session ended) before trial {trial.number} "
+                                "drew its parameters; it is given up and another trial is drawn")
 
     def _step(self) -> str:
         """Decide under the lock, and run one trial when there is one to run."""
@@ -156,8 +171,9 @@ class Worker:
             step = next_step(c, self.config.n_trials)
             if step == "run":
                 # seeded by the number a new trial gets now (a queued trial keeps its parameters)
-                self.study.sampler = make_sampler(self.config, sum(c.values()))
-                self.current = None
+                self.counted = sum(c.values())
+                self.study.sampler = make_sampler(self.config, self.counted)
+                self.current, self.lock_lost = None, False
                 self.study.optimize(self.objective, n_trials=1, catch=(TorchcalError, RuntimeError, ValueError))
             return step
         finally:
@@ -189,7 +205,8 @@ class Worker:
         while True:
             try:
                 step = self._step()
-                failed = step == "run" and self._last_failed()
+                # a trial given up for a lost lock says nothing about the configurations
+                failed = step == "run" and not self.lock_lost and self._last_failed()
                 lost_since = None
             except Exception as exc:
                 if _taken_over(exc) and self._failed_in_database():
