@@ -91,7 +91,8 @@ def test_objective_on_a_held_out_series(tmp_path):
     import optuna
 
     from torchcal.instruments.tracker.evaluate import evaluate
-    from torchcal.sim.twin import TwinConfig, write_twin_case
+    from torchcal.instruments.tracker.twin_case import write_twin_case
+    from torchcal.sim.twin import TwinConfig
 
     case = write_twin_case(tmp_path / "case", TwinConfig(seed=3, n_train=200, n_test=120, gravity=True, gear=True))
     base = _small_base(tmp_path)
@@ -128,7 +129,8 @@ def test_study_on_measurement_files_refits_and_exports_the_best(tmp_path):
 
     import optuna
 
-    from torchcal.sim.twin import TwinConfig, write_twin_case
+    from torchcal.instruments.tracker.twin_case import write_twin_case
+    from torchcal.sim.twin import TwinConfig
 
     case = write_twin_case(tmp_path / "case", TwinConfig(seed=2, n_train=200, n_test=80, gravity=True, gear=True))
     base = _small_base(tmp_path)

@@ -36,7 +36,7 @@ from torchcal.report.calibration import (
     score_pose_set,
 )
 from torchcal.report.document import write_report
-from torchcal.sim.twin import Twin, TwinConfig, write_twin_case
+from torchcal.sim.twin import Twin
 from torchcal.stages.geometry import NOMINAL_PROTOCOL, held_out_errors, nominal_errors
 from torchcal.stages.pipeline import fit_model
 from torchcal.stages.store import load_model
@@ -87,7 +87,7 @@ def _run_into(folder: Path, destination: Path, config: RunConfig, console) -> di
     started = time.perf_counter()
     save_resolved_config(folder / "config.yaml", config)
     with console.status("[bold]simulating the twin") as status:
-        case = write_twin_case(folder / "case", config.twin)
+        case = default().twin().write(folder / "case", config.twin)
         robot = load_robot(case["robot.yaml"])
         train = replace(load_measurements(case["train.csv"], robot), source=str(destination / "case" / "train.csv"))
         test = replace(load_measurements(case["test.csv"], robot), source=str(destination / "case" / "test.csv"))
@@ -203,6 +203,3 @@ def _log_compensation_on_twin(result: dict, console, tcp: str = "the flange") ->
             f"there; the rest lie near a singularity (RMS {result['torch_on_unsolved']['position_rms_mm']:.4f} mm, partial correction)"
         )
 
-
-def simulate(out: str | Path, config: TwinConfig) -> dict[str, Path]:
-    return write_twin_case(out, config)

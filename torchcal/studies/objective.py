@@ -27,8 +27,8 @@ from torchcal.config import save_resolved_config
 from torchcal.core.errors import TorchcalError
 from torchcal.core.metrics import position_metrics
 from torchcal.data.measurements import Measurements, load_measurements
+from torchcal.instruments.registry import default
 from torchcal.kinematics.robot import load_robot
-from torchcal.sim.twin import write_twin_case
 from torchcal.stages.geometry import fit_with_selection, held_out_errors, with_tool
 from torchcal.stages.pipeline import fit_model
 from torchcal.stages.store import load_model
@@ -96,7 +96,7 @@ class StudyObjective:
         paths = {n: folder / n for n in ("robot.yaml", "train.csv", "test.csv", "truth.json")}
         if not all(p.is_file() for p in paths.values()):
             # Deterministic for a given config, and written atomically: concurrent workers agree.
-            write_twin_case(folder, twin_config)
+            default().twin().write(folder, twin_config)
         return paths
 
     def prepare(self, config) -> PreparedData:

@@ -151,7 +151,8 @@ class TrackerInstrument(Instrument):
         return ("joint_unit", "length_unit")
 
     def twin(self) -> TwinSpec:
-        from torchcal.sim.twin import TwinConfig, write_twin_case
+        from torchcal.instruments.tracker.twin_case import write_twin_case
+        from torchcal.sim.twin import TwinConfig
 
         return TwinSpec(TwinConfig, write_twin_case, self.description)
 
