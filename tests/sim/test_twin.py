@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import pytest
 
-from torchcal.app.pipeline import run
 from torchcal.config.schema import RunConfig
+from torchcal.instruments.tracker.run import run
 from torchcal.sim.twin import Twin, TwinConfig
 
 

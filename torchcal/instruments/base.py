@@ -214,6 +214,14 @@ class Instrument(ABC):
     def twin(self) -> TwinSpec:
         """The twin writer of ``torchcal simulate instrument=<name>``."""
 
+    def run(self, config: Any, console: Any = None) -> dict:
+        """``torchcal run``: the twin end to end (simulate, fit, held-out evaluation, report, export)
+        for a :class:`~torchcal.config.schema.RunConfig`; returns the run's ``metrics.json`` dict.
+        Only the default instrument has one."""
+        from torchcal.core.errors import TorchcalError
+
+        raise TorchcalError(f"instrument {self.name} has no end-to-end twin run")
+
     @abstractmethod
     def contract_case(self) -> ContractCase:
         """The small known-truth case of the shared contract suite."""

@@ -1,6 +1,6 @@
-"""The main job, ``torchcal run``: the default twin end to end (fit, held-out evaluation, report, export).
+"""The main job, ``torchcal run``: the tracker twin end to end (fit, held-out evaluation, report, export).
 
-Kept apart from :mod:`torchcal.cli` so that the same steps are callable from Python and tests.
+The CLI and the studies reach it as ``registry.default().run``; callable from Python and tests.
 """
 
 from __future__ import annotations
@@ -27,14 +27,15 @@ from torchcal.identify.lm import LevenbergMarquardt
 from torchcal.identify.problem import CalibrationProblem
 from torchcal.instruments.base import EvaluateRequest
 from torchcal.instruments.registry import default
-from torchcal.kinematics.robot import load_robot
-from torchcal.report.calibration import (
+from torchcal.instruments.tracker.report import (
     ReportInputs,
     calibration_report,
     cross_validated_stage,
     model_name,
     score_pose_set,
 )
+from torchcal.instruments.tracker.twin_case import write_twin_case
+from torchcal.kinematics.robot import load_robot
 from torchcal.report.document import write_report
 from torchcal.sim.twin import Twin
 from torchcal.stages.geometry import NOMINAL_PROTOCOL, held_out_errors, nominal_errors
@@ -87,7 +88,7 @@ def _run_into(folder: Path, destination: Path, config: RunConfig, console) -> di
     started = time.perf_counter()
     save_resolved_config(folder / "config.yaml", config)
     with console.status("[bold]simulating the twin") as status:
-        case = default().twin().write(folder / "case", config.twin)
+        case = write_twin_case(folder / "case", config.twin)
         robot = load_robot(case["robot.yaml"])
         train = replace(load_measurements(case["train.csv"], robot), source=str(destination / "case" / "train.csv"))
         test = replace(load_measurements(case["test.csv"], robot), source=str(destination / "case" / "test.csv"))
