@@ -26,6 +26,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, ClassVar
 
+from torchcal.core.errors import TorchcalError
 from torchcal.core.folder import FolderError, check_output_folder, staged_folder
 from torchcal.report.document import FIGURES, write_report
 
@@ -218,8 +219,6 @@ class Instrument(ABC):
         """``torchcal run``: the twin end to end (simulate, fit, held-out evaluation, report, export)
         for a :class:`~torchcal.config.schema.RunConfig`; returns the run's ``metrics.json`` dict.
         Only the default instrument has one."""
-        from torchcal.core.errors import TorchcalError
-
         raise TorchcalError(f"instrument {self.name} has no end-to-end twin run")
 
     @abstractmethod
