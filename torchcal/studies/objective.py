@@ -26,6 +26,7 @@ from typing import Any
 from torchcal.config import save_resolved_config
 from torchcal.core.errors import TorchcalError
 from torchcal.core.metrics import position_metrics
+from torchcal.core.threads import fit_threads
 from torchcal.data.measurements import Measurements, load_measurements
 from torchcal.instruments.registry import default
 from torchcal.kinematics.robot import load_robot
@@ -119,8 +120,11 @@ class StudyObjective:
                 train = load_measurements(train_file, robot, **units)
                 test = load_measurements(study.test, robot, **units) if study.test else None
                 holdout = load_measurements(study.holdout, robot, **units) if study.holdout else None
-            # the structure is cross-validated whatever the heads are (any head makes fit run it)
-            result, structure = fit_with_selection(robot, train, replace(config.fit, residual="auto", progress=False))
+            # the structure is cross-validated whatever the heads are (any head makes fit run it); on one
+            # thread, as fit runs it (core.threads): split across threads these small solves spin-wait
+            # for cores that the other workers hold
+            with fit_threads():
+                result, structure = fit_with_selection(robot, train, replace(config.fit, residual="auto", progress=False))
             self._prepared[key] = PreparedData(robot, train, result, structure, test, holdout)
         return self._prepared[key]
 
