@@ -18,7 +18,7 @@ REPO = Path(__file__).resolve().parents[2]
 # The float margin makes an exact repeat of a configuration a repeated sampler stream, not chance.
 # The joint-space structure is given, not cross-validated among seven options with the blocks check
 # after it: the fixed part every study process fits before its first trial (these tests test budget,
-# faults, resume and locks, not the structure choice) drops from about a minute to seconds.
+# faults, resume and locks, not the structure choice) takes about 1 s less CPU per study process.
 SMALL = [
     "study=elm_mayfly",
     "measurement=twin_small",
