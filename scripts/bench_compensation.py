@@ -33,8 +33,8 @@ def run_twin(robot: str, folder: Path, task: str) -> dict:
     """``torchcal run`` on one twin robot; returns the numbers of the table."""
     from rich.console import Console
 
-    from torchcal.app.pipeline import run
     from torchcal.config import compose_run_config
+    from torchcal.instruments.tracker.run import run
     from torchcal.kinematics.robot import default_robot_path
 
     path = default_robot_path().with_name(f"{robot}.yaml")

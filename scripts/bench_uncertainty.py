@@ -49,8 +49,9 @@ def main() -> None:
     from torchcal.core.io import atomic_write_json, atomic_write_text
     from torchcal.data.measurements import load_measurements
     from torchcal.instruments.tracker.evaluate import evaluate
+    from torchcal.instruments.tracker.twin_case import write_twin_case
     from torchcal.kinematics.robot import load_robot
-    from torchcal.sim.twin import TwinConfig, write_twin_case
+    from torchcal.sim.twin import TwinConfig
     from torchcal.stages.geometry import held_out_errors
     from torchcal.stages.prediction_uncertainty import score, stored_prediction
     from torchcal.stages.store import load_model

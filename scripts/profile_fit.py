@@ -47,11 +47,11 @@ STAGES = [
     ("torchcal.stages.pipeline", "save_fit", "model folder"),
     ("torchcal.stages.residual", "cross_validate_heads", "head CV"),
     ("torchcal.stages.residual", "fit_before_gate", "kept head fit"),
-    ("torchcal.app.pipeline", "held_out_errors", "held-out evaluation"),
-    ("torchcal.app.pipeline", "nominal_errors", "held-out evaluation"),
-    ("torchcal.app.pipeline", "export_and_check", "export"),
-    ("torchcal.app.pipeline", "_write_report", "report and plots"),
-    ("torchcal.report.calibration", "calibration_report", "report and plots"),
+    ("torchcal.instruments.tracker.run", "held_out_errors", "held-out evaluation"),
+    ("torchcal.instruments.tracker.run", "nominal_errors", "held-out evaluation"),
+    ("torchcal.instruments.tracker.run", "export_and_check", "export"),
+    ("torchcal.instruments.tracker.run", "_write_report", "report and plots"),
+    ("torchcal.instruments.tracker.report", "calibration_report", "report and plots"),
     ("torchcal.report.document", "write_report", "report and plots"),
 ]
 

@@ -206,11 +206,11 @@ def _cmd_motion(args) -> int:
 
 
 def _cmd_run(args) -> int:
-    from torchcal.app.pipeline import run
     from torchcal.config import compose_run_config
+    from torchcal.instruments.registry import default
 
     config, _ = compose_run_config(args.overrides)
-    summary = run(config, console=_console(stderr=False))
+    summary = default().run(config, console=_console(stderr=False))
     final = summary["test"][summary["final_stage"]]
     print(f"{summary['name']}: held-out RMS {final['position_rms_mm']:.4f} mm on {final['n_poses']} new twin poses "
           f"({summary['model']}, chosen by grouped CV on the training poses); "

@@ -3,7 +3,8 @@
 from __future__ import annotations
 
 from torchcal.app.validation import STAGES, Protocol, run_protocol
-from torchcal.sim.twin import TwinConfig, write_twin_case
+from torchcal.instruments.tracker.twin_case import write_twin_case
+from torchcal.sim.twin import TwinConfig
 
 
 def test_cv_protocol_reaches_the_twin_noise_floor_and_covers_95_percent(tmp_path):

@@ -50,3 +50,15 @@ def test_a_header_of_two_equally_specific_instruments_is_ambiguous(tmp_path):
     path.write_text("scan,q1,q2,u,w,x,y,z\n" + ",".join("0" for _ in range(8)) + "\n")
     with pytest.raises(DataError, match=r"both.csv, row 1: the header fits several instruments \(tracker, profile\)"):
         recognise(path)
+
+
+
+def test_only_the_default_instrument_has_the_twin_run():
+    """``torchcal run`` reaches the tracker's run through the registry; another instrument refuses it in one line."""
+    from torchcal.config.schema import RunConfig
+    from torchcal.core.errors import TorchcalError
+    from torchcal.instruments.registry import default
+
+    assert default().name == "tracker" and type(default()).run is not type(get("sockets")).run
+    with pytest.raises(TorchcalError, match="instrument sockets has no end-to-end twin run"):
+        get("sockets").run(RunConfig())

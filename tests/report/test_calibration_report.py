@@ -11,7 +11,7 @@ import torch
 
 from torchcal.cli import main
 from torchcal.data.measurements import load_measurements
-from torchcal.report.calibration import ReportInputs, calibration_report, score_pose_set
+from torchcal.instruments.tracker.report import ReportInputs, calibration_report, score_pose_set
 from torchcal.report.document import Figure, Paragraph, Table
 from torchcal.stages.geometry import held_out_errors
 from torchcal.stages.store import load_model

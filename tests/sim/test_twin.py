@@ -2,22 +2,11 @@
 
 from __future__ import annotations
 
-import json
-import math
-
 import pytest
 
-from torchcal.app.pipeline import run
 from torchcal.config.schema import RunConfig
-from torchcal.sim.twin import Twin, TwinConfig, write_twin_case
-
-
-def test_twin_case_files(tmp_path):
-    paths = write_twin_case(tmp_path, TwinConfig(n_train=30, n_test=10, seed=3))
-    truth = json.loads(paths["truth.json"].read_text())
-    assert math.isclose(truth["noise_floor_rms_mm"], math.sqrt(3 * (0.012**2 + 0.008**2)))
-    assert paths["train.csv"].read_text().splitlines()[0] == "q1,q2,q3,q4,q5,q6,x,y,z"
-    assert len(paths["test.csv"].read_text().splitlines()) == 11
+from torchcal.instruments.tracker.run import run
+from torchcal.sim.twin import Twin, TwinConfig
 
 
 def test_twin_noise_matches_its_floor(generator):

@@ -75,8 +75,9 @@ def test_evaluate_reports_coverage_on_the_twin(tmp_path):
     from torchcal.config.schema import FitConfig
     from torchcal.data.measurements import load_measurements
     from torchcal.instruments.tracker.evaluate import evaluate
+    from torchcal.instruments.tracker.twin_case import write_twin_case
     from torchcal.kinematics.robot import load_robot
-    from torchcal.sim.twin import TwinConfig, write_twin_case
+    from torchcal.sim.twin import TwinConfig
     from torchcal.stages.geometry import fit_with_selection, save_fit
     from torchcal.stages.store import load_model
 

@@ -118,7 +118,7 @@ def test_too_few_poses_for_cross_validation_fit_classic(cases, tmp_path):
 @pytest.mark.parametrize(
     "override, message",
     [("parameters=best", "parameters must be one of auto, classic, full"), ("split=loo", "split must be one of"),
-     ("cv_folds=1", "cv_folds must be at least 2")],
+     ("cv_folds=1", r"cv_folds must be a finite number in \[2, 100\], got 1")],
 )
 def test_bad_selection_options_are_one_clear_error(override, message):
     with pytest.raises(TorchcalError, match=message):

@@ -91,7 +91,8 @@ def test_objective_on_a_held_out_series(tmp_path):
     import optuna
 
     from torchcal.instruments.tracker.evaluate import evaluate
-    from torchcal.sim.twin import TwinConfig, write_twin_case
+    from torchcal.instruments.tracker.twin_case import write_twin_case
+    from torchcal.sim.twin import TwinConfig
 
     case = write_twin_case(tmp_path / "case", TwinConfig(seed=3, n_train=200, n_test=120, gravity=True, gear=True))
     base = _small_base(tmp_path)
@@ -128,7 +129,8 @@ def test_study_on_measurement_files_refits_and_exports_the_best(tmp_path):
 
     import optuna
 
-    from torchcal.sim.twin import TwinConfig, write_twin_case
+    from torchcal.instruments.tracker.twin_case import write_twin_case
+    from torchcal.sim.twin import TwinConfig
 
     case = write_twin_case(tmp_path / "case", TwinConfig(seed=2, n_train=200, n_test=80, gravity=True, gear=True))
     base = _small_base(tmp_path)
@@ -150,3 +152,34 @@ def test_study_on_measurement_files_refits_and_exports_the_best(tmp_path):
     assert outcome.best_run["test"]["model"]["n_poses"] == 80
     with pytest.raises(TorchcalError, match="go together"):
         StudyConfig(train="x.csv", search_space=study.search_space).validate()
+
+
+def test_the_geometric_part_of_a_trial_runs_on_one_thread(tmp_path, monkeypatch):
+    """A worker given two threads still fits the geometry on one, as ``fit`` does (core.threads):
+    side by side, workers whose small solves were split across threads spin-waited for each other's
+    cores (two workers on two cores took 2-6x longer)."""
+    import torch
+
+    from torchcal.studies import objective as module
+
+    seen: list[int] = []
+
+    class Stop(Exception):
+        pass
+
+    def record(*_args, **_kwargs):
+        seen.append(torch.get_num_threads())
+        raise Stop
+
+    monkeypatch.setattr(module, "fit_with_selection", record)
+    study = StudyConfig(name="threads", n_trials=1, search_space={"fit.residual_hidden": {"type": "int", "low": 20,
+                                                                                          "high": 40}})
+    previous = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        with pytest.raises(Stop):
+            module.StudyObjective(_small_base(tmp_path), study, tmp_path).prepare(_small_base(tmp_path))
+        assert torch.get_num_threads() == 2  # given back after the fit
+    finally:
+        torch.set_num_threads(previous)
+    assert seen == [1]

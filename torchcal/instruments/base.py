@@ -26,6 +26,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, ClassVar
 
+from torchcal.core.errors import TorchcalError
 from torchcal.core.folder import FolderError, check_output_folder, staged_folder
 from torchcal.report.document import FIGURES, write_report
 
@@ -213,6 +214,12 @@ class Instrument(ABC):
     @abstractmethod
     def twin(self) -> TwinSpec:
         """The twin writer of ``torchcal simulate instrument=<name>``."""
+
+    def run(self, config: Any, console: Any = None) -> dict:
+        """``torchcal run``: the twin end to end (simulate, fit, held-out evaluation, report, export)
+        for a :class:`~torchcal.config.schema.RunConfig`; returns the run's ``metrics.json`` dict.
+        Only the default instrument has one."""
+        raise TorchcalError(f"instrument {self.name} has no end-to-end twin run")
 
     @abstractmethod
     def contract_case(self) -> ContractCase:

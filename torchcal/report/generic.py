@@ -2,7 +2,7 @@
 
 It holds what every instrument has: the lines the command printed (the before/after figures), its
 metrics, and, for a folder with a robot geometry, the instrument frame and tool, the parameters
-against nominal with 1-sigma and their correlations (:func:`~torchcal.report.calibration.parameter_sections`).
+against nominal with 1-sigma and their correlations (:func:`~torchcal.report.parameters.parameter_sections`).
 """
 
 from __future__ import annotations
@@ -12,8 +12,8 @@ import math
 from pathlib import Path
 
 from torchcal.core.errors import TorchcalError
-from torchcal.report.calibration import parameter_sections
 from torchcal.report.document import Paragraph, Preformatted, Report, Section, Table
+from torchcal.report.parameters import parameter_sections
 from torchcal.stages.store import load_model
 
 

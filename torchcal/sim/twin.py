@@ -21,17 +21,15 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass, field, replace
-from pathlib import Path
 
 import torch
 
 from torchcal.core.errors import TorchcalError
-from torchcal.core.io import atomic_write_json, atomic_write_text
 from torchcal.core.overrides import check_range
-from torchcal.data.measurements import Measurements, write_measurements_csv
+from torchcal.data.measurements import Measurements
 from torchcal.kinematics.error_model import ErrorModel
 from torchcal.kinematics.joint_jacobian import joint_frames
-from torchcal.kinematics.robot import RobotModel, default_robot_path, load_robot, robot_to_yaml
+from torchcal.kinematics.robot import RobotModel, default_robot_path, load_robot
 
 
 @dataclass
@@ -264,18 +262,3 @@ class Twin:
             },
             "config": asdict(self.config),
         }
-
-
-def write_twin_case(out: str | Path, config: TwinConfig) -> dict[str, Path]:
-    """Write ``robot.yaml``, ``train.csv``, ``test.csv`` and ``truth.json`` of a twin case."""
-    out = Path(out)
-    twin = Twin.create(config)
-    gen = torch.Generator().manual_seed(config.seed + 7919)
-    train = twin.sample(config.n_train, gen)
-    test = twin.sample(config.n_test, gen)
-    paths = {name: out / name for name in ("robot.yaml", "train.csv", "test.csv", "truth.json")}
-    atomic_write_text(paths["robot.yaml"], robot_to_yaml(twin.robot))
-    write_measurements_csv(paths["train.csv"], train.q, train.position)
-    write_measurements_csv(paths["test.csv"], test.q, test.position)
-    atomic_write_json(paths["truth.json"], twin.truth_dict())
-    return paths

@@ -26,9 +26,10 @@ from typing import Any
 from torchcal.config import save_resolved_config
 from torchcal.core.errors import TorchcalError
 from torchcal.core.metrics import position_metrics
+from torchcal.core.threads import fit_threads
 from torchcal.data.measurements import Measurements, load_measurements
+from torchcal.instruments.registry import default
 from torchcal.kinematics.robot import load_robot
-from torchcal.sim.twin import write_twin_case
 from torchcal.stages.geometry import fit_with_selection, held_out_errors, with_tool
 from torchcal.stages.pipeline import fit_model
 from torchcal.stages.store import load_model
@@ -96,7 +97,7 @@ class StudyObjective:
         paths = {n: folder / n for n in ("robot.yaml", "train.csv", "test.csv", "truth.json")}
         if not all(p.is_file() for p in paths.values()):
             # Deterministic for a given config, and written atomically: concurrent workers agree.
-            write_twin_case(folder, twin_config)
+            default().twin().write(folder, twin_config)
         return paths
 
     def prepare(self, config) -> PreparedData:
@@ -119,8 +120,11 @@ class StudyObjective:
                 train = load_measurements(train_file, robot, **units)
                 test = load_measurements(study.test, robot, **units) if study.test else None
                 holdout = load_measurements(study.holdout, robot, **units) if study.holdout else None
-            # the structure is cross-validated whatever the heads are (any head makes fit run it)
-            result, structure = fit_with_selection(robot, train, replace(config.fit, residual="auto", progress=False))
+            # the structure is cross-validated whatever the heads are (any head makes fit run it); on one
+            # thread, as fit runs it (core.threads): split across threads these small solves spin-wait
+            # for cores that the other workers hold
+            with fit_threads():
+                result, structure = fit_with_selection(robot, train, replace(config.fit, residual="auto", progress=False))
             self._prepared[key] = PreparedData(robot, train, result, structure, test, holdout)
         return self._prepared[key]
 

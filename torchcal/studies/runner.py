@@ -16,7 +16,6 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
-from torchcal.app.pipeline import run
 from torchcal.compensate.export import export_model
 from torchcal.config import save_resolved_config
 from torchcal.core.errors import TorchcalError
@@ -170,7 +169,7 @@ def refit_best(base, config: StudyConfig, study, study_dir: Path, console=None) 
     run_config.out = str(study_dir)
     run_config.name = "best"
     run_config.export_dir = str(Path(base.export_dir) / "studies" / config.name)
-    summary = run(run_config, console=console)
+    summary = default().run(run_config, console=console)
     return {"trial": best.number, "params": dict(best.params), "run_folder": str(study_dir / "best"),
             "test": summary["test"], "final_stage": summary["final_stage"], "export": summary.get("export")}
 

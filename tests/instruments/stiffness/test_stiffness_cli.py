@@ -12,6 +12,7 @@ import torch
 from torchcal.cli import main
 from torchcal.compensate.runtime import CompensatorRuntime
 from torchcal.core.errors import IdentifiabilityWarning
+from torchcal.instruments.registry import get
 from torchcal.instruments.stiffness.data import load_stiffness
 from torchcal.instruments.stiffness.twin import (
     StiffnessTwin,
@@ -19,7 +20,7 @@ from torchcal.instruments.stiffness.twin import (
     write_stiffness_case,
     write_stiffness_csv,
 )
-from torchcal.sim.twin import Twin, TwinConfig, write_twin_case
+from torchcal.sim.twin import Twin, TwinConfig
 from torchcal.stages.store import load_model
 
 
@@ -163,7 +164,7 @@ def test_geometry_and_stiffness_in_one_model_folder(tmp_path):
     The exported compensator (run by the onnxruntime-only runner) corrects geometry and load
     together: the true loaded TCP lands on the nominal target.
     """
-    geo_case = write_twin_case(tmp_path / "geo", TwinConfig(seed=4, n_train=150, n_test=20))
+    geo_case = get("tracker").twin().write(tmp_path / "geo", TwinConfig(seed=4, n_train=150, n_test=20))
     geo = tmp_path / "geometry"
     assert main(["fit", "--robot", str(geo_case["robot.yaml"]), "--data", str(geo_case["train.csv"]), "--out", str(geo), "residual=none"]) == 0
     twin = Twin.create(TwinConfig(seed=4))

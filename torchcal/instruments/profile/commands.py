@@ -15,7 +15,7 @@ from pathlib import Path
 
 import torch
 
-from torchcal.config.schema import FitConfig
+from torchcal.config.schema import FitConfig, UnitOptions
 from torchcal.core.errors import ModelError, TorchcalError
 from torchcal.core.folder import verify_folder, write_member_json, write_member_text
 from torchcal.core.metrics import distance_summary
@@ -44,8 +44,9 @@ SENSOR_FILE = "sensor.json"
 
 
 @dataclass
-class ProfileFitConfig:
-    """Options of ``torchcal fit`` / ``evaluate`` on a profile file.
+class ProfileFitConfig(UnitOptions):
+    """Options of ``torchcal fit`` / ``evaluate`` on a profile file: the units of
+    :mod:`torchcal.config.schema` (the same keys and checks as the tracker fit's) and its own.
 
     Attributes:
         joint_unit / length_unit: units of the file's ``q*`` and ``u, w`` (``deg``/``rad``, ``mm``/``m``).
@@ -59,8 +60,6 @@ class ProfileFitConfig:
         check_limits: reject joints outside the robot's limits.
     """
 
-    joint_unit: str = "deg"
-    length_unit: str = "mm"
     model_dir: str | None = None
     start: str = "auto"
     orientation_tol_deg: float = 0.1

@@ -35,7 +35,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from torchcal.config.schema import FitConfig
+from torchcal.config.schema import FitConfig, UnitOptions, ValidationOptions
 from torchcal.core.errors import DataError, IdentifiabilityWarning, TorchcalError
 from torchcal.core.folder import remove_member, write_member_json
 from torchcal.core.hashing import sha256_file
@@ -66,8 +66,10 @@ SELECTION_FILE = "model_selection.json"
 
 
 @dataclass
-class StiffnessFitConfig:
-    """``key=value`` options of ``fit`` / ``evaluate`` on a stiffness file.
+class StiffnessFitConfig(ValidationOptions, UnitOptions):
+    """``key=value`` options of ``fit`` / ``evaluate`` on a stiffness file: the units and the
+    cross-validation of :mod:`torchcal.config.schema` (the same keys and checks as the tracker fit's)
+    and its own.
 
     Attributes:
         joint_unit / length_unit: units of the file's ``q*`` (``deg`` | ``rad``) and of its
@@ -93,14 +95,8 @@ class StiffnessFitConfig:
         device: ``cpu`` or a torch device string.
     """
 
-    joint_unit: str = "deg"
-    length_unit: str = "mm"
     model_dir: str | None = None
     parameters: str = "auto"
-    split: str = "grouped"
-    cv_folds: int = 5
-    cv_groups: int = 20
-    seed: int = 0
     use_rotation: bool | None = None
     sigma_position_mm: float = DEFAULT_SIGMA_POSITION_M * 1e3
     sigma_rotation_deg: float = math.degrees(DEFAULT_SIGMA_ROTATION_RAD)
@@ -122,8 +118,6 @@ def stiffness_config(overrides: list[str]) -> StiffnessFitConfig:
         raise TorchcalError(f"parameters must be one of {', '.join(PARAMETERS)}, got {config.parameters!r}")
     if config.split not in SPLITS:
         raise TorchcalError(f"split must be one of {', '.join(SPLITS)}, got {config.split!r}")
-    if config.cv_folds < 2:
-        raise TorchcalError(f"cv_folds must be at least 2, got {config.cv_folds}")
     if config.cv_groups < 2:
         raise TorchcalError(f"cv_groups must be at least 2, got {config.cv_groups}")
     return config

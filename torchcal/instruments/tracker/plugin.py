@@ -150,8 +150,14 @@ class TrackerInstrument(Instrument):
     def evaluate_options(self) -> tuple[str, ...]:
         return ("joint_unit", "length_unit")
 
+    def run(self, config: Any, console: Any = None) -> dict:
+        from torchcal.instruments.tracker.run import run
+
+        return run(config, console=console)
+
     def twin(self) -> TwinSpec:
-        from torchcal.sim.twin import TwinConfig, write_twin_case
+        from torchcal.instruments.tracker.twin_case import write_twin_case
+        from torchcal.sim.twin import TwinConfig
 
         return TwinSpec(TwinConfig, write_twin_case, self.description)
 
@@ -194,7 +200,7 @@ def _write_fit_report(folder: Path, data: Any, structure: Any, lines: list[str],
     """Write the fit's report into its folder; returns the console line that sums the model up."""
     from torchcal.core.metrics import position_metrics
     from torchcal.instruments.tracker.evaluate import score
-    from torchcal.report.calibration import (
+    from torchcal.instruments.tracker.report import (
         ReportInputs,
         calibration_report,
         cross_validated_stage,
@@ -230,7 +236,7 @@ def _write_fit_report(folder: Path, data: Any, structure: Any, lines: list[str],
 
 def _write_evaluate_report(target: Path, scored: Any, register: bool, lines: list[str]) -> Path:
     """Write the report of an evaluation into ``target``; returns the path of its ``report.md``."""
-    from torchcal.report.calibration import ReportInputs, calibration_report, score_pose_set
+    from torchcal.instruments.tracker.report import ReportInputs, calibration_report, score_pose_set
     from torchcal.report.document import write_report
 
     stored, data = scored.stored, scored.data

@@ -1,6 +1,6 @@
-"""The main job, ``torchcal run``: the default twin end to end (fit, held-out evaluation, report, export).
+"""The main job, ``torchcal run``: the tracker twin end to end (fit, held-out evaluation, report, export).
 
-Kept apart from :mod:`torchcal.cli` so that the same steps are callable from Python and tests.
+The CLI and the studies reach it as ``registry.default().run``; callable from Python and tests.
 """
 
 from __future__ import annotations
@@ -27,16 +27,17 @@ from torchcal.identify.lm import LevenbergMarquardt
 from torchcal.identify.problem import CalibrationProblem
 from torchcal.instruments.base import EvaluateRequest
 from torchcal.instruments.registry import default
-from torchcal.kinematics.robot import load_robot
-from torchcal.report.calibration import (
+from torchcal.instruments.tracker.report import (
     ReportInputs,
     calibration_report,
     cross_validated_stage,
     model_name,
     score_pose_set,
 )
+from torchcal.instruments.tracker.twin_case import write_twin_case
+from torchcal.kinematics.robot import load_robot
 from torchcal.report.document import write_report
-from torchcal.sim.twin import Twin, TwinConfig, write_twin_case
+from torchcal.sim.twin import Twin
 from torchcal.stages.geometry import NOMINAL_PROTOCOL, held_out_errors, nominal_errors
 from torchcal.stages.pipeline import fit_model
 from torchcal.stages.store import load_model
@@ -203,6 +204,3 @@ def _log_compensation_on_twin(result: dict, console, tcp: str = "the flange") ->
             f"there; the rest lie near a singularity (RMS {result['torch_on_unsolved']['position_rms_mm']:.4f} mm, partial correction)"
         )
 
-
-def simulate(out: str | Path, config: TwinConfig) -> dict[str, Path]:
-    return write_twin_case(out, config)
