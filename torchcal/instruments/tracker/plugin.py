@@ -3,6 +3,9 @@
 ``fit`` identifies the robot's geometry (structure chosen by grouped cross-validation, see
 :func:`~torchcal.stages.geometry.fit_with_selection`) and, unless ``residual=none``, a learned
 residual head kept only where it helps on new poses (:mod:`torchcal.stages.residual`).
+
+Its methods import what they use when they run: the registry imports every plugin to list and
+recognise instruments (``--help``, a file's header), which must stay cheap.
 """
 
 from __future__ import annotations
