@@ -45,13 +45,13 @@ def _progress(status) -> Callable[[str], None]:
 
 
 def _cmd_simulate(args) -> int:
+    from torchcal.config.compose import compose_options
     from torchcal.core.folder import staged_folder
-    from torchcal.core.overrides import apply_overrides
     from torchcal.instruments.registry import get
 
     name, overrides = _split_instrument(args.overrides)
     twin = get(name).twin()
-    config = apply_overrides(twin.config_factory(), overrides)
+    config = compose_options(twin.config_factory(), overrides)
     out = Path(args.out)
     # built in a staging sibling and swapped in whole: an interrupted simulate leaves the earlier case
     with staged_folder(out, "--out", purpose="twin", sealed=False) as staging:

@@ -72,3 +72,26 @@ def test_fit_config_takes_the_model_group():
     assert compose_fit_config([]) == FitConfig()
     with pytest.raises(TorchcalError, match="only the model group"):
         compose_fit_config(["study=elm_mayfly"])
+
+
+def test_one_override_path_for_every_command():
+    """Every command's options go through compose_options: the same checks and messages whatever the
+    dataclass, a field named like a config group is a field, and a group the command does not take
+    is refused in one line."""
+    from torchcal.config.compose import compose_fit_config, compose_options
+    from torchcal.config.schema import FitConfig
+    from torchcal.instruments.registry import get
+
+    stiffness = get("stiffness").options()
+    for schema in (FitConfig(), stiffness()):
+        with pytest.raises(TorchcalError, match="invalid override"):
+            compose_options(schema, ["cv_folds=three"])
+        with pytest.raises(TorchcalError, match=r"cv_folds must be a finite number in \[2, 100\]"):
+            compose_options(schema, ["cv_folds=1"])
+    assert compose_options(FitConfig(), ["cv_folds=3"]).cv_folds == 3
+    twin = get("sockets").twin().config_factory()
+    assert compose_options(twin, ["robot=my.yaml"]).robot == "my.yaml"
+    with pytest.raises(TorchcalError, match="no config group applies to this command"):
+        compose_options(stiffness(), ["experiment=quick"])
+    with pytest.raises(TorchcalError, match="only the model group applies to this command"):
+        compose_fit_config(["experiment=quick"])

@@ -16,10 +16,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from torchcal.config.compose import compose_options
 from torchcal.core.errors import ModelError, TorchcalError
 from torchcal.core.io import atomic_write_json, atomic_write_text
 from torchcal.core.outputs import claim_file, claim_folder, csv_with_header, stamp_folder
-from torchcal.core.overrides import apply_overrides
 from torchcal.kinematics.error_model import ErrorModel
 from torchcal.kinematics.robot import RobotModel, load_robot
 from torchcal.motion.planner import PlannedMotion, PlanOptions, measure, plan_motion
@@ -109,7 +109,7 @@ def run_motion(robot_file: Path, path_file: Path, out: Path, overrides: list[str
     out = Path(out)
     report_dir = Path(report_dir) if report_dir is not None else default_report_folder(out)
     _check_outputs(out, report_dir)
-    options = apply_overrides(PlanOptions(), overrides)
+    options = compose_options(PlanOptions(), overrides)
     robot = load_robot(robot_file)
     options.check(robot)
     waypoints = load_waypoints(path_file)

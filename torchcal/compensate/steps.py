@@ -77,10 +77,11 @@ def position_first_step(jac_t: torch.Tensor, error: torch.Tensor, damping_gain: 
         inverse: the 3x3 inverse (:func:`~torchcal.compensate.linalg.inverse3`, or
             :func:`~torchcal.compensate.linalg.ort_inverse`).
 
-    The products share work (about 40 ONNX nodes with the orientation, 20 without): the 6x6
-    Gram matrix ``J J^T`` gives ``Jp Jp^T`` and ``Jp Jo^T`` at once, one product applies the
-    position inverse to ``e_p`` and to ``Jp Jo^T`` together, and both parts are bounded by one
-    set of nodes on the ``(B, N, 2)`` stack of the two moves.
+    The products share work (about 40 ONNX nodes with the orientation, 20 without): one product
+    ``Jp J^T`` gives ``Jp Jp^T`` and ``Jp Jo^T`` at once (the Gram matrix's lower rows are never
+    formed: ``Jo Jp^T`` is the transpose of ``Jp Jo^T``), one product
+    applies the position inverse to ``e_p`` and to ``Jp Jo^T`` together, and both parts are
+    bounded by one set of nodes on the ``(B, N, 2)`` stack of the two moves.
     """
     jp = jac_t[..., :3]
     ep = error[:, :3]
@@ -88,13 +89,13 @@ def position_first_step(jac_t: torch.Tensor, error: torch.Tensor, damping_gain: 
     if not orientation:
         dq_p = jp @ (inverse(jp.transpose(-1, -2) @ jp + lam_p * eye3) @ ep)  # (B, N, 1)
         return bounded(dq_p[..., 0], max_step)
-    gram = jac_t.transpose(-1, -2) @ jac_t  # (B, 6, 6): [[Jp Jp^T, Jp Jo^T], [Jo Jp^T, Jo Jo^T]]
-    gram_inv = inverse(gram[:, :3, :3] + lam_p * eye3)  # (B, 3, 3)
-    solved = gram_inv @ torch.cat([ep, gram[:, :3, 3:]], -1)  # [G^-1 e_p | G^-1 Jp Jo^T], (B, 3, 4)
+    top = jp.transpose(-1, -2) @ jac_t  # (B, 3, 6): [Jp Jp^T | Jp Jo^T], the Gram matrix's rows that are used
+    gram_inv = inverse(top[..., :3] + lam_p * eye3)  # (B, 3, 3)
+    solved = gram_inv @ torch.cat([ep, top[..., 3:]], -1)  # [G^-1 e_p | G^-1 Jp Jo^T], (B, 3, 4)
     moved = jp @ solved  # [dq_p | Jp^T G^-1 Jp Jo^T], (B, N, 4)
     dq_p = moved[..., :1]
     jo_free = jac_t[..., 3:] - moved[..., 1:]  # (Jo P)^T, (B, N, 3)
-    eo_left = error[:, 3:] - gram[:, 3:, :3] @ solved[..., :1]  # e_o - Jo dq_p
+    eo_left = error[:, 3:] - top[..., 3:].transpose(-1, -2) @ solved[..., :1]  # e_o - Jo dq_p (Jo Jp^T = (Jp Jo^T)^T)
     lam_o = damping_gain * (eo_left * eo_left).sum(-2, keepdim=True) + orientation_damping_sq
     dq_o = jo_free @ (inverse(jo_free.transpose(-1, -2) @ jo_free + lam_o * eye3) @ eo_left)
     both = torch.cat([dq_p, dq_o], -1)  # (B, N, 2)

@@ -1,5 +1,10 @@
 """Compose ``configs/`` (Hydra config groups) with ``key=value`` overrides onto typed dataclasses.
 
+This is the one override path of every command: :func:`compose_options` for a command's options
+dataclass (``fit``, ``evaluate``, ``simulate``, ``motion``, every instrument), :func:`compose_run_config`
+and :func:`merge_section` for ``run`` and ``study``. Each composes the group selections it accepts,
+then sets the fields with :func:`torchcal.core.overrides.apply_overrides` (its checks and messages).
+
 Overrides are of two kinds. A bare group name selects an option of a config group
 (``model=mlp``, ``study=elm_mayfly``): Hydra composes those from ``configs/``. A dotted or plain
 field (``twin.n_train=120``, ``name=trial``) sets one field: OmegaConf merges it onto the
@@ -12,15 +17,16 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import Any, cast
+from typing import Any, TypeVar, cast
 
 from torchcal.config.schema import FitConfig, RunConfig
 from torchcal.core.errors import TorchcalError
 from torchcal.core.folder import CHECKSUMS, write_member_text
 from torchcal.core.io import atomic_write_text
-from torchcal.core.overrides import check_values
+from torchcal.core.overrides import apply_overrides, field_names
 
 GROUPS = ("robot", "measurement", "model", "experiment", "study")
+T = TypeVar("T")
 CONFIG_DIR_ENV = "TORCHCAL_CONFIG_DIR"
 
 
@@ -105,24 +111,15 @@ def compose_run_config(overrides: list[str], config_name: str = "config", extra_
     for name in extra_sections:
         node = composed.pop(name, None) if name in composed else None
         sections[name] = (node, field_by_section[name])
-    check_values(RunConfig(), run_fields)
-    try:
-        dotlist = OmegaConf.from_dotlist(run_fields)
-    except Exception as exc:  # noqa: BLE001 (omegaconf raises yaml, grammar and value errors: no common base)
-        raise TorchcalError(f"invalid override: {str(exc).splitlines()[0]}") from None
-    config = _merge(RunConfig(), composed, dotlist)
+    config = apply_overrides(_merge(RunConfig(), composed), run_fields)
     return config, sections
 
 
 def merge_section(schema: Any, section: tuple[Any, list[str]]):
     """A composed section plus its ``section.key=value`` overrides, merged onto ``schema``."""
-    from omegaconf import OmegaConf
-
     node, fields = section
     stripped = [item.split(".", 1)[1] for item in fields if "." in item.split("=", 1)[0]]
-    check_values(schema, stripped)
-    nodes = [node] if node is not None else []
-    return _merge(schema, *nodes, OmegaConf.from_dotlist(stripped))
+    return apply_overrides(_merge(schema, node) if node is not None else schema, stripped)
 
 
 def save_resolved_config(path: str | Path, config: Any, **sections: Any) -> Path:
@@ -143,22 +140,32 @@ def save_resolved_config(path: str | Path, config: Any, **sections: Any) -> Path
     return Path(path)
 
 
-def compose_fit_config(overrides: list[str]):
-    """A :class:`~torchcal.config.schema.FitConfig` for ``torchcal fit``: ``model=<name>`` picks a file
-    of ``configs/model/``, other ``key=value`` set fields (``method=lasso``, ``seed=3``)."""
+def compose_options(schema: T, overrides: list[str], *, groups: tuple[str, ...] = (), section: str | None = None) -> T:
+    """``schema`` (a dataclass instance) with a command's ``key=value`` overrides.
+
+    ``groups``: the config groups this command accepts (``model=mlp`` picks ``configs/model/mlp.yaml``);
+    their composition, the ``section`` node of it where given, is merged first. Every other item sets
+    a field. A group the command does not accept is refused in one line.
+    """
     from omegaconf import OmegaConf
 
-    group_overrides, field_overrides = split_overrides(overrides)
-    other = [g for g in group_overrides if not g.startswith("model=")]
-    if other:
-        raise TorchcalError(f"'{other[0]}': only the model group applies to this command")
-    nodes = []
-    if group_overrides:
-        composed = _compose_yaml("config", group_overrides)
-        nodes.append(composed.get("fit", OmegaConf.create({})))
-    check_values(FitConfig(), field_overrides)
-    try:
-        nodes.append(OmegaConf.from_dotlist(field_overrides))
-    except Exception as exc:  # noqa: BLE001 (omegaconf raises yaml, grammar and value errors: no common base)
-        raise TorchcalError(f"invalid override: {str(exc).splitlines()[0]}") from None
-    return _merge(FitConfig(), *nodes)
+    group_overrides, _ = split_overrides(overrides)
+    own = field_names(type(schema))  # a field named like a group (a twin's ``robot=``) is a field
+    group_overrides = [g for g in group_overrides if g.split("=", 1)[0].strip() not in own]
+    chosen = [g for g in group_overrides if g.split("=", 1)[0].strip() in groups]
+    refused = [g for g in group_overrides if g not in chosen]
+    if refused:
+        accepted = f"only the {', '.join(groups)} group applies" if groups else "no config group applies"
+        raise TorchcalError(f"'{refused[0]}': {accepted} to this command")
+    fields = [o for o in overrides if o not in chosen]
+    if chosen:
+        composed = _compose_yaml("config", chosen)
+        node = composed.get(section, OmegaConf.create({})) if section else composed
+        schema = _merge(schema, node)
+    return apply_overrides(schema, fields)
+
+
+def compose_fit_config(overrides: list[str]) -> FitConfig:
+    """A :class:`~torchcal.config.schema.FitConfig` for ``torchcal fit``: ``model=<name>`` picks a file
+    of ``configs/model/``, other ``key=value`` set fields (``method=lasso``, ``seed=3``)."""
+    return compose_options(FitConfig(), overrides, groups=("model",), section="fit")

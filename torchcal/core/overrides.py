@@ -1,6 +1,7 @@
 """``key=value`` overrides merged into a configuration dataclass (the command line's options).
 
-Every command and instrument parses its options through :func:`apply_overrides`, so an unknown
+Every command and instrument parses its options through :func:`apply_overrides` (reached through
+:func:`torchcal.config.compose.compose_options`, the one override path), so an unknown
 key, a wrong type or a malformed item gets the same one-line error everywhere. Options that belong
 to another command's configuration (a tracker-fit key given to a stiffness fit) are taken out by
 :func:`split_foreign_keys` and reported with one warning instead of failing.
@@ -35,7 +36,8 @@ def apply_overrides(config: T, overrides: list[str]) -> T:
         merged = OmegaConf.merge(base, OmegaConf.from_dotlist(overrides))
     except OmegaConfBaseException as exc:
         msg = str(exc).splitlines()[0]
-        raise TorchcalError(f"invalid override: {msg}") from None
+        key = getattr(exc, "full_key", None)
+        raise TorchcalError(f"invalid override{f' (key {key!r})' if key else ''}: {msg}") from None
     return cast(T, OmegaConf.to_object(merged))  # the structured config's own dataclass
 
 

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import pytest
 
-from torchcal.core.overrides import apply_overrides
+from torchcal.config.compose import compose_options
 from torchcal.instruments.base import (
     STAGES,
     ContractCase,
@@ -47,7 +47,7 @@ class InstrumentContract:
     @pytest.fixture
     def twin_files(self, instrument: Instrument, tmp_path: Path) -> dict[str, Path]:
         spec = instrument.twin()
-        config = apply_overrides(spec.config_factory(), instrument.contract_case().twin_overrides)
+        config = compose_options(spec.config_factory(), instrument.contract_case().twin_overrides)
         return {name: Path(path) for name, path in spec.write(tmp_path / "twin", config).items()}
 
     def test_declares_what_it_is(self, instrument: Instrument) -> None:

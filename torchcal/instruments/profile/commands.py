@@ -15,11 +15,12 @@ from pathlib import Path
 
 import torch
 
+from torchcal.config.compose import compose_options
 from torchcal.config.schema import FitConfig, UnitOptions
 from torchcal.core.errors import ModelError, TorchcalError
 from torchcal.core.folder import verify_folder, write_member_json, write_member_text
 from torchcal.core.metrics import distance_summary
-from torchcal.core.overrides import apply_overrides, renamed_keys, split_foreign_keys
+from torchcal.core.overrides import renamed_keys, split_foreign_keys
 from torchcal.instruments.base import FitOutcome
 from torchcal.instruments.profile.closed_form import (
     ClosedFormResult,
@@ -72,7 +73,7 @@ def profile_config(overrides: list[str]) -> ProfileFitConfig:
     """Merge ``key=value`` overrides; robot-fit keys (``residual=``, ``method=``...) are ignored with a warning."""
     overrides = renamed_keys(overrides, {"model": "model_dir"}, what="a profile file")
     kept = split_foreign_keys(overrides, ProfileFitConfig, FitConfig, what="a profile file")
-    config = apply_overrides(ProfileFitConfig(), kept)
+    config = compose_options(ProfileFitConfig(), kept)
     if config.start not in ("auto", "closed_form", "search"):
         raise TorchcalError(f"start must be auto, closed_form or search, got {config.start!r}")
     return config

@@ -2,6 +2,9 @@
 
 ``fit`` finds the sensor's mounting on the flange (hand-eye extrinsics) from profiles of one
 plane seen from many poses (:mod:`torchcal.instruments.profile.commands`).
+
+Its methods import what they use when they run: the registry imports every plugin to list and
+recognise instruments (``--help``, a file's header), which must stay cheap.
 """
 
 from __future__ import annotations

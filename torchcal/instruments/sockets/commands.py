@@ -14,8 +14,8 @@ from pathlib import Path
 
 import torch
 
+from torchcal.config.compose import compose_options
 from torchcal.core.errors import TorchcalError
-from torchcal.core.overrides import apply_overrides as _apply_overrides
 from torchcal.identify.joint_errors import JointSpaceErrors
 from torchcal.instruments.base import FitOutcome
 from torchcal.instruments.sockets.data import load_socket_data
@@ -67,7 +67,7 @@ class SocketsFitConfig:
 
 
 def sockets_config(overrides: list[str]) -> SocketsFitConfig:
-    config = _apply_overrides(SocketsFitConfig(), list(overrides))
+    config = compose_options(SocketsFitConfig(), list(overrides))
     config.gravity_points  # noqa: B018 - validates the option before anything is fitted
     if config.distance_mm <= 0:
         raise TorchcalError(f"distance_mm must be positive, got {config.distance_mm}")

@@ -4,6 +4,9 @@ A file ``placement, socket, q1..qN`` lists joint configurations that put the bal
 same (unknown) socket point; the two sockets of one fixture placement are a known distance apart
 (the scale). ``fit`` identifies what those constraints can see (:mod:`torchcal.instruments.sockets.fit`);
 ``evaluate`` scores consistency and distortion on other placements.
+
+Its methods import what they use when they run: the registry imports every plugin to list and
+recognise instruments (``--help``, a file's header), which must stay cheap.
 """
 
 from __future__ import annotations

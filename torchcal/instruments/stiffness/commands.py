@@ -35,12 +35,13 @@ from typing import Any
 import numpy as np
 import torch
 
+from torchcal.config.compose import compose_options
 from torchcal.config.schema import FitConfig, UnitOptions, ValidationOptions
 from torchcal.core.errors import DataError, IdentifiabilityWarning, TorchcalError
 from torchcal.core.folder import remove_member, write_member_json
 from torchcal.core.hashing import sha256_file
 from torchcal.core.metrics import distance_summary
-from torchcal.core.overrides import apply_overrides, renamed_keys, split_foreign_keys
+from torchcal.core.overrides import renamed_keys, split_foreign_keys
 from torchcal.data.folds import SPLITS, Folds, make_folds
 from torchcal.instruments.base import FitOutcome
 from torchcal.instruments.stiffness.data import StiffnessData, load_stiffness
@@ -111,7 +112,7 @@ def stiffness_config(overrides: list[str]) -> StiffnessFitConfig:
     """Merge ``key=value`` overrides; tracker-fit keys that mean nothing here are ignored with a warning."""
     overrides = renamed_keys(overrides, {"model": "model_dir"}, what="a stiffness file")
     kept = split_foreign_keys(overrides, StiffnessFitConfig, FitConfig, what="a stiffness file")
-    config = apply_overrides(StiffnessFitConfig(), kept)
+    config = compose_options(StiffnessFitConfig(), kept)
     if config.wrench_frame not in ("tool", "instrument"):
         raise TorchcalError(f"wrench_frame must be 'tool' or 'instrument', got {config.wrench_frame!r}")
     if config.parameters not in PARAMETERS:

@@ -2,6 +2,9 @@
 
 ``fit`` chooses the parameterization (classic joint springs or the full virtual-joint model) by
 grouped cross-validation and identifies the compliances (:mod:`torchcal.instruments.stiffness.commands`).
+
+Its methods import what they use when they run: the registry imports every plugin to list and
+recognise instruments (``--help``, a file's header), which must stay cheap.
 """
 
 from __future__ import annotations

@@ -15,10 +15,10 @@ from pathlib import Path
 
 import torch
 
+from torchcal.config.compose import compose_options
 from torchcal.config.schema import FitConfig
 from torchcal.core.errors import DataError, TorchcalError
 from torchcal.core.metrics import distance_summary
-from torchcal.core.overrides import apply_overrides
 from torchcal.identify import IDENTIFIERS
 from torchcal.identify.lm import LevenbergMarquardt
 from torchcal.instruments.base import FitOutcome
@@ -66,7 +66,7 @@ class TracerFitConfig(FitConfig):
 
 
 def tracer_config(overrides: list[str]) -> TracerFitConfig:
-    config = apply_overrides(TracerFitConfig(), overrides)
+    config = compose_options(TracerFitConfig(), overrides)
     if config.tracer_method not in ("joint", "two_step"):
         raise TorchcalError(f"tracer_method must be 'joint' or 'two_step', got {config.tracer_method!r}")
     return config

@@ -5,6 +5,9 @@
 stations (a new set-up) and scores the lengths. A file with ``l1`` alone is one station (a
 draw-wire at an unknown anchor), the instrument ``length_station``
 (:mod:`torchcal.instruments.tracer.one_station`), which shares this package's length model.
+
+Its methods import what they use when they run: the registry imports every plugin to list and
+recognise instruments (``--help``, a file's header), which must stay cheap.
 """
 
 from __future__ import annotations

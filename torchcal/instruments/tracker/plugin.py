@@ -3,6 +3,9 @@
 ``fit`` identifies the robot's geometry (structure chosen by grouped cross-validation, see
 :func:`~torchcal.stages.geometry.fit_with_selection`) and, unless ``residual=none``, a learned
 residual head kept only where it helps on new poses (:mod:`torchcal.stages.residual`).
+
+Its methods import what they use when they run: the registry imports every plugin to list and
+recognise instruments (``--help``, a file's header), which must stay cheap.
 """
 
 from __future__ import annotations
@@ -105,14 +108,14 @@ class TrackerInstrument(Instrument):
         return data, set_aside
 
     def evaluate(self, request: EvaluateRequest) -> EvaluateOutcome:
+        from torchcal.config.compose import compose_options
         from torchcal.config.schema import FitConfig
-        from torchcal.core.overrides import apply_overrides
         from torchcal.data.measurements import load_measurements
         from torchcal.instruments.tracker.evaluate import score
         from torchcal.model_selection.leakage import LeakageReport
         from torchcal.stages.store import load_model
 
-        config = apply_overrides(FitConfig(), request.overrides)
+        config = compose_options(FitConfig(), request.overrides)
         stored = load_model(request.model)
         data = load_measurements(request.data, stored.robot, joint_unit=config.joint_unit, length_unit=config.length_unit)
         scored = score(stored, data, register=request.register)

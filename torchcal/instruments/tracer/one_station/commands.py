@@ -15,8 +15,9 @@ from pathlib import Path
 
 import torch
 
+from torchcal.config.compose import compose_options
 from torchcal.core.errors import TorchcalError
-from torchcal.core.overrides import apply_overrides, check_range
+from torchcal.core.overrides import check_range
 from torchcal.identify.lm import LevenbergMarquardt
 from torchcal.instruments.base import FitOutcome
 from torchcal.instruments.tracer.joint_fit import TracerJointProblem
@@ -64,7 +65,7 @@ class LengthStationConfig:
 
 def length_station_config(overrides: list[str]) -> LengthStationConfig:
     """The options of a one-station fit or evaluation from ``key=value`` overrides."""
-    return apply_overrides(LengthStationConfig(), list(overrides))
+    return compose_options(LengthStationConfig(), list(overrides))
 
 
 
