@@ -506,8 +506,12 @@ def _export_into(out_dir: Path, model_dir: Path, stored, *, wrench_frame: str, i
         "files": files,
         "sha256": digests,
     }
+    for stage in stored.stages():  # each stage's own entry (the stiffness: its springs and data)
+        section = stage.manifest_section()
+        if section is not None:
+            manifest[stage.name] = section
     if loaded:
-        _describe_stiffness(manifest, stored, wrench_frame)
+        _describe_wrench_input(manifest, wrench_frame)
     manifest["float32_error_budget"] = float32_budget(graphs, out_dir, stored)
     manifest["convergence"] = convergence_report(graphs, stored)
     atomic_write_json(out_dir / "manifest.json", manifest)
@@ -570,9 +574,8 @@ def _stages(stored) -> dict[str, bool]:
     return entries
 
 
-def _describe_stiffness(manifest: dict, stored, wrench_frame: str) -> None:
-    """Manifest entries of the stiffness stage and of the ``wrench`` input (in place)."""
-    stage = stored.stiffness
+def _describe_wrench_input(manifest: dict, wrench_frame: str) -> None:
+    """Manifest entries of the ``wrench`` input of graphs with a stiffness stage (in place)."""
     axes = "the tool (TCP) axes at the commanded pose, as an F/T sensor at the TCP reports them" if wrench_frame == "tool" else "the robot base axes"
     for key in ("compensator", "monitor"):
         manifest["units"][key]["input"] += f"; {WRENCH_INPUT}, N and N m, {wrench_frame} frame"
@@ -593,17 +596,6 @@ def _describe_stiffness(manifest: dict, stored, wrench_frame: str) -> None:
             "a payload of mass m (kg) with centre of mass c (m, from the TCP, base axes): f = m [0, 0, -9.81], moment c x f"
         ),
         "zero": "a zero wrench gives the unloaded compensation (geometry and residual only)",
-    }
-    meta = stage.metadata
-    manifest["stiffness"] = {
-        "model": "virtual joint method, first-order deflection J C J^T W at the current iterate",
-        "entries": {n: p["value"] for n, p in meta.get("parameters", {}).items()},
-        "units": meta.get("units"),
-        "treated_as_rigid": meta.get("treated_as_rigid", []),
-        "unobservable": meta.get("unobservable", []),
-        "training_data": {k: meta.get("data", {}).get(k) for k in ("sha256", "n_poses")},
-        "training_wrench": meta.get("training_wrench"),
-        "fit_metrics": meta.get("fit_metrics"),
     }
     manifest["sign_convention"] += "; with stiffness, T_real is the loaded TCP under the wrench input"
 

@@ -54,6 +54,11 @@ class ModelStage(ABC):
     def describe(self) -> dict[str, bool]:
         """``stages`` entries of the manifest and the report (``{name: True}`` and sub-terms)."""
 
+    def manifest_section(self) -> dict | None:
+        """The stage's own entry of an export manifest (``manifest[name]``), or ``None``: what a
+        controller engineer needs to know about this stage beyond its presence."""
+        return None
+
 
 class JointErrorStage(ModelStage):
     """Joint-space errors identified with the geometry (gravity compliance, first harmonics)."""
@@ -127,3 +132,16 @@ class StiffnessStage(ModelStage):
 
     def describe(self) -> dict[str, bool]:
         return {"stiffness": True}
+
+    def manifest_section(self) -> dict | None:
+        meta = self.stiffness.metadata
+        return {
+            "model": "virtual joint method, first-order deflection J C J^T W at the current iterate",
+            "entries": {n: p["value"] for n, p in meta.get("parameters", {}).items()},
+            "units": meta.get("units"),
+            "treated_as_rigid": meta.get("treated_as_rigid", []),
+            "unobservable": meta.get("unobservable", []),
+            "training_data": {k: meta.get("data", {}).get(k) for k in ("sha256", "n_poses")},
+            "training_wrench": meta.get("training_wrench"),
+            "fit_metrics": meta.get("fit_metrics"),
+        }
