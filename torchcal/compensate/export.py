@@ -63,6 +63,7 @@ from torchcal.core.metrics import position_metrics
 from torchcal.identify.joint_errors import METADATA_KEYS
 from torchcal.kinematics.error_model import ErrorModel
 from torchcal.kinematics.joint_jacobian import geometric_jacobian
+from torchcal.stages.base import ModelStage
 from torchcal.stages.prediction_uncertainty import load_uncertainty, stored_prediction
 from torchcal.stages.store import load_model
 
@@ -469,6 +470,7 @@ def _export_into(out_dir: Path, model_dir: Path, stored, *, wrench_frame: str, i
         digests[key] = sha256_bytes(data)
     meta = stored.metadata
     compensator = compensator_of(graphs)
+    stages = stored.stages()
     manifest = {
         "format": MANIFEST_FORMAT,
         "robot": robot.name,
@@ -487,7 +489,7 @@ def _export_into(out_dir: Path, model_dir: Path, stored, *, wrench_frame: str, i
         },
         "frames": "robot base frame (calibrated); the instrument frame of the calibration is not applied",
         "sign_convention": "dT = T_real(q) - T_nominal(q) (monitor output); T_c = T_t - dT; q_corrected = IK_nominal(T_c)",
-        "stages": _stages(stored),
+        "stages": _stages(stages),
         "inputs": {"compensator": "q_nominal", "monitor": "q"},
         "outputs": {"compensator": ["q_corrected", RESIDUAL_OUTPUT], "monitor": ["tcp_error_m"]},
         "dtypes": {key: str(dtype).replace("torch.", "") for key, (_, dtype, _, _) in GRAPHS.items()},
@@ -506,7 +508,7 @@ def _export_into(out_dir: Path, model_dir: Path, stored, *, wrench_frame: str, i
         "files": files,
         "sha256": digests,
     }
-    for stage in stored.stages():  # each stage's own entry (the stiffness: its springs and data)
+    for stage in stages:  # each stage's own entry (the stiffness: its springs and data)
         section = stage.manifest_section()
         if section is not None:
             manifest[stage.name] = section
@@ -566,10 +568,10 @@ def _solver_description(compensator: CompensatorGraph, portable: bool) -> dict:
     }
 
 
-def _stages(stored) -> dict[str, bool]:
+def _stages(stages: list[ModelStage]) -> dict[str, bool]:
     """``stages`` of the manifest: every stage kind, present or not, from the model's own stage list."""
     entries = {"geometry": False, "residual": False, "stiffness": False, **dict.fromkeys(METADATA_KEYS.values(), False)}
-    for stage in stored.stages():
+    for stage in stages:
         entries.update(stage.describe())
     return entries
 

@@ -7,9 +7,6 @@ is chosen by order-blocked cross-validation (:mod:`torchcal.instruments.tracer.o
 
 The handlers are imported inside the methods, as in every plugin: ``torchcal --help`` reads the
 registry without importing torch.
-
-Its methods import what they use when they run: the registry imports every plugin to list and
-recognise instruments (``--help``, a file's header), which must stay cheap.
 """
 
 from __future__ import annotations
