@@ -7,6 +7,7 @@ import json
 import torch
 
 from torchcal.config.schema import FitConfig
+from torchcal.core.threads import fit_threads
 from torchcal.sim.twin import Twin, TwinConfig
 from torchcal.stages.geometry import fit_with_selection, save_fit
 from torchcal.stages.pipeline import NO_HEADS, fit_model
@@ -24,10 +25,11 @@ def test_pipeline_matches_its_steps_and_types_the_head(tmp_path):
     config = FitConfig(residual="elm", residual_hidden=20, progress=False, gravity_compliance="none",
                        joint_harmonics="none")
     run = fit_model(tmp_path / "pipeline", robot, train, config)
-    # the steps by hand, independently of the pipeline
-    result, structure = fit_with_selection(robot, train, config)
-    save_fit(tmp_path / "steps", robot, train, result, {}, structure=structure, uncertainty=config.uncertainty)
-    by_hand = fit_residual_stage(tmp_path / "steps", train, config, structure=structure)
+    # the steps by hand, independently of the pipeline, on its thread count (the tables are compared to the bit)
+    with fit_threads():
+        result, structure = fit_with_selection(robot, train, config)
+        save_fit(tmp_path / "steps", robot, train, result, {}, structure=structure, uncertainty=config.uncertainty)
+        by_hand = fit_residual_stage(tmp_path / "steps", train, config, structure=structure)
     a, b = load_model(run.folder), load_model(tmp_path / "steps")
     assert torch.equal(a.x, b.x) and (a.residual is None) == (b.residual is None)
     assert run.residual is not None and run.residual.decision == by_hand.decision

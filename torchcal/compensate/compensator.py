@@ -71,7 +71,7 @@ and the step's solves sharing one Gram matrix (:func:`~torchcal.compensate.steps
 from __future__ import annotations
 
 import copy
-from typing import Any
+from typing import Any, ClassVar
 
 import torch
 from torch import nn
@@ -131,11 +131,23 @@ def _residual_copy(residual: nn.Module | None, dtype: torch.dtype, device) -> nn
     return module
 
 
-def stored_parts(stored) -> dict:
-    """Keyword arguments of the graphs from a :class:`~torchcal.stages.store.StoredModel`: its
-    residual head and its joint-space errors (so that no constructor can drop either)."""
-    residual = stored.residual.to_torch_module() if stored.residual is not None else None
-    return {"residual": residual, "joint_errors": JointSpaceErrors.from_metadata(stored.metadata)}
+def graph_parts(stored, inputs: tuple[str, ...] = ()) -> dict[str, Any]:
+    """Keyword arguments of the graphs from a :class:`~torchcal.stages.store.StoredModel`: the
+    pieces of its stages (:meth:`~torchcal.stages.base.ModelStage.graph_part`: the chain, the
+    joint-space errors, the residual head, the compliance), so that no constructor can drop one.
+
+    ``inputs``: the inputs the graph takes beyond the joints; a stage that needs another (the
+    stiffness stage's wrench) gives no piece to a graph without it."""
+    parts: dict[str, Any] = {}
+    for stage in stored.stages():
+        if set(stage.graph_inputs) <= set(inputs):
+            parts.update(stage.graph_part())
+    return parts
+
+
+def graph_inputs(stored) -> tuple[str, ...]:
+    """The inputs the model's graphs take beyond the joints, in stage order (``()`` or ``("wrench",)``)."""
+    return tuple(name for stage in stored.stages() for name in stage.graph_inputs)
 
 
 def command_jacobian_t(pose: torch.Tensor, joint_frames: torch.Tensor, slope: torch.Tensor | None) -> torch.Tensor:
@@ -235,6 +247,8 @@ class CompensatorGraph(nn.Module):
         device: where the constants live (CPU by default).
     """
 
+    inputs: ClassVar[tuple[str, ...]] = ()
+    """Inputs beyond the joints (see :func:`graph_parts`)."""
     # buffers, registered in __init__ (declared so that type checkers see tensors, not Tensor | Module)
     eye6: torch.Tensor
     eye3: torch.Tensor
@@ -316,7 +330,7 @@ class CompensatorGraph(nn.Module):
     @classmethod
     def from_stored(cls, stored, **options) -> CompensatorGraph:
         """Build from a :class:`torchcal.stages.store.StoredModel` (residual head and joint-space errors included)."""
-        return cls(stored.model, stored.x, **stored_parts(stored), **options)
+        return cls(**graph_parts(stored, cls.inputs), **options)
 
     def forward(self, q_nominal: torch.Tensor) -> torch.Tensor:
         return self.solve(q_nominal)[0]
@@ -464,6 +478,8 @@ class MonitorGraph(nn.Module):
     nominal model does: the ``dp(q)`` of the compensator's sign convention.
     """
 
+    inputs: ClassVar[tuple[str, ...]] = ()
+
     def __init__(
         self,
         model: ErrorModel,
@@ -479,7 +495,7 @@ class MonitorGraph(nn.Module):
 
     @classmethod
     def from_stored(cls, stored, **options) -> MonitorGraph:
-        return cls(stored.model, stored.x, **stored_parts(stored), **options)
+        return cls(**graph_parts(stored, cls.inputs), **options)
 
     def forward(self, q: torch.Tensor) -> torch.Tensor:
         if self.models.joint_errors is None:  # the fast path: positions only, no link tensors
@@ -505,6 +521,8 @@ class LoadedCompensatorGraph(CompensatorGraph):
         Other arguments: those of :class:`CompensatorGraph`.
     """
 
+    inputs: ClassVar[tuple[str, ...]] = ("wrench",)
+
     def __init__(
         self,
         model: ErrorModel,
@@ -523,7 +541,7 @@ class LoadedCompensatorGraph(CompensatorGraph):
     @classmethod
     def from_stored(cls, stored, **options) -> LoadedCompensatorGraph:
         """Build from a :class:`torchcal.stages.store.StoredModel` with a stiffness stage."""
-        return cls(stored.model, stored.x, stored.stiffness.compliance, **stored_parts(stored), **options)
+        return cls(**graph_parts(stored, cls.inputs), **options)
 
     def forward(self, q_nominal: torch.Tensor, wrench: torch.Tensor) -> torch.Tensor:  # type: ignore[override]  # wrench: 2nd graph input
         return self.solve(q_nominal, wrench)[0]
@@ -546,6 +564,8 @@ class LoadedMonitorGraph(MonitorGraph):
     nominal, unloaded one (the wrench as for :class:`LoadedCompensatorGraph`).
     """
 
+    inputs: ClassVar[tuple[str, ...]] = ("wrench",)
+
     def __init__(
         self,
         model: ErrorModel,
@@ -563,9 +583,17 @@ class LoadedMonitorGraph(MonitorGraph):
 
     @classmethod
     def from_stored(cls, stored, **options) -> LoadedMonitorGraph:
-        return cls(stored.model, stored.x, stored.stiffness.compliance, **stored_parts(stored), **options)
+        return cls(**graph_parts(stored, cls.inputs), **options)
 
     def forward(self, q: torch.Tensor, wrench: torch.Tensor) -> torch.Tensor:  # type: ignore[override]  # wrench: 2nd graph input
         nominal, pose, frames, _ = self.models.nominal_and_calibrated(q)
         dp, _ = self.deflection(pose, frames, wrench)
         return self.models.add_residual(pose[:, :3, 3] - nominal[:, :3, 3] + dp, q)
+
+
+#: The compensator and monitor classes by the inputs the model's stages add beyond the joints
+#: (:func:`graph_inputs`): a stage with a new input brings its graph classes and one line here.
+GRAPH_CLASSES: dict[tuple[str, ...], tuple[type[CompensatorGraph], type[MonitorGraph]]] = {
+    (): (CompensatorGraph, MonitorGraph),
+    ("wrench",): (LoadedCompensatorGraph, LoadedMonitorGraph),
+}

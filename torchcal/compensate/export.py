@@ -34,14 +34,13 @@ import torch
 import torchcal
 from torchcal.compensate.compensator import (
     DEFAULT_TASK,
+    GRAPH_CLASSES,
     RESIDUAL_OUTPUT,
     TASKS,
     CompensatorGraph,
     CompensatorWithResidual,
-    LoadedCompensatorGraph,
-    LoadedMonitorGraph,
-    MonitorGraph,
-    stored_parts,
+    graph_inputs,
+    graph_parts,
 )
 from torchcal.compensate.linalg import CONTRIB_DOMAIN
 from torchcal.compensate.onnx_checks import ort_feeds, ort_session, unsolved_distance_m
@@ -55,7 +54,7 @@ from torchcal.compensate.production_tcp import (
     tcp_transform,
 )
 from torchcal.compensate.true_robot_check import compensation_on_true_robot
-from torchcal.core.errors import TorchcalError
+from torchcal.core.errors import ModelError, TorchcalError
 from torchcal.core.folder import check_output_folder, staged_folder
 from torchcal.core.hashing import sha256_bytes
 from torchcal.core.io import atomic_write_bytes, atomic_write_json, atomic_write_text
@@ -154,37 +153,33 @@ def build_graphs(
 ) -> dict[str, torch.nn.Module]:
     """The four torch modules of :data:`GRAPHS` for a :class:`StoredModel`.
 
-    With a stiffness stage (``stored.stiffness``) they are the loaded graphs, whose second
-    argument is the wrench in ``wrench_frame`` (``tool`` or ``base``). ``task``: ``position``
-    (position first, orientation secondary) or ``pose`` (full 6-D); ``iterations``: Newton steps
-    of the compensators (``None``: the task's default); ``portable``: standard ONNX operators only
+    Each of the model's stages gives its piece (:func:`graph_parts`); the inputs its stages add
+    (:func:`graph_inputs`) choose the graph classes (:data:`GRAPH_CLASSES`): with a stiffness
+    stage they are the loaded graphs, whose second argument is the wrench in ``wrench_frame``
+    (``tool`` or ``base``). ``residual``: a head module in place of the stored one
+    (``use_stored_residual=False`` without one: no head). ``task``: ``position`` (position first,
+    orientation secondary) or ``pose`` (full 6-D); ``iterations``: Newton steps of the
+    compensators (``None``: the task's default); ``portable``: standard ONNX operators only
     (see :data:`SOLVER_PORTABLE`).
     """
     solve: dict[str, Any] = {"iterations": iterations, "task": task,
                              "solver": SOLVER_PORTABLE if portable else SOLVER_DEFAULT}
-    parts = stored_parts(stored)
-    if residual is None and use_stored_residual:
-        residual = parts["residual"]
-    stiffness = getattr(stored, "stiffness", None)
-    joint_errors = parts["joint_errors"]
+    inputs = graph_inputs(stored)
+    if inputs not in GRAPH_CLASSES:
+        raise ModelError(f"{stored.folder}: no exported graph takes the inputs {list(inputs)} of its stages")
+    compensator_class, monitor_class = GRAPH_CLASSES[inputs]
+    parts = graph_parts(stored, inputs)
+    if residual is not None or not use_stored_residual:
+        parts["residual"] = residual
+    input_options = {"wrench": {"wrench_frame": wrench_frame}}  # what each extra input is given in
+    for name in inputs:
+        parts.update(input_options.get(name, {}))
     graphs: dict[str, torch.nn.Module] = {}
-    graph: torch.nn.Module
     for key, (_, dtype, _, _) in GRAPHS.items():
-        if stiffness is None:
-            if key.startswith("compensator"):
-                graph = CompensatorGraph(stored.model, stored.x, residual, dtype=dtype, joint_errors=joint_errors, **solve)
-            else:
-                graph = MonitorGraph(stored.model, stored.x, residual, dtype=dtype, joint_errors=joint_errors)
-            graphs[key] = graph.eval()
+        if key.startswith("compensator"):
+            graphs[key] = compensator_class(**parts, dtype=dtype, **solve).eval()
         else:
-            compliance = stiffness.compliance.cpu()
-            if key.startswith("compensator"):
-                graph = LoadedCompensatorGraph(stored.model, stored.x, compliance, residual, wrench_frame=wrench_frame, dtype=dtype,
-                                               joint_errors=joint_errors, **solve)
-            else:
-                graph = LoadedMonitorGraph(stored.model, stored.x, compliance, residual, wrench_frame=wrench_frame, dtype=dtype,
-                                           joint_errors=joint_errors)
-            graphs[key] = graph.eval()
+            graphs[key] = monitor_class(**parts, dtype=dtype).eval()
     return graphs
 
 
@@ -198,7 +193,7 @@ def compensator_of(graphs: dict[str, torch.nn.Module], key: str = "compensator")
 
 def has_wrench_input(graphs: dict[str, torch.nn.Module]) -> bool:
     """Whether the graphs take the expected wrench as a second input."""
-    return isinstance(graphs["compensator"], LoadedCompensatorGraph)
+    return WRENCH_INPUT in compensator_of(graphs).inputs
 
 
 def sample_wrenches(n: int, max_force_n: float, max_torque_nm: float, generator: torch.Generator) -> torch.Tensor:

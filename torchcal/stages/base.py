@@ -3,9 +3,10 @@
 A calibrated model is a chain of stages. Joint-space stages turn the commanded joints into the
 joints the arm takes (gravity compliance, gear harmonics); the geometry puts those through the
 calibrated kinematics; Cartesian stages add a TCP offset (a learned residual head, the deflection
-under a load). :func:`torchcal.stages.geometry.predict_positions`, the export manifest and the
-report loop over :meth:`torchcal.stages.store.StoredModel.stages` instead of asking which
-optional part a folder has.
+under a load). :func:`torchcal.stages.geometry.predict_positions`, the exported graphs, the export
+manifest and the report's model name loop over :meth:`torchcal.stages.store.StoredModel.stages`
+instead of asking which optional part a folder has: each stage gives its graph piece
+(:meth:`ModelStage.graph_part`), its manifest entry and its name in the report.
 
 Frames and units: joints in rad; TCP offsets in the ``instrument`` frame of the calibration, m.
 """
@@ -13,10 +14,11 @@ Frames and units: joints in rad; TCP offsets in the ``instrument`` frame of the 
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from typing import TYPE_CHECKING, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import torch
 
+from torchcal.identify.compliance import POINT_SETS
 from torchcal.identify.joint_errors import METADATA_KEYS
 from torchcal.stiffness.vjm import deflection
 
@@ -35,10 +37,13 @@ class ModelStage(ABC):
         name: the stage's key in manifests and reports (``geometry``, ``residual``...).
         space: ``joint`` (corrects joints before the chain), ``chain`` (the kinematics) or ``tcp``
             (adds an offset to the TCP after it).
+        graph_inputs: inputs the exported graphs take for this stage beyond the joints (the
+            stiffness stage: ``("wrench",)``).
     """
 
     name: ClassVar[str]
     space: ClassVar[str]
+    graph_inputs: ClassVar[tuple[str, ...]] = ()
 
     def correct_joints(self, robot: RobotModel, q: torch.Tensor) -> torch.Tensor:
         """Joints ``(B, N)`` rad after this stage (joint-space stages; others return ``q``)."""
@@ -59,6 +64,16 @@ class ModelStage(ABC):
         controller engineer needs to know about this stage beyond its presence."""
         return None
 
+    def graph_part(self) -> dict[str, Any]:
+        """The stage's piece of the exported compensator and monitor graphs: keyword arguments of
+        :class:`torchcal.compensate.compensator.CompensatorGraph` (or of the graph class its
+        :attr:`graph_inputs` select). Nothing by default."""
+        return {}
+
+    @abstractmethod
+    def title(self) -> str:
+        """The stage in words, as the report names the model (``geometry + ... + mlp residual head``)."""
+
 
 class JointErrorStage(ModelStage):
     """Joint-space errors identified with the geometry (gravity compliance, first harmonics)."""
@@ -76,6 +91,19 @@ class JointErrorStage(ModelStage):
         present = self.errors.to_metadata()
         return {key: key in present for key in METADATA_KEYS.values()}
 
+    def graph_part(self) -> dict[str, Any]:
+        return {"joint_errors": self.errors}
+
+    def title(self) -> str:
+        parts = []
+        if self.errors.compliance is not None:
+            points = tuple(self.errors.compliance.points)
+            label = next((name for name, members in POINT_SETS.items() if members == points), "+".join(points))
+            parts.append(f"gravity compliance ({label})")
+        if self.errors.harmonics is not None:
+            parts.append(self.errors.harmonics.label)
+        return " + ".join(parts)
+
 
 class GeometryStage(ModelStage):
     """The calibrated kinematic chain (MDH + beta, base and tool frames)."""
@@ -92,6 +120,12 @@ class GeometryStage(ModelStage):
 
     def describe(self) -> dict[str, bool]:
         return {"geometry": True}
+
+    def graph_part(self) -> dict[str, Any]:
+        return {"model": self.model, "x": self.x}
+
+    def title(self) -> str:
+        return "geometry"
 
 
 class ResidualStage(ModelStage):
@@ -112,12 +146,19 @@ class ResidualStage(ModelStage):
     def describe(self) -> dict[str, bool]:
         return {"residual": True}
 
+    def graph_part(self) -> dict[str, Any]:
+        return {"residual": self.residual.to_torch_module()}
+
+    def title(self) -> str:
+        return f"{self.residual.head.name} residual head"
+
 
 class StiffnessStage(ModelStage):
     """Joint stiffness: the TCP deflection under a wrench at the tool (nothing without one)."""
 
     name: ClassVar[str] = "stiffness"
     space: ClassVar[str] = "tcp"
+    graph_inputs: ClassVar[tuple[str, ...]] = ("wrench",)
 
     def __init__(self, stiffness: StoredStiffness, model: ErrorModel, x: torch.Tensor) -> None:
         self.stiffness, self.model, self.x = stiffness, model, x
@@ -132,6 +173,12 @@ class StiffnessStage(ModelStage):
 
     def describe(self) -> dict[str, bool]:
         return {"stiffness": True}
+
+    def graph_part(self) -> dict[str, Any]:
+        return {"compliance": self.stiffness.compliance.cpu()}
+
+    def title(self) -> str:
+        return "joint stiffness"
 
     def manifest_section(self) -> dict | None:
         meta = self.stiffness.metadata

@@ -24,9 +24,10 @@ from __future__ import annotations
 
 import math
 import shutil
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any, cast
 
 import torch
 
@@ -49,7 +50,7 @@ from torchcal.stages.files import read_json_member, read_tensors
 from torchcal.stages.residual_store import load_residual
 from torchcal.stages.stiffness_store import load_stiffness_stage
 
-if TYPE_CHECKING:  # loaded on demand: a geometry-only folder needs neither (nor their imports)
+if TYPE_CHECKING:  # annotations only
     from torchcal.stages.base import ModelStage
     from torchcal.stages.residual_store import StoredResidual
     from torchcal.stages.stiffness_store import StoredStiffness
@@ -66,27 +67,86 @@ class StoredModel:
     covariance: torch.Tensor
     metadata: dict
     folder: Path
-    residual: StoredResidual | None = None
-    stiffness: StoredStiffness | None = None
     extras: dict = field(default_factory=dict)
     training_q: torch.Tensor | None = None
+    parts: dict[str, object] = field(default_factory=dict)
+    """The stages read from files of their own (:data:`OPTIONAL_STAGES`), by stage name."""
 
     @property
     def free_names(self) -> list[str]:
         return [self.model.layout.names[i] for i in self.free.tolist()]
 
     def stages(self) -> list[ModelStage]:
-        """The model's stages in the order a prediction applies them (absent ones left out)."""
+        """The model's stages in the order a prediction applies them (absent ones left out).
+
+        Built on each call from the folder's parts and the current ``model`` and ``x`` (a
+        production-TCP view replaces those), so no stage holds a stale chain."""
         out: list[ModelStage] = []
         errors = JointSpaceErrors.from_metadata(self.metadata)
         if not errors.empty:
             out.append(JointErrorStage(errors))
         out.append(GeometryStage(self.model, self.x))
-        if self.residual is not None:
-            out.append(ResidualStage(self.residual, self.model.T_reference[:3, :3]))
-        if self.stiffness is not None:
-            out.append(StiffnessStage(self.stiffness, self.model, self.x))
+        for name, optional in OPTIONAL_STAGES.items():
+            if name in self.parts:
+                out.append(optional.stage(self.parts[name], self))
         return out
+
+    @property
+    def residual(self) -> StoredResidual | None:
+        """The learned residual head, or ``None`` (the ``residual`` part)."""
+        return cast("StoredResidual | None", self.parts.get("residual"))
+
+    @residual.setter
+    def residual(self, value: StoredResidual | None) -> None:
+        self._set_part("residual", value)
+
+    @property
+    def stiffness(self) -> StoredStiffness | None:
+        """The joint stiffness, or ``None`` (the ``stiffness`` part)."""
+        return cast("StoredStiffness | None", self.parts.get("stiffness"))
+
+    @stiffness.setter
+    def stiffness(self, value: StoredStiffness | None) -> None:
+        self._set_part("stiffness", value)
+
+    def _set_part(self, name: str, value: object | None) -> None:
+        if value is None:
+            self.parts.pop(name, None)
+        else:
+            self.parts[name] = value
+
+
+@dataclass(frozen=True)
+class OptionalStage:
+    """A stage a model folder holds in files of its own: how to read its part and make the stage.
+
+    Attributes:
+        load: ``(folder, device) -> part`` or ``None`` where the folder has none; raises
+            :class:`ModelError` naming the file when it cannot be read.
+        stage: ``(part, stored) -> ModelStage`` bound to the stored model's current chain.
+    """
+
+    load: Callable[[Path, str | torch.device], object | None]
+    stage: Callable[[Any, StoredModel], ModelStage]
+
+
+def _load_residual_part(folder: Path, device: str | torch.device) -> StoredResidual | None:
+    if not (folder / "residual.json").is_file():
+        return None
+    try:
+        return load_residual(folder)
+    except (KeyError, TypeError, ValueError, AssertionError) as exc:
+        raise ModelError(f"{folder / 'residual.json'}: the residual head cannot be read ({exc})") from None
+
+
+#: The optional stages in the order a prediction applies them: adding one is a module with its
+#: part's loader and stage class plus one line here.
+OPTIONAL_STAGES: dict[str, OptionalStage] = {
+    "residual": OptionalStage(_load_residual_part,
+                              lambda part, stored: ResidualStage(part, stored.model.T_reference[:3, :3])),
+    "stiffness": OptionalStage(lambda folder, device: load_stiffness_stage(folder, device=device),
+                               lambda part, stored: StiffnessStage(part, stored.model, stored.x)),
+}
 
 
 def save_model(
@@ -324,12 +384,10 @@ def load_model(folder: str | Path, device: str | torch.device = "cpu") -> Stored
         covariance=tensors["covariance"].to(device), metadata=meta, folder=folder,
         training_q=tensors.get("training_q"),
     )
-    if (folder / "residual.json").is_file():
-        try:
-            stored.residual = load_residual(folder)
-        except (KeyError, TypeError, ValueError, AssertionError) as exc:
-            raise ModelError(f"{folder / 'residual.json'}: the residual head cannot be read ({exc})") from None
-    stored.stiffness = load_stiffness_stage(folder, device=device)
+    for name, optional in OPTIONAL_STAGES.items():
+        part = optional.load(folder, device)
+        if part is not None:
+            stored.parts[name] = part
     return stored
 
 

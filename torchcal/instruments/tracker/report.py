@@ -24,12 +24,12 @@ import torch
 
 from torchcal.core.metrics import iso9283_repeated, position_metrics
 from torchcal.data.measurements import Measurements
-from torchcal.identify.compliance import POINT_SETS
 from torchcal.identify.joint_errors import JointSpaceErrors
 from torchcal.model_selection.leakage import LeakageReport
 from torchcal.report import plots
 from torchcal.report.document import Figure, Paragraph, Preformatted, Report, Section, Table
 from torchcal.report.parameters import parameter_sections
+from torchcal.stages.base import ModelStage
 from torchcal.stages.geometry import (
     NOMINAL_PROTOCOL,
     held_out_errors,
@@ -124,26 +124,19 @@ class ReportInputs:
 
 
 def model_name(stored: StoredModel) -> str:
-    """The stages of a model folder in words (``geometry + gravity compliance (elbow, tcp) + ...``)."""
-    terms = JointSpaceErrors.from_metadata(stored.metadata)
-    parts = ["geometry"]
-    if terms.compliance is not None:
-        points = tuple(terms.compliance.points)
-        label = next((name for name, members in POINT_SETS.items() if members == points), "+".join(points))
-        parts.append(f"gravity compliance ({label})")
-    if terms.harmonics is not None:
-        parts.append(terms.harmonics.label)
-    if stored.residual is not None:
-        parts.append(f"{stored.residual.head.name} residual head")
-    if stored.stiffness is not None:
-        parts.append("joint stiffness")
-    return " + ".join(parts)
+    """The stages of a model folder in words (``geometry + gravity compliance (elbow, tcp) + ...``):
+    the chain first, then the terms each other stage adds to it, in the order they apply."""
+    return _stage_names(stored.stages())
 
 
 def structure_name(stored: StoredModel) -> str:
-    """The model without its learned head and stiffness (what the geometry fit chose)."""
-    name = model_name(stored)
-    return " + ".join(p for p in name.split(" + ") if not p.endswith(("residual head", "joint stiffness")))
+    """The model without its Cartesian stages (learned head, stiffness): what the geometry fit chose."""
+    return _stage_names([s for s in stored.stages() if s.space != "tcp"])
+
+
+def _stage_names(stages: Sequence[ModelStage]) -> str:
+    ordered = sorted(stages, key=lambda s: s.space != "chain")  # stable: the chain first, the rest as they apply
+    return " + ".join(title for title in (s.title() for s in ordered) if title)
 
 
 def score_pose_set(stored: StoredModel, data: Measurements, *, held_out: bool, register: bool = False,
