@@ -26,6 +26,7 @@ import json
 import math
 import platform
 import warnings
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -512,7 +513,8 @@ def _export_into(out_dir: Path, model_dir: Path, stored, *, wrench_frame: str, i
     manifest["float32_error_budget"] = float32_budget(graphs, out_dir, stored)
     manifest["convergence"] = convergence_report(graphs, stored)
     atomic_write_json(out_dir / "manifest.json", manifest)
-    atomic_write_text(out_dir / "README.md", readme_text(manifest))
+    sections = [text for text in (stage.readme_section(manifest) for stage in stages) if text]
+    atomic_write_text(out_dir / "README.md", readme_text(manifest, sections))
     return manifest
 
 
@@ -635,8 +637,9 @@ def _expected_line(manifest: dict) -> str:
             f"{expected['where'].split(';')[0]} ({expected['method']}, {expected['protocol']}).")
 
 
-def readme_text(manifest: dict) -> str:
-    """The integrator's README of an exported folder."""
+def readme_text(manifest: dict, stage_sections: Sequence[str] = ()) -> str:
+    """The integrator's README of an exported folder; ``stage_sections``: the stages' own sections
+    (:meth:`~torchcal.stages.base.ModelStage.readme_section`), after the files' table."""
     budget = manifest["float32_error_budget"]
     joints = ", ".join(manifest["joint_names"])
     residual = "yes" if manifest["stages"]["residual"] else "no"
@@ -644,20 +647,8 @@ def readme_text(manifest: dict) -> str:
     joint = ", ".join(k.replace("_", " ") for k in METADATA_KEYS.values() if manifest["stages"].get(k)) or "none"
     wrench = manifest.get("wrench")
     n = manifest["n_joints"]
-    if wrench:
-        extra = f", `{wrench['name']}` (batch, 6)"
-        load = f"""
-## Load (stiffness stage)
-
-Both graphs take a second input `{wrench['name']}` (batch, 6): `fx, fy, fz` in N (force applied at
-the TCP) and `tx, ty, tz` in N m (moment about the TCP), along {wrench['axes']}. Give the load the
-robot will carry at that command; the compensated robot then puts its *loaded* TCP on the
-nominal target. For a payload: {wrench['payload']}. A zero wrench compensates geometry only.
-Stiffness entries treated as rigid (not observable from the stiffness data):
-{', '.join(manifest['stiffness']['treated_as_rigid']) or 'none'}.
-"""
-    else:
-        extra, load = "", ""
+    extra = f", `{wrench['name']}` (batch, 6)" if wrench else ""
+    load = "".join(f"\n{section}" for section in stage_sections)
     return f"""# Compensator for {manifest['robot']}
 
 Exported by torchcal {manifest['versions']['torchcal']} (ONNX opset {manifest['opset']}).

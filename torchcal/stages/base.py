@@ -64,6 +64,11 @@ class ModelStage(ABC):
         controller engineer needs to know about this stage beyond its presence."""
         return None
 
+    def readme_section(self, manifest: dict) -> str | None:
+        """The stage's section of an exported folder's README (markdown, from the export
+        ``manifest``), or ``None``: what an integrator must do for this stage."""
+        return None
+
     def graph_part(self) -> dict[str, Any]:
         """The stage's piece of the exported compensator and monitor graphs: keyword arguments of
         :class:`torchcal.compensate.compensator.CompensatorGraph` (or of the graph class its
@@ -176,6 +181,19 @@ class StiffnessStage(ModelStage):
 
     def graph_part(self) -> dict[str, Any]:
         return {"compliance": self.stiffness.compliance.cpu()}
+
+    def readme_section(self, manifest: dict) -> str | None:
+        wrench = manifest["wrench"]
+        rigid = ", ".join(manifest[self.name]["treated_as_rigid"]) or "none"
+        return f"""## Load (stiffness stage)
+
+Both graphs take a second input `{wrench['name']}` (batch, 6): `fx, fy, fz` in N (force applied at
+the TCP) and `tx, ty, tz` in N m (moment about the TCP), along {wrench['axes']}. Give the load the
+robot will carry at that command; the compensated robot then puts its *loaded* TCP on the
+nominal target. For a payload: {wrench['payload']}. A zero wrench compensates geometry only.
+Stiffness entries treated as rigid (not observable from the stiffness data):
+{rigid}.
+"""
 
     def title(self) -> str:
         return "joint stiffness"
