@@ -88,6 +88,8 @@ def test_one_override_path_for_every_command():
             compose_options(schema, ["cv_folds=three"])
         with pytest.raises(TorchcalError, match=r"cv_folds must be a finite number in \[2, 100\]"):
             compose_options(schema, ["cv_folds=1"])
+        with pytest.raises(TorchcalError, match="split must be one of grouped, blocks, random, got 'loo'"):
+            compose_options(schema, ["split=loo"])
     assert compose_options(FitConfig(), ["cv_folds=3"]).cv_folds == 3
     twin = get("sockets").twin().config_factory()
     assert compose_options(twin, ["robot=my.yaml"]).robot == "my.yaml"

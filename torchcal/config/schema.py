@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 
 from torchcal.core.errors import TorchcalError
 from torchcal.core.overrides import check_range
+from torchcal.data.folds import SPLITS
 from torchcal.sim.twin import TwinConfig
 
 
@@ -64,6 +65,8 @@ class ValidationOptions(_Checked):
     seed: int = 0
 
     def __post_init__(self) -> None:
+        if self.split not in SPLITS:
+            raise TorchcalError(f"split must be one of {', '.join(SPLITS)}, got {self.split!r}")
         check_range(self, "cv_folds", low=2, high=100)
         check_range(self, "cv_groups", low=1)
         super().__post_init__()

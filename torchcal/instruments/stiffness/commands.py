@@ -42,7 +42,7 @@ from torchcal.core.folder import remove_member, write_member_json
 from torchcal.core.hashing import sha256_file
 from torchcal.core.metrics import distance_summary
 from torchcal.core.overrides import renamed_keys, split_foreign_keys
-from torchcal.data.folds import SPLITS, Folds, make_folds
+from torchcal.data.folds import Folds, make_folds
 from torchcal.instruments.base import FitOutcome
 from torchcal.instruments.stiffness.data import StiffnessData, load_stiffness
 from torchcal.kinematics.error_model import ErrorModel
@@ -117,8 +117,6 @@ def stiffness_config(overrides: list[str]) -> StiffnessFitConfig:
         raise TorchcalError(f"wrench_frame must be 'tool' or 'instrument', got {config.wrench_frame!r}")
     if config.parameters not in PARAMETERS:
         raise TorchcalError(f"parameters must be one of {', '.join(PARAMETERS)}, got {config.parameters!r}")
-    if config.split not in SPLITS:
-        raise TorchcalError(f"split must be one of {', '.join(SPLITS)}, got {config.split!r}")
     if config.cv_groups < 2:
         raise TorchcalError(f"cv_groups must be at least 2, got {config.cv_groups}")
     return config
