@@ -71,8 +71,7 @@ def kinematics_of(robot: RobotModel, model_dir: Path | None) -> tuple[TcpKinemat
     kin = TcpKinematics(model.table(x), model.T_base_0.cpu(), model.T_n_flange.cpu() @ model.flange_from_tool(x),
                         joint_map=joint_map)
     parts = ["geometry"] + (["joint-space errors"] if joint_map is not None else [])
-    left = [name for name, present in (("learned residual head", stored.residual is not None),
-                                       ("stiffness", stored.stiffness is not None)) if present]
+    left = [stage.title() for stage in stored.stages() if stage.space == "tcp"]  # Cartesian stages: no joint-space chain
     note = f"; not used: {', '.join(left)} (no joint-space chain)" if left else ""
     return kin, f"calibrated kinematics of {model_dir} ({' and '.join(parts)}){note}"
 

@@ -54,13 +54,10 @@ def summary_report(title: str, lines: list[str], *, metrics: dict | None = None,
             fit_metrics = stored.metadata.get("fit_metrics")
             if fit_metrics and not metrics:
                 sections.append(Section("Metrics of the fit", [Table("fit_metrics", ["metric", "value"], _flatten(fit_metrics))]))
-            stiffness = Path(folder) / "stiffness.json"
-            if stiffness.is_file():
-                doc = json.loads(stiffness.read_text(encoding="utf-8"))
-                rows = [[name, f"{p.get('value', math.nan):.6g}", str(p.get("unit", "")), f"{p.get('sigma', math.nan):.3g}",
-                         str(p.get("status", ""))] for name, p in (doc.get("parameters") or {}).items()]
-                sections.append(Section("Joint stiffness", [Table("stiffness", ["parameter", "value", "unit", "1-sigma",
-                                                                                "status"], rows)]))
+            for stage in stored.stages():  # a stage's own table (the stiffness: its springs)
+                table = stage.report_table()
+                if table is not None:
+                    sections.append(Section(table.title, [Table(stage.name, table.columns, table.rows)]))
             sections += parameter_sections(stored)
             notes = stored.metadata.get("notes")
             if notes:

@@ -13,7 +13,9 @@ Frames and units: joints in rad; TCP offsets in the ``instrument`` frame of the 
 
 from __future__ import annotations
 
+import math
 from abc import ABC, abstractmethod
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, ClassVar
 
 import torch
@@ -28,6 +30,15 @@ if TYPE_CHECKING:
     from torchcal.kinematics.robot import RobotModel
     from torchcal.stages.residual_store import StoredResidual
     from torchcal.stages.stiffness_store import StoredStiffness
+
+
+@dataclass(frozen=True)
+class StageTable:
+    """A stage's table for a report: its title, column names and rows of text."""
+
+    title: str
+    columns: list[str]
+    rows: list[list[str]]
 
 
 class ModelStage(ABC):
@@ -62,6 +73,11 @@ class ModelStage(ABC):
     def manifest_section(self) -> dict | None:
         """The stage's own entry of an export manifest (``manifest[name]``), or ``None``: what a
         controller engineer needs to know about this stage beyond its presence."""
+        return None
+
+    def report_table(self) -> StageTable | None:
+        """The stage's own table in a model folder's report, or ``None`` (the chain's parameters
+        and the joint-space terms have report sections of their own)."""
         return None
 
     def readme_section(self, manifest: dict) -> str | None:
@@ -181,6 +197,12 @@ class StiffnessStage(ModelStage):
 
     def graph_part(self) -> dict[str, Any]:
         return {"compliance": self.stiffness.compliance.cpu()}
+
+    def report_table(self) -> StageTable | None:
+        parameters = self.stiffness.metadata.get("parameters") or {}
+        rows = [[name, f"{p.get('value', math.nan):.6g}", str(p.get("unit", "")), f"{p.get('sigma', math.nan):.3g}",
+                 str(p.get("status", ""))] for name, p in parameters.items()]
+        return StageTable("Joint stiffness", ["parameter", "value", "unit", "1-sigma", "status"], rows)
 
     def readme_section(self, manifest: dict) -> str | None:
         wrench = manifest["wrench"]
