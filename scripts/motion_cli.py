@@ -36,16 +36,14 @@ import numpy as np
 import torch
 import yaml
 
+from torchcal.core.io import atomic_write_json, atomic_write_text
+from torchcal.kinematics.error_model import ErrorModel
+from torchcal.kinematics.ik import solve_ik
+from torchcal.kinematics.robot import default_robot_path, load_robot
+from torchcal.motion.scenario import perturbed_parameters, singular_line
+from torchcal.motion.waypoints import waypoints_csv
+
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-
-from torchcal.core.io import atomic_write_json, atomic_write_text  # noqa: E402
-from torchcal.kinematics.error_model import ErrorModel  # noqa: E402
-from torchcal.kinematics.ik import solve_ik  # noqa: E402
-from torchcal.kinematics.robot import default_robot_path, load_robot  # noqa: E402
-from torchcal.motion.scenario import perturbed_parameters, singular_line  # noqa: E402
-from torchcal.motion.waypoints import waypoints_csv  # noqa: E402
-
 DEG = math.pi / 180.0
 BEGIN, END = "<!-- motion_cli:begin -->", "<!-- motion_cli:end -->"
 TORCHCAL = [sys.executable, "-m", "torchcal.cli"]
