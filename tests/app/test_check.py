@@ -15,22 +15,9 @@ import torch
 
 from torchcal.app.check import check_data
 from torchcal.cli import main
-from torchcal.config.schema import FitConfig
 from torchcal.data.measurements import write_measurements_csv
-from torchcal.sim.twin import Twin, TwinConfig
-from torchcal.stages.pipeline import fit_model
-from torchcal.stages.store import load_model
 
 MM, DEG = 1e-3, math.pi / 180
-
-
-@pytest.fixture(scope="module")
-def calibrated(tmp_path_factory):
-    twin = Twin.create(TwinConfig(seed=3))
-    train = twin.sample(150, torch.Generator().manual_seed(11))
-    folder = tmp_path_factory.mktemp("check") / "model"
-    fit_model(folder, twin.robot, train, FitConfig(residual="none", progress=False))
-    return twin, load_model(folder)
 
 
 CASES = {

@@ -33,15 +33,6 @@ from torchcal.stages.store import load_model
 MM, DEG = 1e-3, math.pi / 180
 
 
-@pytest.fixture(scope="module")
-def calibrated(tmp_path_factory):
-    twin = Twin.create(TwinConfig(seed=3))
-    train = twin.sample(150, torch.Generator().manual_seed(11))
-    folder = tmp_path_factory.mktemp("update") / "model"
-    fit_model(folder, twin.robot, train, FitConfig(residual="none", progress=False))
-    return twin, load_model(folder)
-
-
 def _rms_mm(errors: torch.Tensor) -> float:
     return float(errors.norm(dim=-1).pow(2).mean().sqrt()) * 1e3
 
