@@ -99,7 +99,11 @@ def convergence(stored, n_poses: int, task: str, max_iterations: int = 8) -> lis
     import torch
 
     from torchcal.compensate.compensator import CompensatorGraph
-    from torchcal.compensate.export import SOLVABLE_ABOVE_M, singular_values, wrist_singular_samples
+    from torchcal.compensate.export_checks import (
+        SOLVABLE_ABOVE_M,
+        singular_values,
+        wrist_singular_samples,
+    )
     from torchcal.kinematics.error_model import ErrorModel
     from torchcal.kinematics.ik import pose_error
 
@@ -287,12 +291,9 @@ def main(argv: list[str] | None = None) -> int:
     import torch
     from rich.console import Console
 
-    from torchcal.compensate.export import (
-        GRAPHS,
-        build_graphs,
-        export_model,
-        wrist_singular_samples,
-    )
+    from torchcal.compensate.export import export_model
+    from torchcal.compensate.export_checks import wrist_singular_samples
+    from torchcal.compensate.graphs import GRAPHS, build_graphs
     from torchcal.core.io import atomic_write_json, atomic_write_text
     from torchcal.stages.store import load_model
 

@@ -12,7 +12,7 @@ from torchcal.compensate.compensator import (
     CompensatorGraph,
     MonitorGraph,
 )
-from torchcal.compensate.export import wrist_singular_samples
+from torchcal.compensate.export_checks import wrist_singular_samples
 from torchcal.kinematics.error_model import ErrorModel
 from torchcal.kinematics.ik import pose_error
 from torchcal.kinematics.joint_jacobian import geometric_jacobian

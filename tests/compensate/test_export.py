@@ -9,7 +9,8 @@ import onnxruntime as ort
 import pytest
 import torch
 
-from torchcal.compensate.export import GRAPHS, OPSET, build_graphs, export_and_check
+from torchcal.compensate.export import export_and_check
+from torchcal.compensate.graphs import GRAPHS, OPSET, build_graphs
 from torchcal.compensate.production_tcp import production_view, tcp_transform
 from torchcal.kinematics.error_model import ErrorModel
 from torchcal.kinematics.joint_jacobian import geometric_jacobian

@@ -18,7 +18,8 @@ from torchcal.compensate.compensator import (
     MonitorGraph,
     _TwoModels,
 )
-from torchcal.compensate.export import build_graphs, export_model
+from torchcal.compensate.export import export_model
+from torchcal.compensate.graphs import build_graphs
 from torchcal.compensate.production_tcp import production_view, tcp_transform
 from torchcal.config.schema import FitConfig
 from torchcal.identify.compliance import GravityCompliance

@@ -8,7 +8,11 @@ import pytest
 import torch
 
 from torchcal.compensate.compensator import CompensatorGraph
-from torchcal.compensate.export import SOLVABLE_ABOVE_M, singular_values, wrist_singular_samples
+from torchcal.compensate.export_checks import (
+    SOLVABLE_ABOVE_M,
+    singular_values,
+    wrist_singular_samples,
+)
 from torchcal.kinematics.error_model import ErrorModel
 from torchcal.kinematics.ik import pose_error
 from torchcal.kinematics.robot import default_robot_path

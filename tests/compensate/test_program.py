@@ -14,7 +14,7 @@ import pytest
 import torch
 
 from torchcal.cli import main
-from torchcal.compensate.export import build_graphs, compensator_of
+from torchcal.compensate.graphs import build_graphs, compensator_of
 from torchcal.compensate.production_tcp import production_view, tcp_transform
 from torchcal.compensate.program import compensate_program, sidecar_path
 from torchcal.core.errors import TorchcalError

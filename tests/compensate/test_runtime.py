@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from torchcal.compensate.export import build_graphs
+from torchcal.compensate.graphs import build_graphs
 from torchcal.compensate.production_tcp import production_view, tcp_transform
 from torchcal.compensate.runtime import CompensatorError, CompensatorRuntime
 from torchcal.core.errors import TorchcalError

@@ -10,7 +10,9 @@ import onnxruntime as ort
 import pytest
 import torch
 
-from torchcal.compensate.export import GRAPHS, build_graphs, export_model, sample_wrenches
+from torchcal.compensate.export import export_model
+from torchcal.compensate.export_checks import sample_wrenches
+from torchcal.compensate.graphs import GRAPHS, build_graphs
 from torchcal.compensate.production_tcp import production_view, tcp_transform
 from torchcal.compensate.runtime import CompensatorError, CompensatorRuntime
 from torchcal.instruments.stiffness.commands import fit_stiffness

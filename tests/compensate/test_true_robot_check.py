@@ -4,7 +4,7 @@ import math
 
 import torch
 
-from torchcal.compensate.export import build_graphs
+from torchcal.compensate.graphs import build_graphs
 from torchcal.compensate.production_tcp import production_view, tcp_transform
 from torchcal.compensate.true_robot_check import compensation_on_true_robot
 from torchcal.stages.store import load_model

@@ -57,7 +57,7 @@ far the tool is turned from the nominal orientation.
 its result does not depend on the batch. Regular poses take two or three steps, the wrist
 singular ones four. The exported graph runs each phase of steps (mixed, then position-only) as an
 ONNX ``Loop`` whose body is :meth:`CompensatorGraph.iterate` (:mod:`torchcal.compensate.loop_graph`).
-The manifest's ``convergence`` (:func:`torchcal.compensate.export.convergence_report`) shows what
+The manifest's ``convergence`` (:func:`torchcal.compensate.export_checks.convergence_report`) shows what
 the steps reach over the joint range, with the singular neighbourhoods as separate strata.
 
 **Compact graph.** The graph computes in float64 whatever its interface, and each step is a few

@@ -21,30 +21,38 @@ The folder is built in a hidden sibling and swapped into place when complete
 
 from __future__ import annotations
 
-import io
 import json
 import math
 import platform
-import warnings
-from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
 
 import torch
 
 import torchcal
 from torchcal.compensate.compensator import (
     DEFAULT_TASK,
-    GRAPH_CLASSES,
     RESIDUAL_OUTPUT,
     TASKS,
     CompensatorGraph,
     CompensatorWithResidual,
-    graph_inputs,
-    graph_parts,
 )
-from torchcal.compensate.linalg import CONTRIB_DOMAIN
-from torchcal.compensate.onnx_checks import ort_feeds, ort_session, unsolved_distance_m
+from torchcal.compensate.export_checks import (
+    convergence_report,
+    float32_budget,
+    regular_poses,
+)
+from torchcal.compensate.export_readme import readme_text
+from torchcal.compensate.graphs import (
+    GRAPHS,
+    OPSET,
+    WRENCH_INPUT,
+    build_graphs,
+    compensator_of,
+    has_wrench_input,
+    onnx_bytes,
+    uses_contrib_inverse,
+)
+from torchcal.compensate.onnx_checks import ort_feeds, ort_session
 from torchcal.compensate.production_tcp import (
     MAX_JOINT_CORRECTION_DEG,
     MAX_TOOL_ROTATION_DEG,
@@ -55,160 +63,17 @@ from torchcal.compensate.production_tcp import (
     tcp_transform,
 )
 from torchcal.compensate.true_robot_check import compensation_on_true_robot
-from torchcal.core.errors import ModelError, TorchcalError
+from torchcal.core.errors import TorchcalError
 from torchcal.core.folder import check_output_folder, staged_folder
 from torchcal.core.hashing import sha256_bytes
 from torchcal.core.io import atomic_write_bytes, atomic_write_json, atomic_write_text
 from torchcal.core.metrics import position_metrics
 from torchcal.identify.joint_errors import METADATA_KEYS
-from torchcal.kinematics.error_model import ErrorModel
-from torchcal.kinematics.joint_jacobian import geometric_jacobian
 from torchcal.stages.base import ModelStage
 from torchcal.stages.prediction_uncertainty import load_uncertainty, stored_prediction
 from torchcal.stages.store import load_model
 
-OPSET = 17
 MANIFEST_FORMAT = "torchcal-compensator/1"
-GRAPHS = {
-    "compensator": ("compensator.onnx", torch.float64, "q_nominal", "q_corrected"),
-    "compensator_f32": ("compensator_f32.onnx", torch.float32, "q_nominal", "q_corrected"),
-    "monitor": ("monitor.onnx", torch.float64, "q", "tcp_error_m"),
-    "monitor_f32": ("monitor_f32.onnx", torch.float32, "q", "tcp_error_m"),
-}
-BUDGET_POSES = 10_000
-WRENCH_INPUT = "wrench"
-"""Name of the second input of graphs with a stiffness stage."""
-DEFAULT_BUDGET_WRENCH = {"max_force_n": 300.0, "max_torque_nm": 30.0}
-SOLVER_DEFAULT, SOLVER_PORTABLE = "inverse", "gauss_jordan"
-"""The compensator's 6x6 solve: onnxruntime's contrib ``Inverse`` (default) or, with
-``portable=True``, an unrolled elimination of standard ONNX operators for other runtimes."""
-
-
-def onnx_bytes(
-    module: torch.nn.Module,
-    n_joints: int,
-    dtype: torch.dtype,
-    input_name: str,
-    output_name: str,
-    *,
-    wrench_input: str | None = None,
-    extra_outputs: tuple[str, ...] = (),
-) -> bytes:
-    """Serialize ``module`` to ONNX (opset :data:`OPSET`, dynamic batch axis) in memory.
-
-    ``wrench_input`` names a second ``(batch, 6)`` input (graphs with a stiffness stage);
-    ``extra_outputs`` names outputs after the first (the compensator's ``residual``).
-
-    The TorchScript exporter (``dynamo=False``) is used: the dynamo exporter needs onnxscript,
-    which a calibration PC may not have, and the graphs hold no data-dependent control flow.
-    onnxruntime's contrib domain is declared for the compensator's ``Inverse`` node; a graph
-    without one does not list it.
-    """
-    if isinstance(module, CompensatorWithResidual):  # its steps are Loops that stop at convergence
-        from torchcal.compensate.loop_graph import compensator_model
-
-        return compensator_model(module.graph, n_joints, input_name, (output_name, *extra_outputs), wrench_input=wrench_input,
-                                 opset=OPSET, contrib=uses_contrib_inverse(module)).SerializeToString()
-    buffer = io.BytesIO()
-    example = torch.zeros(2, n_joints, dtype=dtype)
-    outputs = [output_name, *extra_outputs]
-    args: tuple[torch.Tensor, ...] = (example,)
-    names = [input_name]
-    axes = {name: {0: "batch"} for name in (input_name, *outputs)}
-    if wrench_input is not None:
-        args, names = (example, torch.zeros(2, 6, dtype=dtype)), [input_name, wrench_input]
-        axes[wrench_input] = {0: "batch"}
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # the exporter's deprecation notices, not about this graph
-        torch.onnx.export(
-            module.eval(),
-            args,
-            buffer,  # type: ignore[arg-type]  # the TorchScript exporter writes to a file object; the stub says paths only
-            dynamo=False,
-            opset_version=OPSET,
-            input_names=names,
-            output_names=outputs,
-            dynamic_axes=axes,
-            do_constant_folding=True,
-            # declared only where a node uses it, so a portable graph loads in any runtime
-            custom_opsets={CONTRIB_DOMAIN: 1} if uses_contrib_inverse(module) else None,
-        )
-    return buffer.getvalue()
-
-
-def uses_contrib_inverse(module: torch.nn.Module) -> bool:
-    """Whether a graph holds onnxruntime's contrib ``Inverse`` (the compensators' default solves;
-    ``module`` may be the exported wrapper :class:`CompensatorWithResidual`)."""
-    return getattr(getattr(module, "graph", module), "solver", None) == SOLVER_DEFAULT
-
-
-def build_graphs(
-    stored,
-    residual: torch.nn.Module | None = None,
-    *,
-    use_stored_residual: bool = True,
-    wrench_frame: str = "tool",
-    iterations: int | None = None,
-    portable: bool = False,
-    task: str = DEFAULT_TASK,
-) -> dict[str, torch.nn.Module]:
-    """The four torch modules of :data:`GRAPHS` for a :class:`StoredModel`.
-
-    Each of the model's stages gives its piece (:func:`graph_parts`); the inputs its stages add
-    (:func:`graph_inputs`) choose the graph classes (:data:`GRAPH_CLASSES`): with a stiffness
-    stage they are the loaded graphs, whose second argument is the wrench in ``wrench_frame``
-    (``tool`` or ``base``). ``residual``: a head module in place of the stored one
-    (``use_stored_residual=False`` without one: no head). ``task``: ``position`` (position first,
-    orientation secondary) or ``pose`` (full 6-D); ``iterations``: Newton steps of the
-    compensators (``None``: the task's default); ``portable``: standard ONNX operators only
-    (see :data:`SOLVER_PORTABLE`).
-    """
-    solve: dict[str, Any] = {"iterations": iterations, "task": task,
-                             "solver": SOLVER_PORTABLE if portable else SOLVER_DEFAULT}
-    inputs = graph_inputs(stored)
-    if inputs not in GRAPH_CLASSES:
-        raise ModelError(f"{stored.folder}: no exported graph takes the inputs {list(inputs)} of its stages")
-    compensator_class, monitor_class = GRAPH_CLASSES[inputs]
-    parts = graph_parts(stored, inputs)
-    if residual is not None or not use_stored_residual:
-        parts["residual"] = residual
-    input_options = {"wrench": {"wrench_frame": wrench_frame}}  # what each extra input is given in
-    for name in inputs:
-        parts.update(input_options.get(name, {}))
-    graphs: dict[str, torch.nn.Module] = {}
-    for key, (_, dtype, _, _) in GRAPHS.items():
-        if key.startswith("compensator"):
-            graphs[key] = compensator_class(**parts, dtype=dtype, **solve).eval()
-        else:
-            graphs[key] = monitor_class(**parts, dtype=dtype).eval()
-    return graphs
-
-
-def compensator_of(graphs: dict[str, torch.nn.Module], key: str = "compensator") -> CompensatorGraph:
-    """``graphs[key]``, one of the ``compensator*`` graphs of :func:`build_graphs`."""
-    graph = graphs[key]
-    if not isinstance(graph, CompensatorGraph):
-        raise TypeError(f"graphs[{key!r}] is a {type(graph).__name__}, not a compensator graph")
-    return graph
-
-
-def has_wrench_input(graphs: dict[str, torch.nn.Module]) -> bool:
-    """Whether the graphs take the expected wrench as a second input."""
-    return WRENCH_INPUT in compensator_of(graphs).inputs
-
-
-def sample_wrenches(n: int, max_force_n: float, max_torque_nm: float, generator: torch.Generator) -> torch.Tensor:
-    """Random wrenches ``(n, 6)`` (N, N m): uniform directions, magnitudes uniform up to the maxima."""
-    directions = torch.randn(n, 2, 3, generator=generator, dtype=torch.float64)
-    directions = directions / directions.norm(dim=-1, keepdim=True)
-    size = torch.rand(n, 2, 1, generator=generator, dtype=torch.float64) * torch.tensor([[max_force_n], [max_torque_nm]])
-    return (directions * size).reshape(n, 6)
-
-
-def budget_wrenches(stored, n: int, generator: torch.Generator) -> torch.Tensor:
-    """Wrenches for the float32 budget: up to the largest force and moment of the stiffness data."""
-    loads = (stored.stiffness.metadata.get("training_wrench") if stored.stiffness is not None else None) or DEFAULT_BUDGET_WRENCH
-    return sample_wrenches(n, loads["max_force_n"], loads["max_torque_nm"], generator)
 
 
 def _versions() -> dict:
@@ -221,136 +86,6 @@ def _versions() -> dict:
         "onnx": onnx.__version__,
         "onnxruntime": onnxruntime.__version__,
         "python": platform.python_version(),
-    }
-
-
-def float32_budget(graphs: dict[str, torch.nn.Module], out_dir: Path, stored, n_poses: int = BUDGET_POSES, seed: int = 0) -> dict:
-    """Float32 error of the exported files against the float64 torch graphs, measured in mm.
-
-    Poses: ``n_poses`` uniform within the joint limits. Compensator: 3-D distance between the
-    calibrated TCP at the float32 ORT command and at the float64 torch command. Monitor: 3-D
-    distance of the predicted errors.
-    """
-    gen = torch.Generator().manual_seed(seed)
-    q = stored.robot.sample_joints(n_poses, gen)
-    loaded = has_wrench_input(graphs)
-    wrench = budget_wrenches(stored, n_poses, gen) if loaded else None
-    args = (q, wrench) if loaded else (q,)
-    with torch.no_grad():
-        qc64 = graphs["compensator"](*args)
-        mon64 = graphs["monitor"](*args)
-    w32 = wrench.numpy() if wrench is not None else None
-    session = ort_session(out_dir / GRAPHS["compensator_f32"][0])
-    qc32 = torch.from_numpy(session.run(None, ort_feeds(session, q.float().numpy(), w32))[0]).double()
-    session = ort_session(out_dir / GRAPHS["monitor_f32"][0])
-    mon32 = torch.from_numpy(session.run(None, ort_feeds(session, q.float().numpy(), w32))[0]).double()
-    model = stored.model
-    tcp = lambda qq: model.base_flange_pose(qq, stored.x) @ model.flange_from_tool(stored.x)  # noqa: E731
-    d_cmd = (tcp(qc32)[..., :3, 3] - tcp(qc64)[..., :3, 3]).norm(dim=-1) * 1e3
-    d_mon = (mon32 - mon64).norm(dim=-1) * 1e3
-    budget = {
-        "n_poses": n_poses,
-        "sampling": f"uniform within joint limits, seed {seed}",
-        "compensator_tcp_mm": {"max": float(d_cmd.max()), "p99": float(d_cmd.quantile(0.99)), "median": float(d_cmd.median())},
-        "compensator_joint_rad_max": float((qc32 - qc64).abs().max()),
-        "monitor_mm": {"max": float(d_mon.max()), "p99": float(d_mon.quantile(0.99)), "median": float(d_mon.median())},
-    }
-    if loaded:
-        budget["wrench_sampling"] = "uniform directions, magnitudes uniform up to the stiffness data's largest force and moment"
-    return budget
-
-
-WRIST_SINGULAR_BELOW = 0.02
-"""Wrist stratum of the convergence report: smallest singular value of the last three joints'
-angular Jacobian below this (for a spherical wrist ``|sin q5|``: about 1.1 deg from alignment)."""
-POSITION_SINGULAR_BELOW_M = 0.01
-"""Position-singular stratum: smallest singular value of the TCP position Jacobian below 10 mm/rad."""
-SOLVABLE_ABOVE_M = 0.001
-"""Poses whose position Jacobian keeps a singular value above 1 mm/rad must be solved to 1 um."""
-
-
-def singular_values(robot, q: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """``(sigma_position, sigma_wrist)`` ``(B,)`` of the nominal robot at ``q``: the smallest singular
-    value of the TCP position Jacobian (m/rad) and of the last three joints' angular Jacobian (rad/rad)."""
-    model = ErrorModel(robot)
-    _, jac = geometric_jacobian(model, q, model.nominal_vector())
-    return torch.linalg.svdvals(jac[:, :3, :])[:, -1], torch.linalg.svdvals(jac[:, 3:, -3:])[:, -1]
-
-
-def wrist_singular_samples(robot, n: int, generator: torch.Generator, degrees: float = 1.0, margin: float = 0.0) -> torch.Tensor:
-    """``(n, N)`` joints uniform within the limits (``margin`` rad inside) but the second-to-last
-    joint within ``+-degrees`` of zero: the wrist singularity of 6-R wrists and of 7-joint arms."""
-    q = robot.sample_joints(n, generator, margin=margin)
-    limits = robot.joint_limits.to(torch.float64)
-    wrist = (torch.rand(n, generator=generator, dtype=torch.float64) * 2 - 1) * math.radians(degrees)
-    q[:, -2] = wrist.clamp(limits[-2, 0], limits[-2, 1])
-    return q
-
-
-def _stratum(miss_mm: torch.Tensor, turn: torch.Tensor, joint: torch.Tensor, solvable: torch.Tensor, out_err_mm: torch.Tensor) -> dict:
-    """Summary of one stratum: unsolved position (mm), orientation deviation (rad), joint moves (rad)."""
-    n = int(miss_mm.numel())
-    if n == 0:
-        return {"n_poses": 0}
-    return {
-        "n_poses": n,
-        "unsolved_tcp_mm": {"median": float(miss_mm.median()), "p99": float(miss_mm.quantile(0.99)), "max": float(miss_mm.max())},
-        "share_within_1um": float((miss_mm <= 1e-3).double().mean()),
-        "n_solvable": int(solvable.sum()),
-        "solvable_share_within_1um": float((miss_mm[solvable] <= 1e-3).double().mean()) if bool(solvable.any()) else None,
-        "orientation_deviation_rad": {"median": float(turn.median()), "p99": float(turn.quantile(0.99)), "max": float(turn.max())},
-        "largest_joint_correction_rad": float(joint.max()),
-        "residual_output_error": {"position_mm_max": float(out_err_mm.max())},
-    }
-
-
-def convergence_report(graphs: dict[str, torch.nn.Module], stored, n_poses: int = BUDGET_POSES, seed: int = 1) -> dict:
-    """What the float64 compensator's commands reach, over the joint range and near singularities.
-
-    Poses: ``n_poses`` uniform within the joint limits, and as many again with the second-to-last
-    joint within +-1 deg (the wrist singularity of 6-R wrists and of 7-joint arms; with the
-    budget's wrenches for a loaded model). For each command: the position the steps leave
-    unsolved, ``|p_nom(q_c) + monitor(q_c) - p_nom(q_t)|`` (mm, through the monitor
-    graph, and compared with the compensator's own ``residual`` output), and the orientation
-    deviation of the calibrated tool from the nominal target (rad, the ``residual`` output: the
-    compensator computes it through the kinematics at ``q_c``). Strata: all uniform poses; wrist
-    singular (:data:`WRIST_SINGULAR_BELOW`); position singular (:data:`POSITION_SINGULAR_BELOW_M`).
-    A pose counts as solvable where the position Jacobian's smallest singular value exceeds
-    :data:`SOLVABLE_ABOVE_M`.
-    """
-    gen = torch.Generator().manual_seed(seed)
-    robot = stored.robot
-    uniform = robot.sample_joints(n_poses, gen)
-    q = torch.cat([uniform, wrist_singular_samples(robot, n_poses, gen)])
-    graph = compensator_of(graphs)
-    wrench = budget_wrenches(stored, len(q), gen) if has_wrench_input(graphs) else None
-    with torch.no_grad():
-        q_c, residual = graph.solve(q, wrench)
-    miss = unsolved_distance_m(graphs, robot, q, q_c, wrench) * 1e3
-    turn = residual[:, 1]
-    out_err = (residual[:, 0] * 1e3 - miss).abs()
-    joint = (q_c - q).abs().amax(-1)
-    sigma_p, sigma_w = singular_values(robot, q)
-    solvable = sigma_p > SOLVABLE_ABOVE_M
-    parts = {
-        "uniform": torch.arange(len(q)) < n_poses,
-        "wrist_singular": sigma_w < WRIST_SINGULAR_BELOW,
-        "position_singular": sigma_p < POSITION_SINGULAR_BELOW_M,
-    }
-    strata = {name: _stratum(miss[m], turn[m], joint[m], solvable[m], out_err[m]) for name, m in parts.items()}
-    return {
-        "n_poses": n_poses,
-        "sampling": (f"uniform within joint limits (seed {seed}), and {n_poses} more with joint {robot.dof - 1} "
-                     "within +-1 deg; strata by the nominal robot's singular values"),
-        "task": graph.task,
-        "iterations": graph.iterations,
-        "thresholds": {"wrist_singular_below": WRIST_SINGULAR_BELOW, "position_singular_below_m_per_rad": POSITION_SINGULAR_BELOW_M,
-                       "solvable_above_m_per_rad": SOLVABLE_ABOVE_M},
-        "strata": strata,
-        # the uniform stratum's headline figures, where older readers look for them
-        "unsolved_tcp_mm": {**strata["uniform"]["unsolved_tcp_mm"], "p90": float(miss[parts["uniform"]].quantile(0.9))},
-        "share_within_1um": strata["uniform"]["share_within_1um"],
-        "largest_joint_correction_rad": strata["uniform"]["largest_joint_correction_rad"],
     }
 
 
@@ -448,10 +183,10 @@ def _export_into(out_dir: Path, model_dir: Path, stored, *, wrench_frame: str, i
     graphs = build_graphs(stored, wrench_frame=wrench_frame, iterations=iterations, portable=portable, task=task)
     extent = {}
     if not has_wrench_input(graphs):
-        if stored.training_q is not None and len(_regular(stored.robot, stored.training_q)):
-            extent["training poses"] = correction_extent(compensator_of(graphs), _regular(stored.robot, stored.training_q))
+        if stored.training_q is not None and len(regular_poses(stored.robot, stored.training_q)):
+            extent["training poses"] = correction_extent(compensator_of(graphs), regular_poses(stored.robot, stored.training_q))
         extent["joint range"] = correction_extent(
-            compensator_of(graphs), _regular(stored.robot, stored.robot.sample_joints(2000, torch.Generator().manual_seed(2))))
+            compensator_of(graphs), regular_poses(stored.robot, stored.robot.sample_joints(2000, torch.Generator().manual_seed(2))))
     exceeded = check_corrections(extent, allow_large_corrections)
     loaded = has_wrench_input(graphs)
     robot = stored.robot
@@ -516,13 +251,6 @@ def _export_into(out_dir: Path, model_dir: Path, stored, *, wrench_frame: str, i
     sections = [text for text in (stage.readme_section(manifest) for stage in stages) if text]
     atomic_write_text(out_dir / "README.md", readme_text(manifest, sections))
     return manifest
-
-
-def _regular(robot, q: torch.Tensor) -> torch.Tensor:
-    """``q`` less the poses near a singularity (the convergence report's strata): there any
-    compensator's step is large by the geometry, not by the model."""
-    sigma_p, sigma_w = singular_values(robot, q.to(torch.float64))
-    return q[(sigma_p >= POSITION_SINGULAR_BELOW_M) & (sigma_w >= WRIST_SINGULAR_BELOW)]
 
 
 def _correction_limits() -> dict:
@@ -597,96 +325,6 @@ def _describe_wrench_input(manifest: dict, wrench_frame: str) -> None:
         "zero": "a zero wrench gives the unloaded compensation (geometry and residual only)",
     }
     manifest["sign_convention"] += "; with stiffness, T_real is the loaded TCP under the wrench input"
-
-
-def _convergence_text(manifest: dict) -> str:
-    """The README's paragraph on what the fixed steps reach, stratum by stratum."""
-    conv = manifest["convergence"]
-    strata = conv["strata"]
-    if conv["task"] == "position":
-        what = ("It puts the TCP **position** on the target first and turns the tool toward the nominal orientation only as "
-                "far as the position leaves room: near a wrist singularity the orientation may stay off by the deviation "
-                "in the `residual` output.")
-    else:
-        what = ("It solves the full 6-D pose; near singular poses the damping keeps the correction small instead of exact, "
-                "for the position too.")
-    lines = [(f"The compensator runs at most {conv['iterations']} Newton steps, each pose until it has converged (task "
-              f"`{conv['task']}`). {what} Every step moves a joint by at most "
-              f"{manifest['solver']['max_step_rad']:.2f} rad and every iterate stays within the joint limits."), "",
-             "| poses | n | within 1 um | within 1 um where solvable | unsolved p99 / max (mm) | orientation deviation p99 / max (rad) |",
-             "| --- | --- | --- | --- | --- | --- |"]
-    for name, s in strata.items():
-        if not s.get("n_poses"):
-            continue
-        solvable = "n/a" if s["solvable_share_within_1um"] is None else f"{100 * s['solvable_share_within_1um']:.1f} % of {s['n_solvable']}"
-        lines.append(f"| {name.replace('_', ' ')} | {s['n_poses']} | {100 * s['share_within_1um']:.1f} % | {solvable} | "
-                     f"{s['unsolved_tcp_mm']['p99']:.1e} / {s['unsolved_tcp_mm']['max']:.1e} | "
-                     f"{s['orientation_deviation_rad']['p99']:.1e} / {s['orientation_deviation_rad']['max']:.1e} |")
-    t = conv["thresholds"]
-    lines += ["", (f"Solvable: the position Jacobian's smallest singular value above {t['solvable_above_m_per_rad'] * 1e3:.0f} mm/rad; "
-                   f"wrist singular: the last three joints' angular Jacobian below {t['wrist_singular_below']}; position singular: "
-                   f"below {t['position_singular_below_m_per_rad'] * 1e3:.0f} mm/rad. Sampling: {conv['sampling']}.")]
-    return "\n".join(lines)
-
-
-def _expected_line(manifest: dict) -> str:
-    expected = manifest.get("expected_accuracy_95")
-    if not expected:
-        return "Expected accuracy: not calibrated (the model was fitted with `uncertainty=none`)."
-    return (f"Expected accuracy: 95 % of TCP position errors below {expected['p95_mm']:.3f} mm at "
-            f"{expected['where'].split(';')[0]} ({expected['method']}, {expected['protocol']}).")
-
-
-def readme_text(manifest: dict, stage_sections: Sequence[str] = ()) -> str:
-    """The integrator's README of an exported folder; ``stage_sections``: the stages' own sections
-    (:meth:`~torchcal.stages.base.ModelStage.readme_section`), after the files' table."""
-    budget = manifest["float32_error_budget"]
-    joints = ", ".join(manifest["joint_names"])
-    residual = "yes" if manifest["stages"]["residual"] else "no"
-    stiffness = "yes" if manifest["stages"]["stiffness"] else "no"
-    joint = ", ".join(k.replace("_", " ") for k in METADATA_KEYS.values() if manifest["stages"].get(k)) or "none"
-    wrench = manifest.get("wrench")
-    n = manifest["n_joints"]
-    extra = f", `{wrench['name']}` (batch, 6)" if wrench else ""
-    load = "".join(f"\n{section}" for section in stage_sections)
-    return f"""# Compensator for {manifest['robot']}
-
-Exported by torchcal {manifest['versions']['torchcal']} (ONNX opset {manifest['opset']}).
-Stages: geometry yes, learned residual {residual}, stiffness {stiffness}, joint-space errors {joint}.
-{_expected_line(manifest)}
-
-## Files
-
-| file | input | output |
-| --- | --- | --- |
-| `compensator.onnx` (float64), `compensator_f32.onnx` (float32) | `q_nominal` (batch, {n}), rad{extra} | `q_corrected` (batch, {n}), rad; `residual` (batch, 2): remaining position error, m, and orientation deviation, rad |
-| `monitor.onnx` (float64), `monitor_f32.onnx` (float32) | `q` (batch, {n}), rad{extra} | `tcp_error_m` (batch, 3), m, robot base frame |
-
-Joint order: {joints}. Angles in **radians** in and out (convert degrees before the call).
-{load}
-## Use
-
-Give the compensator the joint command the controller computed with its nominal kinematics; send
-the first output to the drives instead. The real robot then puts its TCP where the nominal model
-believed it would be, as far as the calibration knows the robot. The second output, `residual`,
-says per command how far the model's TCP still is from that target (m: above your tolerance, the
-command was not solved, e.g. at a position singularity) and how far the tool is turned from the
-nominal orientation (rad).
-The monitor graph predicts, for any joint vector, where the real TCP lies relative to the nominal
-one (`real - nominal`, m, base frame).
-
-{_convergence_text(manifest)}
-Runtime: {manifest['runtime']}.
-
-Check `sha256` in `manifest.json` before loading (`torchcal.compensate.runtime.CompensatorRuntime`
-does; it needs only onnxruntime and numpy). Run single poses with `intra_op_num_threads=1`.
-
-## Accuracy of float32
-
-Measured at export on {budget['n_poses']} random poses within the joint limits, against the float64
-graph: compensated TCP within {budget['compensator_tcp_mm']['max']:.2e} mm (max), monitor within
-{budget['monitor_mm']['max']:.2e} mm (max). Use the float64 files where the controller allows it.
-"""
 
 
 def export_and_check(model_dir: str | Path, out_dir: str | Path, test, true_tcp_positions=None,

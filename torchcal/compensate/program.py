@@ -3,7 +3,7 @@
 Most users apply a calibration without a PC in the control loop: the targets of a robot program
 are corrected once, offline, and loaded into the controller. This module runs the very
 compensator that ``torchcal export`` writes to ONNX (:class:`~torchcal.compensate.compensator.
-CompensatorGraph`, built by :func:`~torchcal.compensate.export.build_graphs`, float64) on the
+CompensatorGraph`, built by :func:`~torchcal.compensate.graphs.build_graphs`, float64) on the
 program's targets, with the same safety limits:
 
 * every step bounded and every command inside the joint limits (the graph's own);
@@ -43,7 +43,8 @@ import numpy as np
 import torch
 
 from torchcal.compensate.compensator import DEFAULT_TASK, TASKS
-from torchcal.compensate.export import _regular, build_graphs, compensator_of, has_wrench_input
+from torchcal.compensate.export_checks import regular_poses
+from torchcal.compensate.graphs import build_graphs, compensator_of, has_wrench_input
 from torchcal.compensate.production_tcp import (
     check_corrections,
     correction_extent,
@@ -233,8 +234,8 @@ def compensate_program(
                             "expected wrench; compensate a program with the geometric model, or use the exported graphs")
     graph = compensator_of(graphs)
     extent = {}  # the export's check, on the poses it judges (training poses less the singular ones: _regular)
-    if stored.training_q is not None and len(_regular(stored.robot, stored.training_q)):
-        extent["training poses"] = correction_extent(graph, _regular(stored.robot, stored.training_q))
+    if stored.training_q is not None and len(regular_poses(stored.robot, stored.training_q)):
+        extent["training poses"] = correction_extent(graph, regular_poses(stored.robot, stored.training_q))
     allowed = check_corrections(extent, allow_large_corrections)
     start = time.perf_counter()
     q_c, residual = [], []

@@ -33,7 +33,7 @@ def compensation_on_true_robot(
 
     Args:
         stored: the :class:`~torchcal.stages.store.StoredModel` that was exported.
-        graphs: its torch graphs (:func:`torchcal.compensate.export.build_graphs`).
+        graphs: its torch graphs (:func:`torchcal.compensate.graphs.build_graphs`).
         out_dir: the exported folder (``manifest["files"]`` inside it).
         manifest: the export's manifest.
         q_target: ``(B, N)`` rad, nominal commands (the targets are their nominal TCPs).
