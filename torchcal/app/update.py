@@ -363,6 +363,38 @@ def _judge_terms(stored: StoredModel, data: Measurements, names: list[str],
     return base, loo, dropped, lines
 
 
+def _add_named_groups(stored: StoredModel, data: Measurements, check: CheckResult, names: list[str],
+                      loo: np.ndarray) -> tuple[list[str], np.ndarray, list[str], list[str]]:
+    """The other groups the check named (each above :data:`BIC_CHANGED` on its own), added one at a time
+    while the update's leave-one-out errors are clearly lower with it (:func:`_clearly_better`; greedy:
+    the lowest leave-one-out RMS first, then the others again with it).
+
+    One event (a crash, a changed probe mounting) can change more than one group; the check ranks
+    each group alone, so a second group whose evidence was partly the first one's is added only
+    when the new poses, each predicted by a fit of the others, show more than noise. Returns
+    ``(names, their LOO errors, the groups added, lines)``.
+    """
+    added: list[str] = []
+    present = set(stored.model.layout.names) | {k for k in TERM_GROUPS.values() if stored.metadata.get(k)}
+    # a joint-space term the update dropped is not brought back
+    candidates = [g for g in check.groups if g.delta_bic > BIC_CHANGED and not set(g.names) <= set(names)
+                  and set(g.names) <= present]
+    lines: list[str] = []
+    while candidates and len(names) + 6 < 3 * (len(data) - 1):
+        trials = {g.group: _loo_errors(stored, data, names + [n for n in g.names if n not in names]) for g in candidates}
+        group = min(candidates, key=lambda g: _loo_rms(trials[g.group]))
+        better, gain, se = _clearly_better(loo, trials[group.group])
+        lines.append(f"group {group.group} (dBIC {group.delta_bic:+.1f}) {'added' if better else 'not added'}: leave-one-out "
+                     f"RMS {_loo_rms(trials[group.group]):.3f} mm with it, {_loo_rms(loo):.3f} mm without (gain "
+                     f"{gain:+.4f} mm^2 per pose, one standard error {se:.4f}: added above one)")
+        if not better:
+            break
+        names, loo = names + [n for n in group.names if n not in names], trials[group.group]
+        added.append(group.group)
+        candidates.remove(group)
+    return names, loo, added, lines
+
+
 def _head_offset(stored: StoredModel, fit: CalibrationResult, data: Measurements) -> torch.Tensor:
     """The old head's correction at ``data``'s poses in the instrument frame of ``fit`` (m)."""
     assert stored.residual is not None
@@ -447,6 +479,11 @@ def update_data(stored: StoredModel, data: Measurements, free: str = "auto") -> 
             names, loo = [], frame_only
         else:
             how += f"; leave-one-out RMS {_loo_rms(loo):.3f} mm, {_loo_rms(frame_only):.3f} mm with the frame alone"
+            assert check is not None
+            names, loo, added, lines = _add_named_groups(base, work, check, names, loo)
+            notes += lines
+            if added:
+                how += f"; then {', '.join(added)} added (the check named it; leave-one-out RMS {_loo_rms(loo):.3f} mm)"
     used, fit, scales = _fit_all(base, work, names)
     if stored.residual is not None:
         corrected = replace(data, position=data.position - _head_offset(stored, fit, data))
