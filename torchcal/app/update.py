@@ -91,6 +91,10 @@ from torchcal.stages.store import StoredModel, load_model, save_model
 FREE_KEYWORDS = ("auto", "frame", "tool", "offsets", "all")
 #: Fewest new poses an update accepts (the frame takes 6 of their 3n coordinates, the LOO one more pose).
 MIN_POSES = 6
+#: Paired z (leave-one-out gain over its standard error) a second freed group must show: the rule by which
+#: model selection admits a larger candidate (``torchcal.model_selection.compare``, ``z_min``); dropping a
+#: term (a smaller model) needs one standard error.
+ADD_GROUP_Z = 2.0
 #: Poses whose joints all lie within this (deg) of each other are near twins: left out together in the leave-one-out.
 NEAR_TWIN_DEG = 1.0
 UNCERTAINTY_PROTOCOL = ("leave-one-out over the new poses (frame and freed parameters refitted without each pose and its "
@@ -322,13 +326,14 @@ def _without(stored: StoredModel, keys: list[str]) -> StoredModel:
     return replace(stored, metadata={k: v for k, v in stored.metadata.items() if k not in keys})
 
 
-def _clearly_better(base: np.ndarray, other: np.ndarray) -> tuple[bool, float, float]:
-    """Whether ``other``'s leave-one-out errors beat ``base``'s by more than one standard error of the
-    per-pose difference of squared errors (the one-standard-error rule: with 12-20 poses a smaller RMS
-    alone is often noise). Returns ``(better, mean gain, its standard error)`` in mm^2."""
+def _clearly_better(base: np.ndarray, other: np.ndarray, z: float = 1.0) -> tuple[bool, float, float]:
+    """Whether ``other``'s leave-one-out errors beat ``base``'s by more than ``z`` standard errors of the
+    per-pose difference of squared errors (``z = 1``, the one-standard-error rule, for a simpler model:
+    with 12-20 poses a smaller RMS alone is often noise; :data:`ADD_GROUP_Z` for a larger one).
+    Returns ``(better, mean gain, its standard error)`` in mm^2."""
     gain = np.sum(base**2, axis=-1) - np.sum(other**2, axis=-1)
     se = float(np.std(gain, ddof=1) / math.sqrt(len(gain))) if len(gain) > 1 else math.inf
-    return float(gain.mean()) > se, float(gain.mean()), se
+    return float(gain.mean()) > z * se, float(gain.mean()), se
 
 
 def _judge_terms(stored: StoredModel, data: Measurements, names: list[str],
@@ -366,8 +371,9 @@ def _judge_terms(stored: StoredModel, data: Measurements, names: list[str],
 def _add_named_groups(stored: StoredModel, data: Measurements, check: CheckResult, names: list[str],
                       loo: np.ndarray) -> tuple[list[str], np.ndarray, list[str], list[str]]:
     """The other groups the check named (each above :data:`BIC_CHANGED` on its own), added one at a time
-    while the update's leave-one-out errors are clearly lower with it (:func:`_clearly_better`; greedy:
-    the lowest leave-one-out RMS first, then the others again with it).
+    while the update's leave-one-out errors are lower with it by more than :data:`ADD_GROUP_Z`
+    standard errors (:func:`_clearly_better`; greedy: the lowest leave-one-out RMS first, then the
+    others again with it).
 
     One event (a crash, a changed probe mounting) can change more than one group; the check ranks
     each group alone, so a second group whose evidence was partly the first one's is added only
@@ -383,10 +389,10 @@ def _add_named_groups(stored: StoredModel, data: Measurements, check: CheckResul
     while candidates and len(names) + 6 < 3 * (len(data) - 1):
         trials = {g.group: _loo_errors(stored, data, names + [n for n in g.names if n not in names]) for g in candidates}
         group = min(candidates, key=lambda g: _loo_rms(trials[g.group]))
-        better, gain, se = _clearly_better(loo, trials[group.group])
+        better, gain, se = _clearly_better(loo, trials[group.group], ADD_GROUP_Z)
         lines.append(f"group {group.group} (dBIC {group.delta_bic:+.1f}) {'added' if better else 'not added'}: leave-one-out "
                      f"RMS {_loo_rms(trials[group.group]):.3f} mm with it, {_loo_rms(loo):.3f} mm without (gain "
-                     f"{gain:+.4f} mm^2 per pose, one standard error {se:.4f}: added above one)")
+                     f"{gain:+.4f} mm^2 per pose, one standard error {se:.4f}: added above {ADD_GROUP_Z:g} of them)")
         if not better:
             break
         names, loo = names + [n for n in group.names if n not in names], trials[group.group]
