@@ -9,7 +9,9 @@ handful of new poses (12-20 measured with the tracker wherever it now stands):
   (the same refits and the same BIC threshold, so ``check`` and ``update`` never disagree), kept
   only when the update's leave-one-out RMS with it is lower than with the frame alone (an update is
   never worse than the old model by the new poses' evidence); none when the check names none (the
-  robot moved, or nothing changed). ``free=`` overrides:
+  robot moved, or nothing changed). The other groups the check named are then added one at a time
+  while the leave-one-out gain is above two standard errors (:func:`_add_named_groups`: one event
+  can change two groups, a tool swapped and a joint re-mastered). ``free=`` overrides:
   ``frame`` (nothing else), ``tool``, ``offsets`` (every joint's zero offset), ``all`` (every
   parameter of the MDH table and the tool), or a comma list of check groups and parameter names
   (``free=tool,theta3``, ``free=link3``, ``free=a2,d4``);
