@@ -79,7 +79,8 @@ def test_two_changed_groups_are_both_freed_and_an_unchanged_one_is_not(calibrate
     robot = twin.changed(**deltas)
     result = update_data(stored, robot.sample(16, torch.Generator().manual_seed(101)))
     assert set(result.freed) == set(deltas)
-    assert any(line.startswith("group ") and " added:" in line for line in result.notes)
+    assert any(line.startswith("group ") and ") added:" in line for line in result.notes)
+    assert " added (the check named it" in result.how
     changes = {c["name"]: c for c in result.changes()}
     for name, delta in deltas.items():
         unit = 1 / DEG if changes[name]["unit"] == "deg" else 1e3
