@@ -9,7 +9,7 @@ the true robot is changed (or not); then
 both scored on 500 held-out poses of the changed robot, each in its own instrument frame (what
 a user gets; the tracker has not moved since those poses) and re-registered to the held-out poses.
 
-    python scripts/update_twin_cases.py [--repeats 5] [--cases nothing,moved,tool,theta3,link3]
+    python scripts/update_twin_cases.py [--repeats 5] [--cases nothing,moved,tool,theta3,link3,tool+theta2]
 
 Prints one line per case and writes docs/update_twin_cases.md (the figures of docs/lifecycle.md).
 """
@@ -42,6 +42,7 @@ CHANGES = {
     "tool": {"tool_x": 1.0 * MM, "tool_y": -0.5 * MM, "tool_z": 2.0 * MM},
     "theta3": {"theta3": 0.05 * DEG},
     "link3": {"alpha3": 0.05 * DEG, "a3": 0.3 * MM},
+    "tool+theta2": {"tool_x": 1.0 * MM, "tool_y": -0.5 * MM, "tool_z": 2.0 * MM, "theta2": 0.05 * DEG},
 }
 
 

@@ -69,6 +69,24 @@ def test_update_recovers_the_change(calibrated, case, tmp_path):
     assert inside >= 0.85
 
 
+def test_two_changed_groups_are_both_freed_and_an_unchanged_one_is_not(calibrated):
+    """Truth: the tool swapped and joint 2 re-mastered at once. The check names one group (the
+    stronger alone); the update adds the other, which the check also named, because the new poses'
+    leave-one-out errors say so, recovers both changes within 4 sigma, and frees nothing the truth
+    left alone."""
+    twin, stored = calibrated
+    deltas = {"tool_x": 1.0 * MM, "tool_y": -0.5 * MM, "tool_z": 2.0 * MM, "theta2": 0.05 * DEG}
+    robot = twin.changed(**deltas)
+    result = update_data(stored, robot.sample(16, torch.Generator().manual_seed(101)))
+    assert set(result.freed) == set(deltas)
+    assert any(line.startswith("group ") and ") added:" in line for line in result.notes)
+    assert " added (the check named it" in result.how
+    changes = {c["name"]: c for c in result.changes()}
+    for name, delta in deltas.items():
+        unit = 1 / DEG if changes[name]["unit"] == "deg" else 1e3
+        assert abs(changes[name]["change"] - delta * unit) < 4 * changes[name]["sigma"]
+
+
 def test_update_cli_writes_a_whole_folder_with_provenance(calibrated, tmp_path, capsys):
     twin, stored = calibrated
     data = twin.changed(theta3=0.05 * DEG).sample(12, torch.Generator().manual_seed(7))

@@ -9,7 +9,9 @@ handful of new poses (12-20 measured with the tracker wherever it now stands):
   (the same refits and the same BIC threshold, so ``check`` and ``update`` never disagree), kept
   only when the update's leave-one-out RMS with it is lower than with the frame alone (an update is
   never worse than the old model by the new poses' evidence); none when the check names none (the
-  robot moved, or nothing changed). ``free=`` overrides:
+  robot moved, or nothing changed). The other groups the check named are then added one at a time
+  while the leave-one-out gain is above two standard errors (:func:`_add_named_groups`: one event
+  can change two groups, a tool swapped and a joint re-mastered). ``free=`` overrides:
   ``frame`` (nothing else), ``tool``, ``offsets`` (every joint's zero offset), ``all`` (every
   parameter of the MDH table and the tool), or a comma list of check groups and parameter names
   (``free=tool,theta3``, ``free=link3``, ``free=a2,d4``);
@@ -91,6 +93,10 @@ from torchcal.stages.store import StoredModel, load_model, save_model
 FREE_KEYWORDS = ("auto", "frame", "tool", "offsets", "all")
 #: Fewest new poses an update accepts (the frame takes 6 of their 3n coordinates, the LOO one more pose).
 MIN_POSES = 6
+#: Paired z (leave-one-out gain over its standard error) a second freed group must show: the rule by which
+#: model selection admits a larger candidate (``torchcal.model_selection.compare``, ``z_min``); dropping a
+#: term (a smaller model) needs one standard error.
+ADD_GROUP_Z = 2.0
 #: Poses whose joints all lie within this (deg) of each other are near twins: left out together in the leave-one-out.
 NEAR_TWIN_DEG = 1.0
 UNCERTAINTY_PROTOCOL = ("leave-one-out over the new poses (frame and freed parameters refitted without each pose and its "
@@ -322,13 +328,14 @@ def _without(stored: StoredModel, keys: list[str]) -> StoredModel:
     return replace(stored, metadata={k: v for k, v in stored.metadata.items() if k not in keys})
 
 
-def _clearly_better(base: np.ndarray, other: np.ndarray) -> tuple[bool, float, float]:
-    """Whether ``other``'s leave-one-out errors beat ``base``'s by more than one standard error of the
-    per-pose difference of squared errors (the one-standard-error rule: with 12-20 poses a smaller RMS
-    alone is often noise). Returns ``(better, mean gain, its standard error)`` in mm^2."""
+def _clearly_better(base: np.ndarray, other: np.ndarray, z: float = 1.0) -> tuple[bool, float, float]:
+    """Whether ``other``'s leave-one-out errors beat ``base``'s by more than ``z`` standard errors of the
+    per-pose difference of squared errors (``z = 1``, the one-standard-error rule, for a simpler model:
+    with 12-20 poses a smaller RMS alone is often noise; :data:`ADD_GROUP_Z` for a larger one).
+    Returns ``(better, mean gain, its standard error)`` in mm^2."""
     gain = np.sum(base**2, axis=-1) - np.sum(other**2, axis=-1)
     se = float(np.std(gain, ddof=1) / math.sqrt(len(gain))) if len(gain) > 1 else math.inf
-    return float(gain.mean()) > se, float(gain.mean()), se
+    return float(gain.mean()) > z * se, float(gain.mean()), se
 
 
 def _judge_terms(stored: StoredModel, data: Measurements, names: list[str],
@@ -361,6 +368,39 @@ def _judge_terms(stored: StoredModel, data: Measurements, names: list[str],
         dropped.append(key)
         candidates.remove(key)
     return base, loo, dropped, lines
+
+
+def _add_named_groups(stored: StoredModel, data: Measurements, check: CheckResult, names: list[str],
+                      loo: np.ndarray) -> tuple[list[str], np.ndarray, list[str], list[str]]:
+    """The other groups the check named (each above :data:`BIC_CHANGED` on its own), added one at a time
+    while the update's leave-one-out errors are lower with it by more than :data:`ADD_GROUP_Z`
+    standard errors (:func:`_clearly_better`; greedy: the lowest leave-one-out RMS first, then the
+    others again with it).
+
+    One event (a crash, a changed probe mounting) can change more than one group; the check ranks
+    each group alone, so a second group whose evidence was partly the first one's is added only
+    when the new poses, each predicted by a fit of the others, show more than noise. Returns
+    ``(names, their LOO errors, the groups added, lines)``.
+    """
+    added: list[str] = []
+    present = set(stored.model.layout.names) | {k for k in TERM_GROUPS.values() if stored.metadata.get(k)}
+    # a joint-space term the update dropped is not brought back
+    candidates = [g for g in check.groups if g.delta_bic > BIC_CHANGED and not set(g.names) <= set(names)
+                  and set(g.names) <= present]
+    lines: list[str] = []
+    while candidates and len(names) + 6 < 3 * (len(data) - 1):
+        trials = {g.group: _loo_errors(stored, data, names + [n for n in g.names if n not in names]) for g in candidates}
+        group = min(candidates, key=lambda g: _loo_rms(trials[g.group]))
+        better, gain, se = _clearly_better(loo, trials[group.group], ADD_GROUP_Z)
+        lines.append(f"group {group.group} (dBIC {group.delta_bic:+.1f}) {'added' if better else 'not added'}: leave-one-out "
+                     f"RMS {_loo_rms(trials[group.group]):.3f} mm with it, {_loo_rms(loo):.3f} mm without (gain "
+                     f"{gain:+.4f} mm^2 per pose, one standard error {se:.4f}: added above {ADD_GROUP_Z:g} of them)")
+        if not better:
+            break
+        names, loo = names + [n for n in group.names if n not in names], trials[group.group]
+        added.append(group.group)
+        candidates.remove(group)
+    return names, loo, added, lines
 
 
 def _head_offset(stored: StoredModel, fit: CalibrationResult, data: Measurements) -> torch.Tensor:
@@ -447,6 +487,11 @@ def update_data(stored: StoredModel, data: Measurements, free: str = "auto") -> 
             names, loo = [], frame_only
         else:
             how += f"; leave-one-out RMS {_loo_rms(loo):.3f} mm, {_loo_rms(frame_only):.3f} mm with the frame alone"
+            assert check is not None
+            names, loo, added, lines = _add_named_groups(base, work, check, names, loo)
+            notes += lines
+            if added:
+                how += f"; then {', '.join(added)} added (the check named it; leave-one-out RMS {_loo_rms(loo):.3f} mm)"
     used, fit, scales = _fit_all(base, work, names)
     if stored.residual is not None:
         corrected = replace(data, position=data.position - _head_offset(stored, fit, data))
