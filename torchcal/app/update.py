@@ -83,6 +83,7 @@ from torchcal.stages.prediction_uncertainty import (
     calibrate_errors,
     load_uncertainty,
     point_jacobian,
+    stored_prediction,
     write_uncertainty,
 )
 from torchcal.stages.prior_options import prior_metadata
@@ -378,8 +379,10 @@ def _add_named_groups(stored: StoredModel, data: Measurements, check: CheckResul
     others again with it).
 
     One event (a crash, a changed probe mounting) can change more than one group; the check ranks
-    each group alone, so a second group whose evidence was partly the first one's is added only
-    when the new poses, each predicted by a fit of the others, show more than noise. Returns
+    each group alone, so a second group whose evidence was partly the first one's is tried only
+    when its dBIC given the groups freed already is still above :data:`BIC_CHANGED` (one refit
+    each), and added only when the new poses, each predicted by a fit of the others, show more
+    than noise. Returns
     ``(names, their LOO errors, the groups added, lines)``.
     """
     added: list[str] = []
@@ -388,7 +391,23 @@ def _add_named_groups(stored: StoredModel, data: Measurements, check: CheckResul
     candidates = [g for g in check.groups if g.delta_bic > BIC_CHANGED and not set(g.names) <= set(names)
                   and set(g.names) <= present]
     lines: list[str] = []
+    prediction = stored_prediction(stored, data.q)
+    sigma_m = None if prediction is None else prediction.sigma_mm.detach().cpu().to(torch.float64) * 1e-3
     while candidates and len(names) + 6 < 3 * (len(data) - 1):
+        if sigma_m is not None:
+            # the check's own test, given what is freed already: one refit per group before any leave-one-out
+            # (n refits each); a group whose evidence the freed ones explain is not tried further
+            chi2_now = refit(stored, data, names, sigma_m)[0]
+            conditional = {}
+            for g in candidates:
+                extra = [n for n in g.names if n not in names]
+                conditional[g.group] = chi2_now - refit(stored, data, names + extra, sigma_m)[0] - len(extra) * math.log(3 * len(data))
+            lines.extend(f"group {g.group} (dBIC {g.delta_bic:+.1f}) not added: dBIC {conditional[g.group]:+.1f} "
+                         f"given {', '.join(names)} (tried above {BIC_CHANGED:g})"
+                         for g in candidates if conditional[g.group] <= BIC_CHANGED)
+            candidates = [g for g in candidates if conditional[g.group] > BIC_CHANGED]
+            if not candidates:
+                break
         trials = {g.group: _loo_errors(stored, data, names + [n for n in g.names if n not in names]) for g in candidates}
         group = min(candidates, key=lambda g: _loo_rms(trials[g.group]))
         better, gain, se = _clearly_better(loo, trials[group.group], ADD_GROUP_Z)
