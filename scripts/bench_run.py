@@ -1,0 +1,125 @@
+"""Wall and CPU time of `torchcal run` (the default twin, with its export and report), this tree
+against a baseline source tree, interleaved, each a fresh process; and whether the two write the
+same results.
+
+    .venv/bin/python scripts/bench_run.py --base /tmp/base37 --repeats 3
+
+The baseline is another checkout of torchcal (e.g. ``git worktree add --detach /tmp/base37 <commit>``),
+run by the same interpreter with ``PYTHONPATH`` pointing at it. Each repeat runs the baseline, then
+this tree; the 1-minute load average before each run is recorded beside it (the machine may be
+shared). CPU seconds are user + system of the child process (all its threads).
+
+Same results: ``metrics.json`` (less ``elapsed_s``), ``model/calibration.json``,
+``model/metrics.json``, ``model/model_selection.json``, ``model/uncertainty.json``, ``report.md``
+and the export's ``manifest.json`` (less its hashes and versions, which name the files' bytes and the build),
+the output folders' names replaced; compared as text, exactly.
+
+Writes ``docs/bench_run.json`` and ``docs/bench_run.md``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import shutil
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+NAME = "twin-default"
+COMPARED = ["metrics.json", "model/calibration.json", "model/metrics.json", "model/model_selection.json",
+            "model/uncertainty.json", "report.md"]
+
+
+def run_once(tree: Path, out: Path, export: Path) -> dict:
+    """One fresh `torchcal run` of the source tree ``tree``: wall and CPU seconds, load before."""
+    for folder in (out, export):
+        shutil.rmtree(folder, ignore_errors=True)
+    env = {**os.environ, "PYTHONPATH": str(tree)}
+    load = os.getloadavg()[0]
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    start = time.perf_counter()
+    code = "import sys; from torchcal.cli import main; sys.argv[0] = 'torchcal'; sys.exit(main())"
+    proc = subprocess.run([sys.executable, "-c", code, "run", f"out={out}", f"export_dir={export}"],
+                          env=env, cwd=tree, capture_output=True, text=True)
+    wall = time.perf_counter() - start
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    if proc.returncode != 0:
+        raise SystemExit(f"torchcal run failed in {tree} (exit {proc.returncode}):\n{proc.stderr[-3000:]}")
+    cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+    return {"wall_s": wall, "cpu_s": cpu, "load_1min_before": load}
+
+
+def _normalized(path: Path, folders: list[Path]) -> str:
+    text = path.read_text(encoding="utf-8")
+    for k, folder in enumerate(folders):
+        text = text.replace(str(folder), f"<folder{k}>")
+    if path.name == "metrics.json" and path.parent.name == NAME:
+        data = json.loads(text)
+        data.pop("elapsed_s", None)
+        text = json.dumps(data, indent=1, sort_keys=True)
+    if path.name == "manifest.json":
+        data = json.loads(text)
+        for key in ("files", "versions", "sha256", "created"):
+            data.pop(key, None)
+        text = json.dumps(data, indent=1, sort_keys=True)
+    return text
+
+
+def same_results(a: tuple[Path, Path], b: tuple[Path, Path]) -> dict[str, bool]:
+    """Which compared files are identical between the runs ``a`` and ``b`` (each ``(out, export)``)."""
+    result = {}
+    pairs = [(name, a[0] / NAME / name, b[0] / NAME / name) for name in COMPARED]
+    pairs.append(("export manifest.json", a[1] / NAME / "manifest.json", b[1] / NAME / "manifest.json"))
+    for name, pa, pb in pairs:
+        if not pa.is_file() and not pb.is_file():
+            continue
+        result[name] = (pa.is_file() and pb.is_file()
+                        and _normalized(pa, [a[0], a[1]]) == _normalized(pb, [b[0], b[1]]))
+    return result
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--base", type=Path, required=True, help="baseline source tree (a torchcal checkout)")
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--out", type=Path, default=ROOT / "docs" / "bench_run")
+    args = parser.parse_args()
+    trees = {"baseline": args.base.resolve(), "this tree": ROOT}
+    work = Path(tempfile.mkdtemp(prefix="bench_run_"))
+    runs: dict[str, list[dict]] = {k: [] for k in trees}
+    same: dict[str, bool] = {}
+    for r in range(args.repeats):
+        for label, tree in trees.items():
+            tag = "base" if label == "baseline" else "new"
+            out, export = work / f"{tag}_out", work / f"{tag}_export"
+            runs[label].append(run_once(tree, out, export))
+            print(f"repeat {r + 1} {label}: {runs[label][-1]}", flush=True)
+        checked = same_results((work / "base_out", work / "base_export"), (work / "new_out", work / "new_export"))
+        same = checked if not same else {k: same[k] and v for k, v in checked.items()}
+    shutil.rmtree(work, ignore_errors=True)
+    summary = {label: {"median_wall_s": statistics.median(x["wall_s"] for x in rs),
+                       "median_cpu_s": statistics.median(x["cpu_s"] for x in rs), "runs": rs}
+               for label, rs in runs.items()}
+    record = {"command": "torchcal run (default twin, export and report)", "baseline": str(args.base),
+              "cores": os.cpu_count(), "repeats": args.repeats, "results": summary, "same_results": same}
+    args.out.with_suffix(".json").write_text(json.dumps(record, indent=1) + "\n", encoding="utf-8")
+    lines = ["| tree | median wall [s] | median CPU [s] | runs: wall / CPU [s] (1-min load before) |", "|---|---:|---:|---|"]
+    for label, s in summary.items():
+        each = "; ".join(f"{x['wall_s']:.1f} / {x['cpu_s']:.1f} ({x['load_1min_before']:.2f})" for x in s["runs"])
+        lines.append(f"| {label} | {s['median_wall_s']:.1f} | {s['median_cpu_s']:.1f} | {each} |")
+    lines.append("")
+    lines.append("Same results as the baseline: " + ", ".join(f"{k} {'yes' if v else 'NO'}" for k, v in same.items()) + ".")
+    args.out.with_suffix(".md").write_text("\n".join(lines) + "\n", encoding="utf-8")
+    print("\n".join(lines))
+    return 0 if all(same.values()) else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
