@@ -110,10 +110,11 @@ class StoredModel:
         self._set_part("stiffness", value)
 
     def _set_part(self, name: str, value: object | None) -> None:
-        if value is None:
-            self.parts.pop(name, None)
-        else:
-            self.parts[name] = value
+        # a new dict, not an edit: a view made by dataclasses.replace (a production TCP) shares ``parts``
+        parts = {k: v for k, v in self.parts.items() if k != name}
+        if value is not None:
+            parts[name] = value
+        self.parts = parts
 
 
 @dataclass(frozen=True)
