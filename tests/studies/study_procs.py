@@ -98,11 +98,14 @@ def kill_during_second_trial(proc: subprocess.Popen, name: str, storage: str, ti
     read and the kill. Then nothing is left to test, and the test is skipped, saying so.
     """
     deadline = time.monotonic() + timeout
+    study = None  # opened once: opening a storage costs far more than a read of its trials (tens of ms to a
+    # second under load), long enough to miss a whole trial of about a second between two reads
     while time.monotonic() < deadline:
         if proc.poll() is not None:
             pytest.fail("the study finished before it could be killed:\n" + proc.stdout.read())
         try:
-            trials = load(name, storage).get_trials(deepcopy=False)
+            study = study or load(name, storage)
+            trials = study.get_trials(deepcopy=False)
         except Exception:  # noqa: BLE001 (the study is not created yet; optuna and the storage raise their own kinds)
             trials = []
         done = [t for t in trials if t.state.is_finished()]
