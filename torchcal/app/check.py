@@ -44,7 +44,7 @@ from torchcal.identify.term_scale import TermScaleProblem
 from torchcal.kinematics.error_model import ErrorModel
 from torchcal.report.document import Paragraph, Preformatted, Report, Section, Table
 from torchcal.stages.geometry import model_joints
-from torchcal.stages.prediction_uncertainty import stored_prediction
+from torchcal.stages.prediction_uncertainty import PosePrediction, stored_prediction
 from torchcal.stages.store import StoredModel, load_model
 
 #: Tail probability of the count of poses beyond their 95 % radius below which the model no longer holds.
@@ -189,16 +189,22 @@ def refit(stored: StoredModel, data: Measurements, names: list[str], sigma_m: to
     return 2.0 * float(solved.cost), solved.x, model
 
 
-def check_data(stored: StoredModel, data: Measurements) -> CheckResult:
-    """The check of ``stored`` against ``data`` (see the module docstring)."""
+def refit_whitening(stored: StoredModel, data: Measurements) -> tuple[PosePrediction, torch.Tensor]:
+    """The model's predicted uncertainty at ``data``'s poses and the per-pose sigma ``(n,)`` (m) that
+    whitens :func:`refit`'s residuals; a model without a predicted uncertainty is refused."""
     prediction = stored_prediction(stored, data.q)
     if prediction is None:
         raise ModelError(f"{stored.folder}: the model has no predicted uncertainty (uncertainty.json); "
                          "check needs it: fit it again with uncertainty=conformal or gaussian")
+    return prediction, prediction.sigma_mm.detach().cpu().to(torch.float64) * 1e-3
+
+
+def check_data(stored: StoredModel, data: Measurements) -> CheckResult:
+    """The check of ``stored`` against ``data`` (see the module docstring)."""
+    prediction, sigma_m = refit_whitening(stored, data)
     n = len(data)
     if n < 4:
         raise ModelError(f"{data.source}: {n} poses; check needs at least 4 (the frame takes 6 of their 3n coordinates)")
-    sigma_m = prediction.sigma_mm.detach().cpu().to(torch.float64) * 1e-3
     chi2_null, x_null, model = refit(stored, data, [], sigma_m)
     residual = data.position - model.tcp_position(_effective(stored, data).q, x_null)
     # the frame's 6 parameters absorb part of the error: scale back to what a new pose would show

@@ -65,6 +65,7 @@ from torchcal.app.check import (
     check_report,
     groups_of,
     refit,
+    refit_whitening,
     term_deflections,
 )
 from torchcal.core.errors import DataError, IdentifiabilityWarning, ModelError
@@ -83,7 +84,6 @@ from torchcal.stages.prediction_uncertainty import (
     calibrate_errors,
     load_uncertainty,
     point_jacobian,
-    stored_prediction,
     write_uncertainty,
 )
 from torchcal.stages.prior_options import prior_metadata
@@ -391,24 +391,21 @@ def _add_named_groups(stored: StoredModel, data: Measurements, check: CheckResul
     candidates = [g for g in check.groups if g.delta_bic > BIC_CHANGED and not set(g.names) <= set(names)
                   and set(g.names) <= present]
     lines: list[str] = []
-    prediction = stored_prediction(stored, data.q)
-    sigma_m = None if prediction is None else prediction.sigma_mm.detach().cpu().to(torch.float64) * 1e-3
+    _, sigma_m = refit_whitening(stored, data)  # the check ran on this model, so it has an uncertainty
     while candidates and len(names) + 6 < 3 * (len(data) - 1):
-        if sigma_m is not None:
-            # the check's own test, given what is freed already: one refit per group before any leave-one-out
-            # (n refits each); a group whose evidence the freed ones explain is not tried further
-            chi2_now = refit(stored, data, names, sigma_m)[0]
-            conditional = {}
-            for g in candidates:
-                extra = [n for n in g.names if n not in names]
-                conditional[g.group] = chi2_now - refit(stored, data, names + extra, sigma_m)[0] - len(extra) * math.log(3 * len(data))
-            lines.extend(f"group {g.group} (dBIC {g.delta_bic:+.1f}) not added: dBIC {conditional[g.group]:+.1f} "
-                         f"given {', '.join(names)} (tried above {BIC_CHANGED:g})"
-                         for g in candidates if conditional[g.group] <= BIC_CHANGED)
-            candidates = [g for g in candidates if conditional[g.group] > BIC_CHANGED]
-            if not candidates:
-                break
-        trials = {g.group: _loo_errors(stored, data, names + [n for n in g.names if n not in names]) for g in candidates}
+        extended = {g.group: names + [n for n in g.names if n not in names] for g in candidates}
+        # the check's own test, given what is freed already: one refit per group before any leave-one-out
+        # (n refits each); a group whose evidence the freed ones explain is not tried further
+        chi2_now = refit(stored, data, names, sigma_m)[0]
+        conditional = {g.group: chi2_now - refit(stored, data, extended[g.group], sigma_m)[0]
+                       - (len(extended[g.group]) - len(names)) * math.log(3 * len(data)) for g in candidates}
+        lines.extend(f"group {g.group} (dBIC {g.delta_bic:+.1f}) not added: dBIC {conditional[g.group]:+.1f} "
+                     f"given {', '.join(names)} (tried above {BIC_CHANGED:g})"
+                     for g in candidates if conditional[g.group] <= BIC_CHANGED)
+        candidates = [g for g in candidates if conditional[g.group] > BIC_CHANGED]
+        if not candidates:
+            break
+        trials = {g.group: _loo_errors(stored, data, extended[g.group]) for g in candidates}
         group = min(candidates, key=lambda g: _loo_rms(trials[g.group]))
         better, gain, se = _clearly_better(loo, trials[group.group], ADD_GROUP_Z)
         lines.append(f"group {group.group} (dBIC {group.delta_bic:+.1f}) {'added' if better else 'not added'}: leave-one-out "
@@ -416,7 +413,7 @@ def _add_named_groups(stored: StoredModel, data: Measurements, check: CheckResul
                      f"{gain:+.4f} mm^2 per pose, one standard error {se:.4f}: added above {ADD_GROUP_Z:g} of them)")
         if not better:
             break
-        names, loo = names + [n for n in group.names if n not in names], trials[group.group]
+        names, loo = extended[group.group], trials[group.group]
         added.append(group.group)
         candidates.remove(group)
     return names, loo, added, lines
