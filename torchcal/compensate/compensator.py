@@ -71,7 +71,8 @@ and the step's solves sharing one Gram matrix (:func:`~torchcal.compensate.steps
 from __future__ import annotations
 
 import copy
-from typing import Any, ClassVar
+from collections.abc import Sequence
+from typing import TYPE_CHECKING, Any, ClassVar, Self
 
 import torch
 from torch import nn
@@ -84,6 +85,9 @@ from torchcal.compensate.steps import pose_step, position_first_step
 from torchcal.identify.joint_errors import JointSpaceErrors
 from torchcal.kinematics.error_model import ErrorModel
 from torchcal.kinematics.robot import RobotModel
+
+if TYPE_CHECKING:  # annotations only
+    from torchcal.stages.base import ModelStage
 
 TASKS = ("position", "pose")
 DEFAULT_TASK = "position"
@@ -131,23 +135,23 @@ def _residual_copy(residual: nn.Module | None, dtype: torch.dtype, device) -> nn
     return module
 
 
-def graph_parts(stored, inputs: tuple[str, ...] = ()) -> dict[str, Any]:
-    """Keyword arguments of the graphs from a :class:`~torchcal.stages.store.StoredModel`: the
-    pieces of its stages (:meth:`~torchcal.stages.base.ModelStage.graph_part`: the chain, the
-    joint-space errors, the residual head, the compliance), so that no constructor can drop one.
+def graph_parts(stages: Sequence[ModelStage], inputs: tuple[str, ...] = ()) -> dict[str, Any]:
+    """Keyword arguments of the graphs from a model's stages (``StoredModel.stages()``): their pieces
+    (:meth:`~torchcal.stages.base.ModelStage.graph_part`: the chain, the joint-space errors, the
+    residual head, the compliance), so that no constructor can drop one.
 
     ``inputs``: the inputs the graph takes beyond the joints; a stage that needs another (the
     stiffness stage's wrench) gives no piece to a graph without it."""
     parts: dict[str, Any] = {}
-    for stage in stored.stages():
+    for stage in stages:
         if set(stage.graph_inputs) <= set(inputs):
             parts.update(stage.graph_part())
     return parts
 
 
-def graph_inputs(stored) -> tuple[str, ...]:
-    """The inputs the model's graphs take beyond the joints, in stage order (``()`` or ``("wrench",)``)."""
-    return tuple(name for stage in stored.stages() for name in stage.graph_inputs)
+def graph_inputs(stages: Sequence[ModelStage]) -> tuple[str, ...]:
+    """The inputs a model's graphs take beyond the joints, in stage order (``()`` or ``("wrench",)``)."""
+    return tuple(name for stage in stages for name in stage.graph_inputs)
 
 
 def command_jacobian_t(pose: torch.Tensor, joint_frames: torch.Tensor, slope: torch.Tensor | None) -> torch.Tensor:
@@ -328,9 +332,10 @@ class CompensatorGraph(nn.Module):
         self.register_buffer("scores_position", scores[:1].clone())
 
     @classmethod
-    def from_stored(cls, stored, **options) -> CompensatorGraph:
-        """Build from a :class:`torchcal.stages.store.StoredModel` (residual head and joint-space errors included)."""
-        return cls(**graph_parts(stored, cls.inputs), **options)
+    def from_stored(cls, stored, **options) -> Self:
+        """Build from a :class:`torchcal.stages.store.StoredModel`: every stage's piece that this class's
+        :attr:`inputs` can take (a loaded graph also its stiffness)."""
+        return cls(**graph_parts(stored.stages(), cls.inputs), **options)
 
     def forward(self, q_nominal: torch.Tensor) -> torch.Tensor:
         return self.solve(q_nominal)[0]
@@ -494,8 +499,9 @@ class MonitorGraph(nn.Module):
         self.models = _TwoModels(model, x, residual, dtype, device, joint_errors)
 
     @classmethod
-    def from_stored(cls, stored, **options) -> MonitorGraph:
-        return cls(**graph_parts(stored, cls.inputs), **options)
+    def from_stored(cls, stored, **options) -> Self:
+        """Build from a :class:`torchcal.stages.store.StoredModel` (as :meth:`CompensatorGraph.from_stored`)."""
+        return cls(**graph_parts(stored.stages(), cls.inputs), **options)
 
     def forward(self, q: torch.Tensor) -> torch.Tensor:
         if self.models.joint_errors is None:  # the fast path: positions only, no link tensors
@@ -538,11 +544,6 @@ class LoadedCompensatorGraph(CompensatorGraph):
         super().__init__(model, x, residual, dtype=dtype, device=device, **options)
         self.deflection = DeflectionGraph(compliance, wrench_frame=wrench_frame, dtype=torch.float64, device=device)
 
-    @classmethod
-    def from_stored(cls, stored, **options) -> LoadedCompensatorGraph:
-        """Build from a :class:`torchcal.stages.store.StoredModel` with a stiffness stage."""
-        return cls(**graph_parts(stored, cls.inputs), **options)
-
     def forward(self, q_nominal: torch.Tensor, wrench: torch.Tensor) -> torch.Tensor:  # type: ignore[override]  # wrench: 2nd graph input
         return self.solve(q_nominal, wrench)[0]
 
@@ -580,10 +581,6 @@ class LoadedMonitorGraph(MonitorGraph):
     ) -> None:
         super().__init__(model, x, residual, dtype=dtype, joint_errors=joint_errors, device=device)
         self.deflection = DeflectionGraph(compliance, wrench_frame=wrench_frame, dtype=dtype, device=device)
-
-    @classmethod
-    def from_stored(cls, stored, **options) -> LoadedMonitorGraph:
-        return cls(**graph_parts(stored, cls.inputs), **options)
 
     def forward(self, q: torch.Tensor, wrench: torch.Tensor) -> torch.Tensor:  # type: ignore[override]  # wrench: 2nd graph input
         nominal, pose, frames, _ = self.models.nominal_and_calibrated(q)

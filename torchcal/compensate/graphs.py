@@ -119,11 +119,12 @@ def build_graphs(
     """
     solve: dict[str, Any] = {"iterations": iterations, "task": task,
                              "solver": SOLVER_PORTABLE if portable else SOLVER_DEFAULT}
-    inputs = graph_inputs(stored)
+    stages = stored.stages()
+    inputs = graph_inputs(stages)
     if inputs not in GRAPH_CLASSES:
         raise ModelError(f"{stored.folder}: no exported graph takes the inputs {list(inputs)} of its stages")
     compensator_class, monitor_class = GRAPH_CLASSES[inputs]
-    parts = graph_parts(stored, inputs)
+    parts = graph_parts(stages, inputs)
     if residual is not None or not use_stored_residual:
         parts["residual"] = residual
     input_options = {"wrench": {"wrench_frame": wrench_frame}}  # what each extra input is given in
