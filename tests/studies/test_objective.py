@@ -11,8 +11,12 @@ from torchcal.studies.spec import Distribution, StudyConfig
 
 
 def _small_base(tmp_path, **fit):
+    # The joint-space structure is given, not cross-validated among seven options in every trial and
+    # every check (a search space over fit.gravity_compliance still sets it per trial): these tests
+    # test what a trial's value is, not the structure choice (as study_procs.SMALL).
     base, _ = compose_run_config(["measurement=twin_small", "experiment=quick", "twin.n_train=200", "twin.n_test=100",
                                   "fit.residual=elm", f"out={tmp_path / 'runs'}", "fit.progress=false",
+                                  "fit.gravity_compliance=elbow+wrist", "fit.joint_harmonics=first",
                                   *[f"fit.{k}={v}" for k, v in fit.items()]])
     return base
 
