@@ -27,7 +27,6 @@ from torchcal.stages.geometry import fit_with_selection, predict_positions, save
 from torchcal.stages.residual import fit_residual_stage
 from torchcal.stages.store import load_model
 
-
 # The twins are geometric: where the test guards the head and not what the default structure
 # choice does with the same error, the joint-space structure is given (the truth: no compliance,
 # no harmonics) instead of cross-validated among seven options.
