@@ -63,6 +63,7 @@ def _fit_as_the_command_does(base, values: dict, train_csv, robot_yaml, folder):
     return next(r["cv_rms_mm"] for r in selection["candidates"] if r["name"] == selection["chosen"])
 
 
+@pytest.mark.slow
 def test_objective_is_the_cv_rms_of_what_fit_keeps(tmp_path):
     """Each trial's value is the CV RMS that `fit` itself reports for the kept model with those settings."""
     import optuna
@@ -90,6 +91,7 @@ def test_objective_is_the_cv_rms_of_what_fit_keeps(tmp_path):
     assert "Pareto front" in report and (outcome.study_dir / "figures" / "tradeoff.png").is_file()
 
 
+@pytest.mark.slow
 def test_objective_on_a_held_out_series(tmp_path):
     """With study.holdout the value is `evaluate`'s RMS, on that file, of the model `fit` makes on train."""
     import optuna
@@ -127,6 +129,7 @@ def test_distribution_contains():
     assert c.contains("mlp") and not c.contains("mma-elm")
 
 
+@pytest.mark.slow
 def test_study_on_measurement_files_refits_and_exports_the_best(tmp_path):
     """A study over a user's own files: objective on their validation split, best refitted, exported."""
     import json
