@@ -6,7 +6,7 @@ of :mod:`torchcal.app.validation` with the fit's structure selection (``joint_ha
 competition, residual heads off: they are refused on every one of these rows), and writes per row
 the held-out RMS, the gate's choice and its CV table to ``docs/joint_models_real.json``. With
 ``--forced`` each learned option is fitted instead of the gate (what it would have done;
-``--out docs/joint_models_real_forced.json``). Today's default: the same script run on that
+``--out docs/joint_models_real_forced.json``; ``--options G:H,...`` forces those pairs instead). Today's default: the same script run on that
 revision (``git archive``; its package first on ``PYTHONPATH``).
 """
 
@@ -45,10 +45,14 @@ def main() -> None:
     parser.add_argument("--forced", action="store_true",
                         help="fit each learned option of the gate (LEARNED_OPTIONS) forced, instead of the gate, to show "
                              "what it would have done")
+    parser.add_argument("--options", default="",
+                        help="with --forced: comma-separated GRAVITY:HARMONICS pairs to force instead of LEARNED_OPTIONS, "
+                             "e.g. elbow+wrist:first,elbow+forearm+wrist:first")
     args = parser.parse_args()
     root, results = Path(args.data_root), []
+    forced = [tuple(o.split(":", 1)) for o in args.options.split(",") if o] or list(LEARNED_OPTIONS)
     configs = ({f"{g}+{h}": FitConfig(residual="none", uncertainty="none", progress=False, gravity_compliance=g,
-                                      joint_harmonics=h) for g, h in LEARNED_OPTIONS}
+                                      joint_harmonics=h) for g, h in forced}
                if args.forced else {"default (gate)": FitConfig(residual="none", progress=False)})
     for protocol in _protocols(list(filter(None, args.only.split(","))) or ROWS):
         start = time.perf_counter()

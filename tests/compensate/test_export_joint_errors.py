@@ -37,8 +37,8 @@ def _errors(kind: str, n: int, scale: float = 1.0) -> JointSpaceErrors:
     """Known terms of realistic size (``scale`` multiplies the harmonics)."""
     gen = torch.Generator().manual_seed(7)
     compliance = harmonics = None
-    if kind in ("wrist", "elbow+wrist", "both"):
-        points = ("tcp",) if kind == "wrist" else ("elbow", "tcp")
+    if kind in ("wrist", "elbow+wrist", "elbow+forearm+wrist", "both"):
+        points = {"wrist": ("tcp",), "elbow+forearm+wrist": ("elbow", "forearm", "tcp")}.get(kind, ("elbow", "tcp"))
         compliance = GravityCompliance(points, torch.randn(len(points), n, generator=gen, dtype=torch.float64) * 2e-4)
     if kind == "learned":  # nonlinear compliance and a series of order 4 (rad per m^3 on tau^3, up to ~1 m^3)
         compliance = GravityCompliance(("elbow", "tcp", "tcp3"), torch.randn(3, n, generator=gen, dtype=torch.float64) * 2e-4)
@@ -57,7 +57,7 @@ def calibrated(twin):
     return result.model, result.x
 
 
-@pytest.mark.parametrize("kind", ["wrist", "elbow+wrist", "harmonics", "both", "learned"])
+@pytest.mark.parametrize("kind", ["wrist", "elbow+wrist", "elbow+forearm+wrist", "harmonics", "both", "learned"])
 def test_graph_joint_errors_equal_the_identified_model(calibrated, kind):
     model, x = calibrated
     errors = _errors(kind, model.robot.dof)

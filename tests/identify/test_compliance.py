@@ -44,6 +44,27 @@ def test_basis_is_the_torque_of_a_unit_weight_by_closed_form(robot):
     assert torch.allclose(basis[:, 1], expected, atol=1e-12)
 
 
+def test_forearm_basis_is_the_torque_of_a_unit_weight_at_the_wrist_centre_on_joints_1_to_3(robot):
+    """The forearm weight sits at the origin of MDH frame 5 and loads joints 1-3 only (beyond it, nothing)."""
+    from torchcal.kinematics.mdh import chain_frames
+
+    q = robot.sample_joints(50, torch.Generator().manual_seed(2))
+    basis = gravity_torque_basis(robot, q, ("elbow", "forearm", "tcp"))
+    model = ErrorModel(robot)
+    x = model.nominal_vector()
+    t0 = model.T_base_0
+    frames = chain_frames(q, model.table(x), r_start=t0[:3, :3], p_start=t0[:3, 3])
+    axes, origins = frames.stacked("z"), frames.stacked("o")
+    wrist_centre = origins[:, 4]
+    for j in (1, 2):  # joints 2 and 3, written out: tau = -(z_x r_y - z_y r_x) with r the lever
+        lever = wrist_centre - origins[:, j]
+        expected = -(axes[:, j, 0] * lever[:, 1] - axes[:, j, 1] * lever[:, 0])
+        assert float(expected.abs().max()) > 0.1  # a real lever here (m)
+        assert torch.allclose(basis[:, 1, j], expected, atol=1e-12)
+    assert basis[:, 1, 3:].abs().max() == 0.0  # the wrist joints carry the tcp weight, not the forearm's
+    assert basis[:, 0, 2:].abs().max() == 0.0  # and the elbow weight loads joints 1-2 only, as before
+
+
 def test_compliant_jacobian_matches_finite_differences(robot, generator):
     data, _, _ = _synthetic(robot, generator, 20, torch.zeros(2, robot.dof))
     geometric = calibrate(robot, data)
@@ -73,3 +94,25 @@ def test_recovers_the_sag_that_geometry_cannot_express(robot, generator):
     assert joint_rms < 1.5 * noise_rms  # and the joint fit explains it down to the noise
     # the joint-2..5 coefficients of the TCP weight are recovered (joint 6 carries no independent sag here)
     assert torch.allclose(joint.compliance.coefficients[1, 1:4], coefficients[1, 1:4], rtol=0.05, atol=2e-5)
+
+
+def test_the_twins_forearm_weight_needs_the_forearm_point():
+    """The twin's arm carries point masses at the middle of the upper arm, the middle of the forearm and the
+    wrist (sim.twin): the elbow and TCP points cannot express the forearm's, whose lever does not turn with
+    the wrist; with the forearm point the fit reaches the twin's noise floor on new poses."""
+    from torchcal.config.schema import FitConfig
+    from torchcal.sim.twin import Twin, TwinConfig
+    from torchcal.stages.geometry import fit
+
+    twin = Twin.create(TwinConfig(seed=0, gravity=True))
+    gen = torch.Generator().manual_seed(5)
+    train, test = twin.sample(300, gen), twin.sample(400, gen)
+    held_out = {}
+    for points in ("elbow+wrist", "elbow+forearm+wrist"):
+        result = fit(twin.robot, train, FitConfig(residual="none", uncertainty="none", progress=False,
+                                                  gravity_compliance=points, joint_harmonics="none"))
+        error = test.position - predicted_positions(result, test.q)
+        held_out[points] = float(error.norm(dim=-1).pow(2).mean().sqrt()) * 1e3
+    floor = twin.config.noise_floor_rms_mm
+    assert held_out["elbow+forearm+wrist"] < 1.1 * floor, (held_out, floor)
+    assert held_out["elbow+wrist"] > 1.2 * floor, (held_out, floor)

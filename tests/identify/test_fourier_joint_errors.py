@@ -113,10 +113,11 @@ def test_evidence_shrinks_the_series_where_the_data_has_none(robot, generator):
 
 def test_auto_options_put_the_learned_models_last():
     options = joint_error_options("auto", "auto")
-    assert options[:6] == [(g, h) for h in ("none", "first") for g in ("none", "wrist", "elbow+wrist")]
-    assert options[6:] == list(LEARNED_OPTIONS)
+    classic = ("none", "wrist", "elbow+wrist", "elbow+forearm+wrist")
+    assert options[:8] == [(g, h) for h in ("none", "first") for g in classic]
+    assert options[8:] == list(LEARNED_OPTIONS)
     assert joint_error_options("wrist", "auto") == [("wrist", "none"), ("wrist", "first"), ("wrist", "fourier2")]
-    assert joint_error_options("auto", "fourier3") == [(g, "fourier3") for g in ("none", "wrist", "elbow+wrist")]
+    assert joint_error_options("auto", "fourier3") == [(g, "fourier3") for g in classic]
     assert joint_error_options("elbow+wrist+cubic", "first") == [("elbow+wrist+cubic", "first")]
     assert joint_error_options("none", "fourier2") == [("none", "fourier2")]
 

@@ -23,7 +23,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from torchcal.identify.compliance import ELBOW_FRAME, POINT_FUNCTIONS
+from torchcal.identify.compliance import FRAME_POINTS, POINT_FUNCTIONS
 from torchcal.identify.joint_errors import JointSpaceErrors
 
 
@@ -56,8 +56,8 @@ class JointErrorGraph(nn.Module):
             for k, name in enumerate(self.points):
                 if name not in POINT_FUNCTIONS:
                     raise ValueError(f"unknown gravity point '{name}'")
-                if name == "elbow":  # the upper-arm weight loads only the joints before the elbow frame
-                    coefficients[k, ELBOW_FRAME - 1 :] = 0.0
+                if name in FRAME_POINTS:  # an arm segment's weight loads only the joints before it
+                    coefficients[k, FRAME_POINTS[name][1] :] = 0.0
             self.register_buffer("gravity_coefficients", coefficients.to(device, dtype))
             powers = [POINT_FUNCTIONS[name][1] for name in self.points]
             self.register_buffer("cubic_mask", torch.tensor([[float(p == 3)] for p in powers], dtype=dtype, device=device))
@@ -95,8 +95,9 @@ class JointErrorGraph(nn.Module):
                 if tcp is None:
                     raise ValueError("a 'tcp' gravity term needs the nominal TCP position")
                 named["tcp"] = tcp
-            if "elbow" in self.points:
-                named["elbow"] = origins[:, min(ELBOW_FRAME, self.n_joints) - 1]
+            for name in self.points:
+                if name in FRAME_POINTS:
+                    named[name] = origins[:, min(FRAME_POINTS[name][0], self.n_joints) - 1]
             points = torch.stack([named[POINT_FUNCTIONS[name][0]] for name in self.points], 1)  # (B, K, 3)
             lever = points.unsqueeze(2) - origins.unsqueeze(1)  # (B, K, N, 3)
             ax, ay = axes[..., 0].unsqueeze(1), axes[..., 1].unsqueeze(1)  # (B, 1, N)

@@ -82,6 +82,7 @@ class StructureOptions(_Checked):
         tool_mm: nominal TCP in the flange frame (mm) replacing the robot file's (a URDF has none).
         gravity_compliance: joint compliance under the arm's own weight, identified with the
             geometry (:mod:`torchcal.identify.compliance`): ``none``, ``wrist``, ``elbow+wrist``,
+            ``elbow+forearm+wrist`` (a third weight at the wrist centre, loading joints 1-3),
             ``elbow+wrist+cubic`` (nonlinear: a ``tau^3`` term; never chosen by ``auto``) or ``auto``
             (default: chosen by the cross-validation, with the harmonics).
         joint_harmonics: periodic joint errors ``sum_k a_kj sin(k q_j) + b_kj cos(k q_j)`` (rad),

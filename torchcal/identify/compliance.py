@@ -3,7 +3,10 @@
 Model. A point weight at ``p`` loads joint ``j`` (axis ``z_j`` through ``o_j``) with the torque
 ``tau_j = z_j . ((p - o_j) x (-e_z))`` per unit weight (m; ``base`` z up), and the joint gives
 way by ``dq_j = c_j tau_j``. Points: ``tcp`` (the nominal TCP: wrist, tool and payload, beyond
-every joint) and ``elbow`` (origin of MDH frame 3, beyond joints 1 and 2 only). The coefficient
+every joint), ``elbow`` (origin of MDH frame 3, beyond joints 1 and 2 only: the upper arm) and
+``forearm`` (origin of MDH frame 5, the wrist centre of a spherical wrist, loading joints 1 to 3:
+the forearm and the wrist motors it carries). Without ``forearm`` the forearm's weight can only be
+taken by the ``tcp`` point, whose lever turns with the wrist while the forearm's does not. The coefficient
 ``c`` (rad per metre of unit-weight lever, i.e. weight over stiffness) is estimated; torques are
 evaluated on the *nominal* chain, so ``dq`` is linear in ``c`` and the TCP displacement per
 coefficient is ``tau_j`` times the ``theta_j`` column of the position Jacobian.
@@ -31,10 +34,15 @@ from torchcal.kinematics.mdh import chain_frames
 from torchcal.kinematics.robot import RobotModel
 
 POINT_SETS: dict[str, tuple[str, ...]] = {"none": (), "wrist": ("tcp",), "elbow+wrist": ("elbow", "tcp"),
-                                          "elbow+wrist+cubic": ("elbow", "tcp", "tcp3")}
+                                          "elbow+wrist+cubic": ("elbow", "tcp", "tcp3"),
+                                          "elbow+forearm+wrist": ("elbow", "forearm", "tcp")}
 #: Basis functions of the gravity torque: the point whose torque it takes and the power.
-POINT_FUNCTIONS: dict[str, tuple[str, int]] = {"tcp": ("tcp", 1), "elbow": ("elbow", 1), "tcp3": ("tcp", 3)}
+POINT_FUNCTIONS: dict[str, tuple[str, int]] = {"tcp": ("tcp", 1), "elbow": ("elbow", 1), "tcp3": ("tcp", 3),
+                                                "forearm": ("forearm", 1)}
 ELBOW_FRAME = 3  # MDH frame whose origin stands for the upper-arm mass
+FOREARM_FRAME = 5  # MDH frame whose origin (the wrist centre of a spherical wrist) stands for the forearm mass
+#: MDH frame whose origin stands for a point mass, and how many joints (from the base) its weight loads.
+FRAME_POINTS: dict[str, tuple[int, int]] = {"elbow": (ELBOW_FRAME, ELBOW_FRAME - 1), "forearm": (FOREARM_FRAME, ELBOW_FRAME)}
 _ZERO_COLUMN = 1e-9  # a basis column below this norm (m) has no effect: joint axis along gravity
 
 
@@ -53,9 +61,10 @@ def gravity_torque_basis(robot: RobotModel, q: torch.Tensor, points: tuple[str, 
         name, power = POINT_FUNCTIONS[label]
         if name == "tcp":
             point, beyond = model.tcp_position(q, x), torch.ones(n, dtype=q.dtype)
-        elif name == "elbow":
-            point = origins[:, min(ELBOW_FRAME, n) - 1]
-            beyond = torch.tensor([1.0 if j < ELBOW_FRAME - 1 else 0.0 for j in range(n)], dtype=q.dtype)
+        else:
+            frame, loaded = FRAME_POINTS[name]
+            point = origins[:, min(frame, n) - 1]
+            beyond = torch.tensor([1.0 if j < loaded else 0.0 for j in range(n)], dtype=q.dtype)
         lever = point[:, None, :] - origins
         tau = (torch.linalg.cross(lever, down.expand_as(lever), dim=-1) * axes).sum(-1)
         out.append(tau**power * beyond.to(q.device))

@@ -257,17 +257,22 @@ def option_label(gravity: str, harmonics: str) -> str:
 
 
 #: What ``auto`` compares: every classic gravity set with and without first harmonics, then the
-#: learned joint-space model (a Fourier series of order 2 per joint with the elbow and wrist
-#: compliance), so that the CV chooses the order among 0, 1 and 2. Order 4 is not among them: fitted
+#: learned joint-space models (a Fourier series of order 2 per joint with the elbow and wrist
+#: compliance, and with the forearm's weight too), so that the CV chooses the order among 0, 1 and
+#: 2. The forearm point (:mod:`torchcal.identify.compliance`) lowers the IRB 120 grouped CV from
+#: 0.457 to 0.449 mm, where the CV chooses it, and the gate leaves every UR10 transfer as it was;
+#: the series without it stays a candidate: where the two score alike over regions, the one with
+#: the forearm can lose the blocks check that the other passes (UR10 B + C fitted together:
+#: without that candidate, D 0.531 mm instead of 0.438; docs/joint_models.md). Order 4 is not among them: fitted
 #: on the real sets it transferred worse than order 2 on every row (UR10 A -> C 2.80 against
 #: 0.56 mm: over the partial wrist turns of A's grid it extrapolates; IRB 120 CV 0.462 against
 #: 0.456), and it costs a fifth more CV. The cubic compliance (``elbow+wrist+cubic``) is not among
 #: them either: fitted on UR10 series C it took -0.10 rad/m^3 on joint 4 and scored 0.96 mm on
 #: series B against 0.55 mm without it, a tau^3 extrapolated past the torques of the fit, which the
 #: grouped CV on C did not see (docs/joint_models.md).
-AUTO_GRAVITY = ("none", "wrist", "elbow+wrist")
+AUTO_GRAVITY = ("none", "wrist", "elbow+wrist", "elbow+forearm+wrist")
 AUTO_HARMONICS = ("none", "first")
-LEARNED_OPTIONS = (("elbow+wrist", "fourier2"),)
+LEARNED_OPTIONS = (("elbow+wrist", "fourier2"), ("elbow+forearm+wrist", "fourier2"))
 
 
 def joint_error_options(gravity: str, harmonics: str) -> list[tuple[str, str]]:
@@ -286,7 +291,7 @@ def joint_error_options(gravity: str, harmonics: str) -> list[tuple[str, str]]:
     if gravity == "auto":
         return [(g, harmonics) for g in AUTO_GRAVITY]
     if harmonics == "auto":
-        return [(gravity, h) for h in AUTO_HARMONICS] + [(gravity, h) for _, h in LEARNED_OPTIONS]
+        return [(gravity, h) for h in AUTO_HARMONICS] + [(gravity, h) for h in dict.fromkeys(h for _, h in LEARNED_OPTIONS)]
     return [(gravity, harmonics)]
 
 
