@@ -131,6 +131,7 @@ def test_update_never_writes_into_its_parent(calibrated, tmp_path, capsys):
     assert code == 2 and "names the parent model" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_check_and_update_name_and_refit_a_changed_compliance(tmp_path):
     """A heavier payload at the wrist (10 -> 30 kg) changes the gravity sag, not the geometry."""
     twin = Twin.create(TwinConfig(seed=3, gravity=True))

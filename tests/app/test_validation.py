@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+import pytest
+
 from torchcal.app.validation import STAGES, Protocol, run_protocol
 from torchcal.instruments.tracker.twin_case import write_twin_case
 from torchcal.sim.twin import TwinConfig
 
 
+@pytest.mark.slow
 def test_cv_protocol_reaches_the_twin_noise_floor_and_covers_95_percent(tmp_path):
     config = TwinConfig(seed=3, n_train=150, n_test=10)
     write_twin_case(tmp_path / "twin-set", config)  # robot.yaml + train.csv, as a real set

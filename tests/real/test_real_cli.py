@@ -21,6 +21,7 @@ def _fit_and_score(tmp_path, dataset, fit_file, test_file, *extra_eval):
     return json.loads(out.read_text())
 
 
+@pytest.mark.slow
 def test_ur5_source_split(tmp_path):
     """UR5 (three parallel axes, Hayati beta), 1000 grid poses -> 20 test poses of the source."""
     metrics = _fit_and_score(tmp_path, "jacobi-ur5-gts3800", "poses.csv", "poses_test.csv")
@@ -29,6 +30,7 @@ def test_ur5_source_split(tmp_path):
     assert metrics["position_mean_mm"] < 0.11
 
 
+@pytest.mark.slow
 def test_ur10_fit_on_series_c_score_on_series_b_after_registration(tmp_path):
     """Series B and C were measured in different tracker frames: --register re-fits only the frame."""
     metrics = _fit_and_score(tmp_path, "ipa-ur10-tmac", "poses_C_random.csv", "poses_B_joint.csv", "--register")
@@ -39,6 +41,7 @@ def test_ur10_fit_on_series_c_score_on_series_b_after_registration(tmp_path):
     assert metrics["leakage"]["twin_share"] < 0.01 and not metrics["leakage"]["warning"]  # only the home pose repeats
 
 
+@pytest.mark.slow
 def test_ur10_fit_on_grid_series_a_transfers_to_series_c(tmp_path):
     """3000 rows of the wrist-swept grid A (numpy default_rng(0)), scored on all of C re-registered."""
     import numpy as np

@@ -72,6 +72,7 @@ def test_translations_only_leave_t_undetermined(small):
         refine(sub, T, twin.R_true, twin.t_true, twin.normals, twin.offsets)
 
 
+@pytest.mark.slow
 def test_search_start_without_translations():
     twin = ProfileTwin(ProfileTwinConfig(seed=1, points_per_scan=100))
     data = twin.scan()

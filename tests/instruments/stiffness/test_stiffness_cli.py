@@ -158,6 +158,7 @@ def test_evaluate_needs_a_stiffness_stage(case, tmp_path, capsys):
     assert "no stiffness stage" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_geometry_and_stiffness_in_one_model_folder(tmp_path):
     """Tracker fit, then model_dir=<it> on a stiffness file of the same true robot, then export.
 

@@ -48,6 +48,7 @@ def test_blocked_choice_is_never_worse_than_nominal_on_its_folds():
     assert by_name[table["chosen"]]["blocks_cv_rms_mm"] <= by_name["nominal"]["blocks_cv_rms_mm"] * 1.0000001
 
 
+@pytest.mark.slow
 @pytest.mark.real
 def test_irb120_draw_wire_default_fit_is_not_worse_than_nominal_on_blocked_cv(tmp_path):
     folder = REAL_DATA / "robotcali-irb120-cable"
