@@ -43,26 +43,12 @@ def _quiet_identifiability():
 
 
 def pytest_collection_modifyitems(config, items):
-    _long_modules_first(items)
     if REAL_DATA.is_dir():
         return
     skip = pytest.mark.skip(reason=f"real-robot data folder {REAL_DATA} is absent")
     for item in items:
         if "real" in item.keywords:
             item.add_marker(skip)
-
-
-def _long_modules_first(items) -> None:
-    """Modules with more ``slow`` tests run earlier; each module's tests stay together, in order.
-
-    Under pytest-xdist the workers take tests in this order: long tests started first leave the
-    short ones to even out the end of the run, instead of one long test holding it alone (the
-    longest tests first, as a scheduler of jobs of known lengths does). The sort is stable.
-    """
-    slow: dict[str, int] = {}
-    for item in items:
-        slow[item.nodeid.split("::")[0]] = slow.get(item.nodeid.split("::")[0], 0) + ("slow" in item.keywords)
-    items.sort(key=lambda item: -slow[item.nodeid.split("::")[0]])
 
 
 def perturbed_vector(model, generator, length_mm=0.5, angle_deg=0.05):
