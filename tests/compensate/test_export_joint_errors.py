@@ -22,7 +22,7 @@ from torchcal.compensate.export import export_model
 from torchcal.compensate.graphs import build_graphs
 from torchcal.compensate.production_tcp import production_view, tcp_transform
 from torchcal.config.schema import FitConfig
-from torchcal.identify.compliance import GravityCompliance
+from torchcal.identify.compliance import POINT_SETS, GravityCompliance
 from torchcal.identify.harmonics import JointHarmonics
 from torchcal.identify.joint_errors import JointSpaceErrors
 from torchcal.kinematics.error_model import ErrorModel
@@ -38,7 +38,7 @@ def _errors(kind: str, n: int, scale: float = 1.0) -> JointSpaceErrors:
     gen = torch.Generator().manual_seed(7)
     compliance = harmonics = None
     if kind in ("wrist", "elbow+wrist", "elbow+forearm+wrist", "both"):
-        points = {"wrist": ("tcp",), "elbow+forearm+wrist": ("elbow", "forearm", "tcp")}.get(kind, ("elbow", "tcp"))
+        points = POINT_SETS["elbow+wrist" if kind == "both" else kind]
         compliance = GravityCompliance(points, torch.randn(len(points), n, generator=gen, dtype=torch.float64) * 2e-4)
     if kind == "learned":  # nonlinear compliance and a series of order 4 (rad per m^3 on tau^3, up to ~1 m^3)
         compliance = GravityCompliance(("elbow", "tcp", "tcp3"), torch.randn(3, n, generator=gen, dtype=torch.float64) * 2e-4)

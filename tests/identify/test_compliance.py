@@ -26,39 +26,40 @@ def _synthetic(robot, generator, n, coefficients, points=("elbow", "tcp"), noise
     return Measurements(q=q, position=position), truth, x_true
 
 
+def _nominal_axes_and_origins(robot, q):
+    """Joint axes and origins ``(B, N, 3)`` of the nominal chain at ``q``, ``base`` frame, and the nominal TCP ``(B, 3)``."""
+    from torchcal.kinematics.mdh import chain_frames
+
+    model = ErrorModel(robot)
+    x = model.nominal_vector()
+    t0 = model.T_base_0
+    frames = chain_frames(q, model.table(x), r_start=t0[:3, :3], p_start=t0[:3, 3])
+    return frames.stacked("z"), frames.stacked("o"), model.tcp_position(q, x)
+
+
+def _unit_weight_torque(axis, lever):
+    """``tau = z . (r x (-e_z)) = -(z x r) . e_z``, written out per component (m per unit weight)."""
+    return -(axis[:, 0] * lever[:, 1] - axis[:, 1] * lever[:, 0])
+
+
 def test_basis_is_the_torque_of_a_unit_weight_by_closed_form(robot):
     """Joint 1 (vertical axis) carries no gravity torque; joint 2 carries the horizontal lever of the TCP."""
     q = robot.sample_joints(50, torch.Generator().manual_seed(1))
     basis = gravity_torque_basis(robot, q, ("tcp",))[:, 0]
     assert basis[:, 0].abs().max() < 1e-12
-    model = ErrorModel(robot)
-    x = model.nominal_vector()
-    from torchcal.kinematics.mdh import chain_frames
-
-    t0 = model.T_base_0
-    frames = chain_frames(q, model.table(x), r_start=t0[:3, :3], p_start=t0[:3, 3])
-    axis, origin = frames.stacked("z")[:, 1], frames.stacked("o")[:, 1]
-    lever = model.tcp_position(q, x) - origin
-    # tau = z . (r x (-e_z)) = -(z x r) . e_z ... written out per component
-    expected = -(axis[:, 0] * lever[:, 1] - axis[:, 1] * lever[:, 0])
+    axes, origins, tcp = _nominal_axes_and_origins(robot, q)
+    expected = _unit_weight_torque(axes[:, 1], tcp - origins[:, 1])
     assert torch.allclose(basis[:, 1], expected, atol=1e-12)
 
 
 def test_forearm_basis_is_the_torque_of_a_unit_weight_at_the_wrist_centre_on_joints_1_to_3(robot):
     """The forearm weight sits at the origin of MDH frame 5 and loads joints 1-3 only (beyond it, nothing)."""
-    from torchcal.kinematics.mdh import chain_frames
-
     q = robot.sample_joints(50, torch.Generator().manual_seed(2))
     basis = gravity_torque_basis(robot, q, ("elbow", "forearm", "tcp"))
-    model = ErrorModel(robot)
-    x = model.nominal_vector()
-    t0 = model.T_base_0
-    frames = chain_frames(q, model.table(x), r_start=t0[:3, :3], p_start=t0[:3, 3])
-    axes, origins = frames.stacked("z"), frames.stacked("o")
+    axes, origins, _ = _nominal_axes_and_origins(robot, q)
     wrist_centre = origins[:, 4]
-    for j in (1, 2):  # joints 2 and 3, written out: tau = -(z_x r_y - z_y r_x) with r the lever
-        lever = wrist_centre - origins[:, j]
-        expected = -(axes[:, j, 0] * lever[:, 1] - axes[:, j, 1] * lever[:, 0])
+    for j in (1, 2):  # joints 2 and 3
+        expected = _unit_weight_torque(axes[:, j], wrist_centre - origins[:, j])
         assert float(expected.abs().max()) > 0.1  # a real lever here (m)
         assert torch.allclose(basis[:, 1, j], expected, atol=1e-12)
     assert basis[:, 1, 3:].abs().max() == 0.0  # the wrist joints carry the tcp weight, not the forearm's
