@@ -14,6 +14,8 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[2]
 
+HEARTBEAT_S, GRACE_S = 1, 6  # the study options below: a killed trial is stale 6 s after its last heartbeat
+
 # A study small enough for CI: a 300-pose twin, Mayfly with 10 iterations, trials of about a second.
 # The float margin makes an exact repeat of a configuration a repeated sampler stream, not chance.
 # The joint-space structure is given, not cross-validated among seven options with the blocks check
@@ -33,8 +35,8 @@ SMALL = [
     "fit.gravity_compliance=elbow+wrist",
     "fit.joint_harmonics=first",
     "fit.head_time_check=false",
-    "study.heartbeat_interval_s=1",
-    "study.grace_period_s=6",
+    f"study.heartbeat_interval_s={HEARTBEAT_S}",
+    f"study.grace_period_s={GRACE_S}",
     "study.refit_best=false",
 ]
 
@@ -121,6 +123,40 @@ def kill_during_second_trial(proc: subprocess.Popen, name: str, storage: str, ti
             return running[0].number
         time.sleep(0.05)
     pytest.fail("no trial was seen running")
+
+
+def make_heartbeat_stale(name: str, storage: str, number: int) -> None:
+    """Date trial ``number``'s last heartbeat past the grace period, in the database.
+
+    This is the state a command started more than ``GRACE_S`` after the trial's worker was killed
+    finds (a dead worker writes no heartbeat), without waiting out the grace period. The storage's
+    own stale-trial query (the one every worker runs before taking a trial) must list the trial.
+    """
+    from datetime import timedelta
+
+    import sqlalchemy
+    from optuna.storages import RDBStorage
+    from optuna.storages._rdb import models
+    from sqlalchemy import orm
+
+    engine = sqlalchemy.create_engine(url(storage))
+    try:
+        with orm.Session(engine) as session, session.begin():
+            trial = (session.query(models.TrialModel).join(models.StudyModel)
+                     .filter(models.StudyModel.study_name == name, models.TrialModel.number == number).one())
+            # the database's clock, as Optuna's heartbeats and its stale-trial query use it
+            now = session.execute(sqlalchemy.func.now()).scalar().replace(tzinfo=None)
+            beat = session.query(models.TrialHeartbeatModel).filter_by(trial_id=trial.trial_id).one_or_none()
+            if beat is None:  # killed before its heartbeat thread's first write
+                beat = models.TrialHeartbeatModel(trial_id=trial.trial_id)
+                session.add(beat)
+            beat.heartbeat = now - timedelta(seconds=GRACE_S + 2)
+            trial_id, study_id = trial.trial_id, trial.study_id
+    finally:
+        engine.dispose()
+    check = RDBStorage(url(storage), heartbeat_interval=HEARTBEAT_S, grace_period=GRACE_S)
+    assert trial_id in check._get_stale_trial_ids(study_id)
+    check.engine.dispose()
 
 
 def open_storage_once(url: str) -> str:
