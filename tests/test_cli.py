@@ -10,12 +10,19 @@ import pytest
 from torchcal.cli import main
 
 
-@pytest.mark.slow
-def test_simulate_fit_evaluate(tmp_path, capsys):
-    case = tmp_path / "case"
+@pytest.fixture(scope="module")
+def twin_fit(tmp_path_factory):
+    """A simulated twin case and ``fit``'s default model of it (the structure cross-validated): the
+    tests that only read the model folder (``evaluate`` writes nothing there) share the one fit."""
+    case, model = tmp_path_factory.mktemp("case"), tmp_path_factory.mktemp("fit") / "model"
     assert main(["simulate", "--out", str(case), "n_train=150", "n_test=100", "seed=5"]) == 0
-    model = tmp_path / "model"
     assert main(["fit", "--robot", str(case / "robot.yaml"), "--data", str(case / "train.csv"), "--out", str(model), "residual=none"]) == 0
+    return case, model
+
+
+@pytest.mark.slow
+def test_simulate_fit_evaluate(tmp_path, capsys, twin_fit):
+    case, model = twin_fit
     for name in ("calibration.safetensors", "calibration.json", "calibrated_robot.yaml", "robot.yaml"):
         assert (model / name).is_file()
     out = tmp_path / "m.json"
@@ -42,11 +49,8 @@ def test_simulate_fit_evaluate(tmp_path, capsys):
 
 
 @pytest.mark.slow
-def test_evaluate_register_refits_only_the_frame(tmp_path, capsys):
-    case = tmp_path / "case"
-    main(["simulate", "--out", str(case), "n_train=150", "n_test=100", "seed=6"])
-    model = tmp_path / "model"
-    main(["fit", "--robot", str(case / "robot.yaml"), "--data", str(case / "train.csv"), "--out", str(model), "residual=none"])
+def test_evaluate_register_refits_only_the_frame(tmp_path, capsys, twin_fit):
+    case, model = twin_fit
     # the tracker was moved: shift and rotate the test file's points
     lines = (case / "test.csv").read_text().splitlines()
     arr = np.array([[float(v) for v in l.split(",")] for l in lines[1:]])
@@ -116,15 +120,12 @@ def test_tracer_simulate_fit_evaluate_register(tmp_path):
 
 
 @pytest.mark.slow
-def test_a_reader_that_closes_the_pipe_gets_no_traceback(tmp_path):
+def test_a_reader_that_closes_the_pipe_gets_no_traceback(twin_fit):
     """`torchcal evaluate ... | head`: the reader stops early; no BrokenPipe traceback."""
     import subprocess
     import sys
 
-    case, model = tmp_path / "case", tmp_path / "model"
-    assert main(["simulate", "--out", str(case), "n_train=120", "n_test=50", "seed=3"]) == 0
-    assert main(["fit", "--robot", str(case / "robot.yaml"), "--data", str(case / "train.csv"), "--out", str(model),
-                 "residual=none", "gravity_compliance=none", "joint_harmonics=none"]) == 0
+    case, model = twin_fit
     # `true` exits without reading: the pipe is closed long before evaluate writes its result
     command = f"{sys.executable} -m torchcal.cli evaluate --model {model} --data {case / 'test.csv'} | true"
     done = subprocess.run(["bash", "-o", "pipefail", "-c", command], capture_output=True, text=True, timeout=300)
