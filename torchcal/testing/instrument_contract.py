@@ -8,8 +8,9 @@ instrument that lives outside torchcal::
     class TestMyProbe(InstrumentContract):
         instrument_name = "my_probe"      # registered under the entry-point group
 
-Each test writes the instrument's :meth:`~torchcal.instruments.base.Instrument.contract_case`
-twin into a temporary folder, so the suite needs nothing but the instrument. Needs pytest.
+The instrument's :meth:`~torchcal.instruments.base.Instrument.contract_case` twin is written into
+a temporary folder once per test session and instrument (the tests only read it; each fit writes
+into its own folder), so the suite needs nothing but the instrument. Needs pytest.
 """
 
 from __future__ import annotations
@@ -34,6 +35,10 @@ from torchcal.instruments.base import (
 from torchcal.instruments.registry import get, recognise
 from torchcal.kinematics.robot import load_robot
 
+# The twin files of each (instrument, twin overrides) in this test session: simulating a twin
+# (a profile scan, a stiffness plan) costs seconds, and the tests read the files only.
+_TWIN_FILES: dict[tuple[str, str], dict[str, Path]] = {}
+
 
 class InstrumentContract:
     """Tests every instrument passes; subclasses set :attr:`instrument_name` (or parametrize it)."""
@@ -45,10 +50,15 @@ class InstrumentContract:
         return get(self.instrument_name)
 
     @pytest.fixture
-    def twin_files(self, instrument: Instrument, tmp_path: Path) -> dict[str, Path]:
-        spec = instrument.twin()
-        config = compose_options(spec.config_factory(), instrument.contract_case().twin_overrides)
-        return {name: Path(path) for name, path in spec.write(tmp_path / "twin", config).items()}
+    def twin_files(self, instrument: Instrument, tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+        overrides = list(instrument.contract_case().twin_overrides)
+        key = (instrument.name, repr(overrides))
+        if key not in _TWIN_FILES:
+            spec = instrument.twin()
+            config = compose_options(spec.config_factory(), overrides)
+            folder = tmp_path_factory.mktemp(f"twin-{instrument.name}")
+            _TWIN_FILES[key] = {name: Path(path) for name, path in spec.write(folder, config).items()}
+        return _TWIN_FILES[key]
 
     def test_declares_what_it_is(self, instrument: Instrument) -> None:
         assert instrument.name == self.instrument_name
