@@ -27,7 +27,12 @@ from torchcal.model_selection.compare import Comparison
 from torchcal.model_selection.structure import StructureCV
 from torchcal.stages.geometry import fit_with_selection, save_fit
 from torchcal.stages.prior_options import prior_metadata
-from torchcal.stages.residual import ResidualOutcome, fit_residual_stage, write_selection
+from torchcal.stages.residual import (
+    ResidualOutcome,
+    fit_residual_stage,
+    start_head_workers,
+    write_selection,
+)
 
 #: The decision recorded in ``model_selection.json`` when no head was asked for.
 NO_HEADS = "residual=none: no head considered"
@@ -102,6 +107,8 @@ def fit_model(
 
 def _fit_model(folder: Path, robot: RobotModel, data: Measurements, config: Any, metadata, fitted, progress,
                residual_progress) -> FitRun:
+    if config.residual != "none":
+        start_head_workers(config)  # their start-up overlaps the geometry and structure fits
     result, structure = fitted if fitted is not None else fit_with_selection(robot, data, config, progress=progress)
     extra = metadata(result) if callable(metadata) else dict(metadata or {})
     folder = save_fit(Path(folder), robot, data, result, extra, structure=structure, uncertainty=config.uncertainty)

@@ -19,6 +19,7 @@ from pathlib import Path
 import torch
 
 from torchcal.core.folder import write_member_json
+from torchcal.core.workers import resolve_jobs, warm_up
 from torchcal.data.folds import make_folds
 from torchcal.data.measurements import Measurements
 from torchcal.identify.joint_fit import CV_TOLERANCE
@@ -61,6 +62,17 @@ class ResidualOutcome:
         return {"decision": self.decision, "kept": self.kept, "comparison": self.comparison.to_dict(), "table": self.table}
 
 
+def start_head_workers(config) -> None:
+    """Start the worker processes of the heads' cross-validation now, in the background, with the
+    heads' modules imported, so that they are ready when the fit reaches the heads (:mod:`torchcal.core.workers`).
+    Nothing to do when the fit has fewer than two heads or runs in one process."""
+    heads = _candidates(config)
+    jobs = resolve_jobs(config.jobs)
+    if len(heads) > 1 and jobs > 1:
+        modules = dict.fromkeys(m for h in heads for m in (type(h).__module__, *h.imports))
+        warm_up(min(jobs, len(heads)), ["torchcal.model_selection.heads", *modules])
+
+
 def _candidates(config) -> list[ResidualHead]:
     """The heads of ``config.residual``, each built by its own :meth:`ResidualHead.from_options`."""
     return [HEADS[name].from_options(config) for name in head_names(config.residual)]
@@ -88,7 +100,8 @@ def select_with_heads(robot, data: Measurements, structure: StructureCV, config,
     assert structure.comparison is not None
     parent = structure.comparison.chosen
     heads = cross_validate_heads(robot, data, structure, parent, lambda: _candidates(config),
-                                 margin=config.residual_margin, seed=config.seed, progress=progress)
+                                 margin=config.residual_margin, seed=config.seed, progress=progress,
+                                 jobs=resolve_jobs(config.jobs))
     candidates = structure.candidates + heads.candidates
     units, protocol = structure.folds.units(), structure.folds.description
     comparison = compare_candidates(candidates, units, protocol, tolerance=structure_tolerance())

@@ -1,0 +1,72 @@
+"""Pieces side by side in worker processes: the same results as one after the other, errors raised
+here, workers stopped after an error, and the number of processes from option, environment or cores."""
+
+from __future__ import annotations
+
+import os
+import sys
+
+import numpy as np
+import pytest
+from cloudpickle import register_pickle_by_value
+
+from torchcal.core.errors import DataError, TorchcalError
+from torchcal.core.workers import JOBS_ENV, in_background, resolve_jobs, side_by_side, usable_cores
+
+# the workers cannot import this test module by name (pytest puts its folder on the path here only):
+# its functions travel by value
+register_pickle_by_value(sys.modules[__name__])
+
+
+def _square_with_pid(x: np.ndarray) -> tuple[np.ndarray, int]:
+    return x * x, os.getpid()
+
+
+def _fail(message: str) -> None:
+    if message:
+        raise DataError(message)
+
+
+def test_jobs_from_option_then_environment_then_cores(monkeypatch):
+    monkeypatch.setenv(JOBS_ENV, "3")
+    assert resolve_jobs(2) == 2 and resolve_jobs(None) == 3
+    monkeypatch.delenv(JOBS_ENV)
+    assert resolve_jobs(None) == usable_cores() >= 1
+    monkeypatch.setenv(JOBS_ENV, "two")
+    with pytest.raises(TorchcalError, match="TORCHCAL_JOBS must be a whole number"):
+        resolve_jobs(None)
+
+
+@pytest.mark.parametrize("jobs", [1, 2])
+def test_side_by_side_gives_the_serial_results_in_order(jobs):
+    tasks = [(np.arange(k, k + 4, dtype=np.float64),) for k in range(3)]
+    results = side_by_side(_square_with_pid, tasks, jobs)
+    for (x,), (squared, _pid) in zip(tasks, results):
+        np.testing.assert_array_equal(squared, x * x)
+    pids = {pid for _squared, pid in results}
+    # the first task runs here; with a second process the others run there
+    assert results[0][1] == os.getpid()
+    assert (pids == {os.getpid()}) if jobs == 1 else (len(pids) == 2)
+
+
+def test_an_error_in_a_worker_is_raised_here_and_the_workers_still_serve():
+    with pytest.raises(DataError, match="row 7"):
+        side_by_side(_fail, [("",), ("row 7 of the worker's file",)], 2)  # the first, here, succeeds
+    squared, pid = side_by_side(_square_with_pid, [(np.ones(2),), (np.full(2, 3.0),)], 2)[1]
+    np.testing.assert_array_equal(squared, [9.0, 9.0])
+    assert pid != os.getpid()
+
+
+def test_in_background_runs_beside_the_body_or_first():
+    with in_background(_square_with_pid, np.full(3, 2.0), jobs=2) as pending:
+        here = os.getpid()
+    squared, pid = pending.result()
+    np.testing.assert_array_equal(squared, [4.0, 4.0, 4.0])
+    assert pid != here
+    with in_background(_square_with_pid, np.full(2, 5.0), jobs=1) as pending:
+        assert pending.result()[1] == os.getpid()  # already computed when the body starts
+
+
+def test_in_background_raises_the_pieces_error_when_the_body_ends():
+    with pytest.raises(DataError, match="bad column q3"), in_background(_fail, "bad column q3", jobs=2):
+        pass

@@ -1,0 +1,38 @@
+"""The heads' cross-validation: fitted side by side in worker processes, every out-of-fold error and
+every futility stop is the one fitted here, one head after the other."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from torchcal.config.schema import FitConfig
+from torchcal.model_selection.heads import cross_validate_heads
+from torchcal.residual import MayflyELM, MLPHead
+from torchcal.sim.twin import Twin, TwinConfig
+from torchcal.stages.geometry import fit_with_selection
+
+
+@pytest.mark.slow
+def test_heads_side_by_side_give_exactly_the_serial_errors():
+    twin = Twin.create(TwinConfig(seed=3, gravity=True, gear=True))
+    data = twin.sample(300, torch.Generator().manual_seed(5))
+    config = FitConfig(progress=False, gravity_compliance="none", joint_harmonics="none", residual="mma-elm+mlp",
+                       cv_folds=3, prior_scale="1")
+    _result, structure = fit_with_selection(twin.robot, data, config)
+    parent = structure.comparison.chosen
+
+    def heads():  # small ones: what is compared is where they are fitted, not how well
+        return [MayflyELM(hidden=20, population=6, iterations=4, seed=1), MLPHead(width=16, max_epochs=30, patience=10)]
+
+    serial = cross_validate_heads(twin.robot, data, structure, parent, heads, margin=0.05, jobs=1)
+    parallel = cross_validate_heads(twin.robot, data, structure, parent, heads, margin=0.05, jobs=2)
+    assert parallel.stopped == serial.stopped
+    assert [c.name for c in parallel.candidates] == [c.name for c in serial.candidates]
+    for p, s in zip(parallel.candidates, serial.candidates):
+        np.testing.assert_array_equal(p.errors_mm, s.errors_mm)
+    # the heads were fitted and scored: finite out-of-fold errors on every pose of a fold they ran
+    for c in serial.candidates:
+        assert np.isfinite(c.errors_mm).all()
+    assert len(serial.candidates) + len(serial.stopped) == 2
