@@ -11,7 +11,16 @@ import pytest
 from cloudpickle import register_pickle_by_value
 
 from torchcal.core.errors import DataError, TorchcalError
-from torchcal.core.workers import JOBS_ENV, in_background, resolve_jobs, side_by_side, usable_cores
+from torchcal.core.workers import (
+    JOBS_ENV,
+    in_background,
+    ready_workers,
+    resolve_jobs,
+    side_by_side,
+    stop_workers,
+    usable_cores,
+    warm_up,
+)
 
 # the workers cannot import this test module by name (pytest puts its folder on the path here only):
 # its functions travel by value
@@ -37,27 +46,44 @@ def test_jobs_from_option_then_environment_then_cores(monkeypatch):
         resolve_jobs(None)
 
 
+@pytest.fixture
+def one_worker():
+    warm_up(2, ["numpy"], wait=True)
+    yield
+    stop_workers()
+
+
 @pytest.mark.parametrize("jobs", [1, 2])
-def test_side_by_side_gives_the_serial_results_in_order(jobs):
-    tasks = [(np.arange(k, k + 4, dtype=np.float64),) for k in range(3)]
+def test_side_by_side_gives_the_serial_results_in_order(one_worker, jobs):
+    tasks = [(np.arange(k, k + 4, dtype=np.float64),) for k in range(5)]
     results = side_by_side(_square_with_pid, tasks, jobs)
     for (x,), (squared, _pid) in zip(tasks, results):
         np.testing.assert_array_equal(squared, x * x)
-    pids = {pid for _squared, pid in results}
-    # the first task runs here; with a second process the others run there
-    assert results[0][1] == os.getpid()
-    assert (pids == {os.getpid()}) if jobs == 1 else (len(pids) == 2)
+    pids = [pid for _squared, pid in results]
+    if jobs == 1:
+        assert set(pids) == {os.getpid()}
+    else:  # dealt in turn: the 1st, 3rd and 5th here, the others in the worker
+        assert pids[0] == pids[2] == pids[4] == os.getpid() != pids[1] == pids[3]
 
 
-def test_an_error_in_a_worker_is_raised_here_and_the_workers_still_serve():
+def test_pieces_wait_for_no_worker_that_is_not_ready():
+    stop_workers()
+    assert ready_workers() == 0
+    results = side_by_side(_square_with_pid, [(np.ones(2),), (np.ones(3),)], 2)
+    assert {pid for _squared, pid in results} == {os.getpid()}
+
+
+def test_an_error_in_a_worker_is_raised_here_and_stops_the_workers(one_worker):
     with pytest.raises(DataError, match="row 7"):
         side_by_side(_fail, [("",), ("row 7 of the worker's file",)], 2)  # the first, here, succeeds
+    assert ready_workers() == 0
+    warm_up(2, ["numpy"], wait=True)  # the next fit starts them again
     squared, pid = side_by_side(_square_with_pid, [(np.ones(2),), (np.full(2, 3.0),)], 2)[1]
     np.testing.assert_array_equal(squared, [9.0, 9.0])
     assert pid != os.getpid()
 
 
-def test_in_background_runs_beside_the_body_or_first():
+def test_in_background_runs_beside_the_body_or_first(one_worker):
     with in_background(_square_with_pid, np.full(3, 2.0), jobs=2) as pending:
         here = os.getpid()
     squared, pid = pending.result()
@@ -67,6 +93,6 @@ def test_in_background_runs_beside_the_body_or_first():
         assert pending.result()[1] == os.getpid()  # already computed when the body starts
 
 
-def test_in_background_raises_the_pieces_error_when_the_body_ends():
+def test_in_background_raises_the_pieces_error_when_the_body_ends(one_worker):
     with pytest.raises(DataError, match="bad column q3"), in_background(_fail, "bad column q3", jobs=2):
         pass

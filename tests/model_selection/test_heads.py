@@ -8,6 +8,7 @@ import pytest
 import torch
 
 from torchcal.config.schema import FitConfig
+from torchcal.core.workers import ready_workers, warm_up
 from torchcal.model_selection.heads import cross_validate_heads
 from torchcal.residual import MayflyELM, MLPHead
 from torchcal.sim.twin import Twin, TwinConfig
@@ -27,6 +28,8 @@ def test_heads_side_by_side_give_exactly_the_serial_errors():
         return [MayflyELM(hidden=20, population=6, iterations=4, seed=1), MLPHead(width=16, max_epochs=30, patience=10)]
 
     serial = cross_validate_heads(twin.robot, data, structure, parent, heads, margin=0.05, jobs=1)
+    warm_up(2, ["torchcal.model_selection.heads"], wait=True)
+    assert ready_workers() == 1
     parallel = cross_validate_heads(twin.robot, data, structure, parent, heads, margin=0.05, jobs=2)
     assert parallel.stopped == serial.stopped
     assert [c.name for c in parallel.candidates] == [c.name for c in serial.candidates]

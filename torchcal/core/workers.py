@@ -13,9 +13,9 @@ environment variable, else the cores this process may run on (:func:`resolve_job
 everything in this process. A study's workers fit with ``jobs=1``: they are the parallelism there.
 
 Workers start in the background (:func:`warm_up`) while this process does the serial part of a
-fit, so their imports (torch, about 2 s) do not delay the pieces. They ignore Ctrl-C: the main
-process handles it and stops them (:func:`stop_workers`). Idle workers exit after
-:data:`IDLE_TIMEOUT_S`.
+fit; their imports (torch, about 2 s) delay nothing, since pieces go to a worker only once it is
+ready (until then this process does them all). They ignore Ctrl-C: the main process handles it
+and stops them (:func:`stop_workers`). Idle workers exit after :data:`IDLE_TIMEOUT_S`.
 """
 
 from __future__ import annotations
@@ -28,7 +28,7 @@ from typing import Any
 #: Environment variable that sets the default number of processes of a fit.
 JOBS_ENV = "TORCHCAL_JOBS"
 #: Seconds an idle worker waits for the next piece before it exits.
-IDLE_TIMEOUT_S = 120
+IDLE_TIMEOUT_S = 60
 
 
 def usable_cores() -> int:
@@ -61,18 +61,26 @@ def _ignore_interrupt() -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
-_current: list[Any] = []  # the executor last handed out, for stop_workers
+@contextmanager
+def _interrupts_ignored_by_new_workers() -> Iterator[None]:
+    """Workers started in the body inherit an ignored SIGINT, so that a Ctrl-C of the terminal (sent
+    to the whole process group) reaches them not even while they import, before their initializer.
+    Only the main thread may set a handler; elsewhere the initializer alone does it."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
 
 
-def _executor(workers: int):
-    from joblib.externals.loky import get_reusable_executor
-
-    # one intra-op thread per worker, like the fit in the main process (core.threads); set before any import
-    threads = dict.fromkeys(("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"), "1")
-    executor = get_reusable_executor(max_workers=workers, timeout=IDLE_TIMEOUT_S, initializer=_ignore_interrupt,
-                                     env=threads)
-    _current[:] = [executor]
-    return executor
+#: The pool of this process: its executor, its number of workers and the futures of its warm-up tasks.
+_pool: dict[str, Any] = {}
 
 
 def _import(modules: Sequence[str]) -> None:
@@ -82,34 +90,64 @@ def _import(modules: Sequence[str]) -> None:
         importlib.import_module(name)
 
 
-def warm_up(jobs: int, modules: Sequence[str]) -> None:
-    """Start ``jobs - 1`` workers now and import ``modules`` in them, without waiting for either."""
-    if jobs > 1:
-        executor = _executor(jobs - 1)
-        for _ in range(jobs - 1):
-            executor.submit(_import, tuple(modules))
+def warm_up(jobs: int, *module_groups: Sequence[str], wait: bool = False) -> None:
+    """Start ``jobs - 1`` workers now and import each group of modules in them (a group after
+    another, in order), without waiting for either unless ``wait``.
+
+    Pieces go to workers only once one has finished a warm-up group (:func:`ready_workers`): until
+    then this process does them, so a fit never waits for a worker to start.
+    """
+    if jobs <= 1:
+        return
+    from joblib.externals.loky import get_reusable_executor
+
+    # one intra-op thread per worker, like the fit in the main process (core.threads); set before any import
+    threads = dict.fromkeys(("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"), "1")
+    with _interrupts_ignored_by_new_workers():
+        executor = get_reusable_executor(max_workers=jobs - 1, timeout=IDLE_TIMEOUT_S, initializer=_ignore_interrupt,
+                                         env=threads)
+        futures = [executor.submit(_import, tuple(group)) for group in module_groups or [()]]
+    earlier = _pool.get("ready", []) if _pool.get("executor") is executor else []
+    _pool.update(executor=executor, workers=jobs - 1, ready=earlier + futures)
+    if wait:
+        for future in futures:
+            future.result()
+
+
+def ready_workers() -> int:
+    """Workers of this process's pool that have started and imported a warm-up group (0: none yet)."""
+    futures = _pool.get("ready", [])
+    started = any(f.done() and not f.cancelled() and f.exception() is None for f in futures)
+    return int(_pool["workers"]) if started else 0
 
 
 def stop_workers() -> None:
-    """Stop the workers at once, pieces under way included (after an error or an interrupt here)."""
-    while _current:
-        _current.pop().shutdown(wait=False, kill_workers=True)
+    """Stop the workers at once, pieces under way included: after an error or an interrupt here, and
+    when a command ends (one that ends by ``os._exit`` would otherwise leave them waiting for work)."""
+    executor = _pool.pop("executor", None)
+    _pool.clear()
+    if executor is not None:
+        executor.shutdown(wait=True, kill_workers=True)
 
 
 def side_by_side(fn: Callable[..., Any], tasks: Sequence[tuple], jobs: int) -> list[Any]:
-    """``[fn(*task) for task in tasks]``, the first task here and the others in up to ``jobs - 1`` workers.
+    """``[fn(*task) for task in tasks]``, shared between this process and up to ``jobs - 1`` ready workers.
 
-    ``fn`` and the tasks' arguments travel by pickle: give module-level functions and numpy arrays
-    (not torch tensors, whose pickling may go through shared memory). With ``jobs == 1`` or one task,
-    everything runs here, in order. An error in any task is raised here, as it was raised there.
+    The tasks are dealt in turn: with one worker, the 1st, 3rd, 5th ... run here and the others there.
+    ``fn`` and the tasks' arguments travel by pickle (module-level functions; numpy arrays or small
+    objects). With ``jobs == 1``, one task or no ready worker (:func:`ready_workers`), everything runs
+    here, in order. An error in any task is raised here, as it was raised there.
     """
-    if jobs <= 1 or len(tasks) <= 1:
+    workers = min(jobs - 1, ready_workers(), len(tasks) - 1)
+    if workers < 1:
         return [fn(*task) for task in tasks]
-    executor = _executor(min(jobs - 1, len(tasks) - 1))
+    processes = workers + 1
     try:
-        futures = [executor.submit(fn, *task) for task in tasks[1:]]
-        first = fn(*tasks[0])
-        return [first] + [future.result() for future in futures]
+        with _interrupts_ignored_by_new_workers():  # a worker that timed out idle is started again here
+            futures = {i: _pool["executor"].submit(fn, *task) for i, task in enumerate(tasks) if i % processes}
+        results = {i: fn(*task) for i, task in enumerate(tasks) if not i % processes}
+        results.update({i: future.result() for i, future in futures.items()})
+        return [results[i] for i in range(len(tasks))]
     except BaseException:
         stop_workers()
         raise
@@ -129,15 +167,21 @@ class Pending:
 
 @contextmanager
 def in_background(fn: Callable[..., Any], *args: Any, jobs: int) -> Iterator[Pending]:
-    """``fn(*args)`` in a worker while the body runs here; with ``jobs == 1``, here and first.
+    """``fn(*args)`` in a ready worker while the body runs here; with ``jobs == 1`` or no ready worker,
+    here and first.
 
     Leaving the body by an error or an interrupt stops the worker, the piece under way included.
     """
-    pending = Pending(value=fn(*args)) if jobs <= 1 else Pending(future=_executor(1).submit(fn, *args))
+    there = jobs > 1 and ready_workers() > 0
+    if there:
+        with _interrupts_ignored_by_new_workers():
+            pending = Pending(future=_pool["executor"].submit(fn, *args))
+    else:
+        pending = Pending(value=fn(*args))
     try:
         yield pending
         pending.result()
     except BaseException:
-        if jobs > 1:
+        if there:
             stop_workers()
         raise

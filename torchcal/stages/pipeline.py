@@ -13,13 +13,14 @@ real-data validation and every study trial call :func:`fit_model`; what they do 
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from torchcal.config.compose import save_resolved_config
 from torchcal.core.threads import fit_threads
+from torchcal.core.workers import resolve_jobs, warm_up
 from torchcal.data.measurements import Measurements
 from torchcal.identify.calibrate import CalibrationResult
 from torchcal.kinematics.robot import RobotModel
@@ -30,7 +31,7 @@ from torchcal.stages.prior_options import prior_metadata
 from torchcal.stages.residual import (
     ResidualOutcome,
     fit_residual_stage,
-    start_head_workers,
+    head_modules,
     write_selection,
 )
 
@@ -81,6 +82,17 @@ class FitRun:
         return lines
 
 
+def start_workers(config: Any, *later: Sequence[str]) -> None:
+    """Start the worker processes of a fit with ``config`` in the background (:mod:`torchcal.core.workers`):
+    they import the structure cross-validation's fits, then the heads' modules, then each group of
+    ``later`` (a command's own pieces after the fit). Nothing to do with ``jobs=1``."""
+    jobs = resolve_jobs(config.jobs)
+    fit_modules = ["torchcal.model_selection.structure", "torchcal.model_selection.heads"]
+    if config.residual != "none":
+        fit_modules += head_modules(config)
+    warm_up(min(jobs, max(config.cv_folds, 2)), fit_modules, *later)
+
+
 def fit_model(
     folder: str | Path,
     robot: RobotModel,
@@ -107,8 +119,7 @@ def fit_model(
 
 def _fit_model(folder: Path, robot: RobotModel, data: Measurements, config: Any, metadata, fitted, progress,
                residual_progress) -> FitRun:
-    if config.residual != "none":
-        start_head_workers(config)  # their start-up overlaps the geometry and structure fits
+    start_workers(config)  # their start-up overlaps the fit's serial part (core.workers)
     result, structure = fitted if fitted is not None else fit_with_selection(robot, data, config, progress=progress)
     extra = metadata(result) if callable(metadata) else dict(metadata or {})
     folder = save_fit(Path(folder), robot, data, result, extra, structure=structure, uncertainty=config.uncertainty)

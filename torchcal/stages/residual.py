@@ -19,7 +19,7 @@ from pathlib import Path
 import torch
 
 from torchcal.core.folder import write_member_json
-from torchcal.core.workers import resolve_jobs, warm_up
+from torchcal.core.workers import resolve_jobs
 from torchcal.data.folds import make_folds
 from torchcal.data.measurements import Measurements
 from torchcal.identify.joint_fit import CV_TOLERANCE
@@ -62,15 +62,9 @@ class ResidualOutcome:
         return {"decision": self.decision, "kept": self.kept, "comparison": self.comparison.to_dict(), "table": self.table}
 
 
-def start_head_workers(config) -> None:
-    """Start the worker processes of the heads' cross-validation now, in the background, with the
-    heads' modules imported, so that they are ready when the fit reaches the heads (:mod:`torchcal.core.workers`).
-    Nothing to do when the fit has fewer than two heads or runs in one process."""
-    heads = _candidates(config)
-    jobs = resolve_jobs(config.jobs)
-    if len(heads) > 1 and jobs > 1:
-        modules = dict.fromkeys(m for h in heads for m in (type(h).__module__, *h.imports))
-        warm_up(min(jobs, len(heads)), ["torchcal.model_selection.heads", *modules])
+def head_modules(config) -> list[str]:
+    """The modules the heads of ``config`` import when they fit (a worker imports them ahead)."""
+    return list(dict.fromkeys(m for h in _candidates(config) for m in (type(h).__module__, *h.imports)))
 
 
 def _candidates(config) -> list[ResidualHead]:
@@ -171,7 +165,7 @@ def _check_on_time_blocks(robot, data: Measurements, structure: StructureCV, hea
     blocks = make_folds("blocks", robot, data.q, k=config.cv_folds, order=order, series=data.series)
     timed = cross_validate_structures(robot, data, geometry_fitter(robot, config, structure.prior, start=structure.prior_start), [structure.chosen], blocks,
                                       harmonic_min_range_deg=config.harmonic_min_range_deg,
-                                      progress=progress)
+                                      progress=progress, jobs=resolve_jobs(config.jobs))
     heads = cross_validate_heads(robot, data, timed, parent,
                                  lambda: [h for h in _candidates(config) if h.name == head_name],
                                  margin=config.residual_margin, seed=config.seed, progress=progress)

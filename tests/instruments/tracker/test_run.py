@@ -8,6 +8,7 @@ import json
 import pytest
 
 from torchcal.config.schema import RunConfig
+from torchcal.core.workers import warm_up
 from torchcal.instruments.tracker.run import run
 from torchcal.sim.twin import TwinConfig
 
@@ -30,6 +31,7 @@ def _run(tmp_path, jobs: int) -> tuple[dict, str]:
 @pytest.mark.slow
 def test_export_beside_the_report_writes_what_one_step_after_the_other_writes(tmp_path):
     serial, serial_report = _run(tmp_path, 1)
+    warm_up(2, ["torchcal.compensate.export"], wait=True)  # a worker ready when the export starts
     parallel, parallel_report = _run(tmp_path, 2)
     assert parallel_report == serial_report
     assert "compensation_on_true_robot" in serial["export"] and "exported commands sent to the true robot" in serial_report

@@ -21,7 +21,7 @@ from torchcal.core.io import atomic_write_json
 from torchcal.core.metrics import position_metrics
 from torchcal.core.outputs import check_name
 from torchcal.core.threads import fit_threads
-from torchcal.core.workers import in_background, resolve_jobs, warm_up
+from torchcal.core.workers import in_background, resolve_jobs
 from torchcal.data.measurements import Measurements, load_measurements
 from torchcal.identify.calibrate import CalibrationResult
 from torchcal.identify.lm import LevenbergMarquardt
@@ -40,7 +40,7 @@ from torchcal.kinematics.robot import load_robot
 from torchcal.report.document import write_report
 from torchcal.sim.twin import Twin
 from torchcal.stages.geometry import NOMINAL_PROTOCOL, held_out_errors, nominal_errors
-from torchcal.stages.pipeline import fit_model
+from torchcal.stages.pipeline import fit_model, start_workers
 from torchcal.stages.store import load_model
 
 
@@ -93,8 +93,7 @@ def _run_into(folder: Path, destination: Path, config: RunConfig, console) -> di
     started = time.perf_counter()
     save_resolved_config(folder / "config.yaml", config)
     jobs = resolve_jobs(config.fit.jobs)
-    if config.export:
-        warm_up(min(jobs, 2), EXPORT_MODULES)  # the worker that exports starts while the twin is fitted
+    start_workers(config.fit, *([EXPORT_MODULES] if config.export else []))  # they start while the twin is simulated
     with console.status("[bold]simulating the twin") as status:
         case = write_twin_case(folder / "case", config.twin)
         robot = load_robot(case["robot.yaml"])
