@@ -35,6 +35,9 @@ from torchcal.stages.residual import (
     write_selection,
 )
 
+#: What the structure cross-validation's fold fits import (a worker imports it when it starts).
+STRUCTURE_MODULES = ("torchcal.model_selection.structure",)
+
 #: The decision recorded in ``model_selection.json`` when no head was asked for.
 NO_HEADS = "residual=none: no head considered"
 
@@ -82,15 +85,25 @@ class FitRun:
         return lines
 
 
-def start_workers(config: Any, *later: Sequence[str]) -> None:
-    """Start the worker processes of a fit with ``config`` in the background (:mod:`torchcal.core.workers`):
-    they import the structure cross-validation's fits, then the heads' modules, then each group of
-    ``later`` (a command's own pieces after the fit). Nothing to do with ``jobs=1``."""
-    jobs = resolve_jobs(config.jobs)
-    fit_modules = ["torchcal.model_selection.structure", "torchcal.model_selection.heads"]
-    if config.residual != "none":
-        fit_modules += head_modules(config)
-    warm_up(min(jobs, max(config.cv_folds, 2)), fit_modules, *later)
+def start_workers(config: Any) -> None:
+    """Start the worker processes of a fit with ``config`` in the background (:mod:`torchcal.core.workers`),
+    importing what the structure cross-validation's fold fits need. Nothing to do with ``jobs=1``.
+
+    A worker runs its queue in order, imports included: each later piece's imports are queued when
+    the fit is about to need them (:func:`prepare_workers`), not here, so that they do not hold up
+    the folds."""
+    warm_up(_processes(config), STRUCTURE_MODULES)
+
+
+def prepare_workers(config: Any, modules: Sequence[str]) -> None:
+    """Queue the import of ``modules`` in the started workers (the next piece's, while this process
+    does the serial work before it)."""
+    warm_up(_processes(config), modules)
+
+
+def _processes(config: Any) -> int:
+    # the folds are the most pieces a fit deals out at once
+    return min(resolve_jobs(config.jobs), max(config.cv_folds, 2))
 
 
 def fit_model(
@@ -121,6 +134,8 @@ def _fit_model(folder: Path, robot: RobotModel, data: Measurements, config: Any,
                residual_progress) -> FitRun:
     start_workers(config)  # their start-up overlaps the fit's serial part (core.workers)
     result, structure = fitted if fitted is not None else fit_with_selection(robot, data, config, progress=progress)
+    if config.residual != "none":
+        prepare_workers(config, head_modules(config))  # imported there while the model folder is written
     extra = metadata(result) if callable(metadata) else dict(metadata or {})
     folder = save_fit(Path(folder), robot, data, result, extra, structure=structure, uncertainty=config.uncertainty)
     save_resolved_config(folder / "config.yaml", config)

@@ -40,7 +40,7 @@ from torchcal.kinematics.robot import load_robot
 from torchcal.report.document import write_report
 from torchcal.sim.twin import Twin
 from torchcal.stages.geometry import NOMINAL_PROTOCOL, held_out_errors, nominal_errors
-from torchcal.stages.pipeline import fit_model, start_workers
+from torchcal.stages.pipeline import fit_model, prepare_workers, start_workers
 from torchcal.stages.store import load_model
 
 
@@ -93,7 +93,7 @@ def _run_into(folder: Path, destination: Path, config: RunConfig, console) -> di
     started = time.perf_counter()
     save_resolved_config(folder / "config.yaml", config)
     jobs = resolve_jobs(config.fit.jobs)
-    start_workers(config.fit, *([EXPORT_MODULES] if config.export else []))  # they start while the twin is simulated
+    start_workers(config.fit)  # they start while the twin is simulated
     with console.status("[bold]simulating the twin") as status:
         case = write_twin_case(folder / "case", config.twin)
         robot = load_robot(case["robot.yaml"])
@@ -120,6 +120,8 @@ def _run_into(folder: Path, destination: Path, config: RunConfig, console) -> di
         if fitted.residual is not None:
             console.print(fitted.residual.table)
             console.log(fitted.residual.decision)
+        if config.export:
+            prepare_workers(config.fit, EXPORT_MODULES)  # imported there while the held-out poses are scored
         status.update("[bold]evaluating on held-out poses")
         stored = load_model(model_dir)
         stages = {"nominal": nominal_errors(robot, test), "geometric": held_out_errors(stored, test, residual=False)}
