@@ -4,7 +4,9 @@ here, workers stopped after an error, and the number of processes from option, e
 from __future__ import annotations
 
 import os
+import signal
 import sys
+import time
 
 import numpy as np
 import pytest
@@ -28,6 +30,11 @@ register_pickle_by_value(sys.modules[__name__])
 
 
 def _square_with_pid(x: np.ndarray) -> tuple[np.ndarray, int]:
+    return x * x, os.getpid()
+
+
+def _sleep_then_square(x: np.ndarray, seconds: float) -> tuple[np.ndarray, int]:
+    time.sleep(seconds)
     return x * x, os.getpid()
 
 
@@ -96,3 +103,13 @@ def test_in_background_runs_beside_the_body_or_first(one_worker):
 def test_in_background_raises_the_pieces_error_when_the_body_ends(one_worker):
     with pytest.raises(DataError, match="bad column q3"), in_background(_fail, "bad column q3", jobs=2):
         pass
+
+
+def test_a_piece_whose_worker_is_killed_is_done_here(one_worker):
+    worker = side_by_side(_square_with_pid, [(np.ones(1),), (np.ones(1),)], 2)[1][1]
+    with in_background(_sleep_then_square, np.full(2, 3.0), 2.0, jobs=2) as pending:
+        time.sleep(0.3)
+        os.kill(worker, signal.SIGKILL)  # the OOM killer, or a user
+    squared, pid = pending.result()
+    np.testing.assert_array_equal(squared, [9.0, 9.0])
+    assert pid == os.getpid() and ready_workers() == 0

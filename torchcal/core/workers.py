@@ -3,9 +3,9 @@
 A fit runs on one intra-op thread (:mod:`torchcal.core.threads`: its operations are too small to
 split), so on a machine with more cores the others sit idle while, for example, the heads'
 cross-validation trains an MLP after an MMA-ELM on the same fold although neither needs the
-other. :func:`side_by_side` runs such pieces at once: the first in this process, the others in
-worker processes of loky's reusable executor (the process pool of joblib and scikit-learn, started
-by fork + exec, so no OpenMP state is inherited). Each piece computes exactly what it would compute
+other. :func:`side_by_side` deals such pieces out between this process and worker processes of
+loky's reusable executor (the process pool of joblib and scikit-learn, started by fork + exec, so
+no OpenMP state is inherited); :func:`in_background` runs one piece there while this process goes on. Each piece computes exactly what it would compute
 here, on one thread, from the same inputs and seeds: the results are the same to the bit.
 
 How many processes (``jobs``): the ``jobs`` option of a command, else the ``TORCHCAL_JOBS``
@@ -134,9 +134,10 @@ def side_by_side(fn: Callable[..., Any], tasks: Sequence[tuple], jobs: int) -> l
     """``[fn(*task) for task in tasks]``, shared between this process and up to ``jobs - 1`` ready workers.
 
     The tasks are dealt in turn: with one worker, the 1st, 3rd, 5th ... run here and the others there.
-    ``fn`` and the tasks' arguments travel by pickle (module-level functions; numpy arrays or small
-    objects). With ``jobs == 1``, one task or no ready worker (:func:`ready_workers`), everything runs
-    here, in order. An error in any task is raised here, as it was raised there.
+    ``fn`` and the tasks' arguments travel by pickle (cloudpickle: functions, arrays, tensors, fits).
+    With ``jobs == 1``, one task or no ready worker (:func:`ready_workers`), everything runs here, in
+    order. An error in any task is raised here, as it was raised there; a task whose worker was lost
+    is done here.
     """
     workers = min(jobs - 1, ready_workers(), len(tasks) - 1)
     if workers < 1:
@@ -146,22 +147,36 @@ def side_by_side(fn: Callable[..., Any], tasks: Sequence[tuple], jobs: int) -> l
         with _interrupts_ignored_by_new_workers():  # a worker that timed out idle is started again here
             futures = {i: _pool["executor"].submit(fn, *task) for i, task in enumerate(tasks) if i % processes}
         results = {i: fn(*task) for i, task in enumerate(tasks) if not i % processes}
-        results.update({i: future.result() for i, future in futures.items()})
+        for i, future in futures.items():
+            results[i] = _result_or_here(future, fn, tasks[i])
         return [results[i] for i in range(len(tasks))]
     except BaseException:
         stop_workers()
         raise
 
 
+def _result_or_here(future: Any, fn: Callable[..., Any], args: tuple) -> Any:
+    """The piece's result from its worker; if the worker was lost (killed, out of memory) or could not
+    take the piece, the workers are stopped and the piece is done here."""
+    from concurrent.futures import BrokenExecutor
+
+    try:
+        return future.result()
+    except BrokenExecutor:
+        stop_workers()
+        return fn(*args)
+
+
 class Pending:
     """A piece started by :func:`in_background`; :meth:`result` waits for it and returns (or raises) what it did."""
 
-    def __init__(self, future: Any = None, value: Any = None) -> None:
-        self._future, self._value = future, value
+    def __init__(self, fn: Callable[..., Any], args: tuple, future: Any = None) -> None:
+        self._fn, self._args, self._future = fn, args, future
+        self._value = fn(*args) if future is None else None
 
     def result(self) -> Any:
         if self._future is not None:
-            self._value, self._future = self._future.result(), None
+            self._value, self._future = _result_or_here(self._future, self._fn, self._args), None
         return self._value
 
 
@@ -175,9 +190,9 @@ def in_background(fn: Callable[..., Any], *args: Any, jobs: int) -> Iterator[Pen
     there = jobs > 1 and ready_workers() > 0
     if there:
         with _interrupts_ignored_by_new_workers():
-            pending = Pending(future=_pool["executor"].submit(fn, *args))
+            pending = Pending(fn, args, _pool["executor"].submit(fn, *args))
     else:
-        pending = Pending(value=fn(*args))
+        pending = Pending(fn, args)
     try:
         yield pending
         pending.result()
