@@ -7,7 +7,9 @@ same results.
 The baseline is another checkout of torchcal (e.g. ``git worktree add --detach /tmp/base37 <commit>``),
 run by the same interpreter with ``PYTHONPATH`` pointing at it. Each repeat runs the baseline, then
 this tree; the 1-minute load average before each run is recorded beside it (the machine may be
-shared). CPU seconds are user + system of the child process (all its threads).
+shared). CPU seconds are user + system of the child process (all its threads) and of the worker
+processes it started and ended (:mod:`torchcal.core.workers`). With ``--serial``, this tree also runs
+with ``fit.jobs=1`` (everything in one process) in each repeat.
 
 Same results: ``metrics.json`` (less ``elapsed_s``), ``model/calibration.json``,
 ``model/metrics.json``, ``model/model_selection.json``, ``model/uncertainty.json``, ``report.md``
