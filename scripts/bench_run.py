@@ -7,7 +7,9 @@ same results.
 The baseline is another checkout of torchcal (e.g. ``git worktree add --detach /tmp/base37 <commit>``),
 run by the same interpreter with ``PYTHONPATH`` pointing at it. Each repeat runs the baseline, then
 this tree; the 1-minute load average before each run is recorded beside it (the machine may be
-shared). CPU seconds are user + system of the child process (all its threads).
+shared). CPU seconds are user + system of the child process (all its threads) and of the worker
+processes it started and ended (:mod:`torchcal.core.workers`). With ``--serial``, this tree also runs
+with ``fit.jobs=1`` (everything in one process) in each repeat.
 
 Same results: ``metrics.json`` (less ``elapsed_s``), ``model/calibration.json``,
 ``model/metrics.json``, ``model/model_selection.json``, ``model/uncertainty.json``, ``report.md``
@@ -37,8 +39,9 @@ COMPARED = ["metrics.json", "model/calibration.json", "model/metrics.json", "mod
             "model/uncertainty.json", "report.md"]
 
 
-def run_once(tree: Path, out: Path, export: Path) -> dict:
-    """One fresh `torchcal run` of the source tree ``tree``: wall and CPU seconds, load before."""
+def run_once(tree: Path, out: Path, export: Path, extra: tuple[str, ...] = ()) -> dict:
+    """One fresh `torchcal run` of the source tree ``tree`` (``extra``: overrides): wall and CPU seconds
+    (the process and its worker processes), load before."""
     for folder in (out, export):
         shutil.rmtree(folder, ignore_errors=True)
     env = {**os.environ, "PYTHONPATH": str(tree)}
@@ -46,7 +49,7 @@ def run_once(tree: Path, out: Path, export: Path) -> dict:
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     start = time.perf_counter()
     code = "import sys; from torchcal.cli import main; sys.argv[0] = 'torchcal'; sys.exit(main())"
-    proc = subprocess.run([sys.executable, "-c", code, "run", f"out={out}", f"export_dir={export}"],
+    proc = subprocess.run([sys.executable, "-c", code, "run", f"out={out}", f"export_dir={export}", *extra],
                           env=env, cwd=tree, capture_output=True, text=True)
     wall = time.perf_counter() - start
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
@@ -90,18 +93,26 @@ def main() -> int:
     parser.add_argument("--base", type=Path, required=True, help="baseline source tree (a torchcal checkout)")
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--out", type=Path, default=ROOT / "docs" / "bench_run")
+    parser.add_argument("--serial", action="store_true",
+                        help="also run this tree with fit.jobs=1 (everything in one process), interleaved")
     args = parser.parse_args()
     trees = {"baseline": args.base.resolve(), "this tree": ROOT}
+    if args.serial:
+        trees["this tree, fit.jobs=1"] = ROOT
     work = Path(tempfile.mkdtemp(prefix="bench_run_"))
     runs: dict[str, list[dict]] = {k: [] for k in trees}
     same: dict[str, bool] = {}
     for r in range(args.repeats):
         for label, tree in trees.items():
-            tag = "base" if label == "baseline" else "new"
+            tag = {"baseline": "base", "this tree": "new"}.get(label, "serial")
             out, export = work / f"{tag}_out", work / f"{tag}_export"
-            runs[label].append(run_once(tree, out, export))
+            extra = ("fit.jobs=1",) if tag == "serial" else ()
+            runs[label].append(run_once(tree, out, export, extra))
             print(f"repeat {r + 1} {label}: {runs[label][-1]}", flush=True)
         checked = same_results((work / "base_out", work / "base_export"), (work / "new_out", work / "new_export"))
+        if args.serial:  # the serial run of this tree must write what the baseline wrote too
+            serial = same_results((work / "base_out", work / "base_export"), (work / "serial_out", work / "serial_export"))
+            checked = {k: v and serial.get(k, False) for k, v in checked.items()}
         same = checked if not same else {k: same[k] and v for k, v in checked.items()}
     shutil.rmtree(work, ignore_errors=True)
     summary = {label: {"median_wall_s": statistics.median(x["wall_s"] for x in rs),

@@ -8,7 +8,9 @@ on the 1000 poses of jacobi-ur5-gts3800. Stages are exclusive (a stage's time ex
 stages nested in it): folds, structure CV (configuration regions; again on blocks of
 measurement order when a kept head is checked there), final structure fit, uncertainty
 calibration, model folder, head CV, kept head fit, held-out evaluation, export, report and
-plots, and the rest (loading, import, console). Wall and CPU seconds (all threads) per stage;
+plots, and the rest (loading, import, console). Wall and CPU seconds (all threads of this
+process: the work of the fit's worker processes, torchcal.core.workers, shows in a stage's wall
+time only, and in the total CPU of ``scripts/bench_run.py``) per stage;
 the machine's load average next to each run. Median of ``--repeats`` per case; with
 ``--baseline DIR`` the same cases also run on the source tree ``DIR`` (imported instead of the installed one),
 interleaved run by run so that machine load affects both alike. Results in

@@ -19,6 +19,10 @@ if os.environ.get("PYTEST_XDIST_WORKER"):
     os.environ.setdefault("OMP_NUM_THREADS", str(_share))
     torch.set_num_threads(_share)
 
+# The suite's own workers (pytest-xdist) already use the cores: a fit's side-by-side worker processes
+# (torchcal.core.workers) would only compete with them. Tests of those processes ask for them by name.
+os.environ.setdefault("TORCHCAL_JOBS", "1")
+
 # ../shared/data/real next to the checkout; TORCHCAL_REAL_DATA points elsewhere (e.g. from a worktree)
 REAL_DATA = Path(os.environ.get("TORCHCAL_REAL_DATA", Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real"))
 

@@ -96,6 +96,44 @@ def test_ctrl_c_or_sigterm_leaves_the_earlier_model(fixtures, tmp_path, sig, sta
     assert not any(p.name.startswith(".model.staging-") for p in tmp_path.iterdir())
 
 
+def _children(pid: int) -> set[int]:
+    """Processes whose parent is ``pid`` (Linux /proc)."""
+    found = set()
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:  # ended while read
+            continue
+        if int(fields[1]) == pid:
+            found.add(int(stat.parent.name))
+    return found
+
+
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="reads the process table from /proc")
+def test_ctrl_c_during_a_fit_in_two_processes_stops_its_workers(fixtures, tmp_path):
+    """Ctrl-C while the heads are fitted side by side: one line, status 130, and no worker left running."""
+    proc = _cli_process(["fit", "--robot", str(fixtures.robot), "--data", str(fixtures.train), "--out",
+                         str(tmp_path / "model"), "jobs=2"])
+    deadline = time.monotonic() + 120
+    # the geometry and structure are saved in the staging folder: the heads' cross-validation follows at once
+    while not list(tmp_path.glob(".model.staging-*/calibration.json")):
+        assert proc.poll() is None and time.monotonic() < deadline
+        time.sleep(0.05)
+    time.sleep(0.5)
+    workers = _children(proc.pid)
+    assert workers, "the fit runs in one process"
+    proc.send_signal(signal.SIGINT)
+    # a worker left behind keeps the command's output pipes open until it gives up waiting (a minute)
+    _, err = proc.communicate(timeout=30)
+    assert proc.returncode == 130, err
+    assert "Traceback" not in err and "interrupted" in err
+    deadline = time.monotonic() + 10
+    while any(Path(f"/proc/{pid}").exists() and "Z" not in Path(f"/proc/{pid}/stat").read_text().split()[2:3]
+              for pid in workers):
+        assert time.monotonic() < deadline, f"worker processes {workers} still run after the command ended"
+        time.sleep(0.1)
+
+
 def test_kill_9_leaves_a_whole_folder(fixtures, tmp_path):
     """kill -9 while a refit is writing: the earlier folder or the new one, whole (scripts/kill_sweep.py sweeps)."""
     import shutil

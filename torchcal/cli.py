@@ -15,6 +15,8 @@ import sys
 from collections.abc import Callable
 from pathlib import Path
 
+from torchcal.core.workers import stop_workers
+
 
 def _split_instrument(overrides: list[str]) -> tuple[str, list[str]]:
     """Take ``instrument=<name>`` out of a list of ``key=value`` overrides (default: the registry's)."""
@@ -527,6 +529,7 @@ def _main(argv: list[str] | None) -> int:
         return 2
     finally:
         warnings.showwarning = show
+        stop_workers()  # idle by now, or still busy after an interrupt; os._exit below would orphan them
 
 
 def _exit_as_module(status: int) -> None:

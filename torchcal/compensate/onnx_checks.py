@@ -8,11 +8,14 @@ import torch
 
 
 def ort_session(path: Path):
-    """A quiet CPU onnxruntime session of the file at ``path``."""
+    """A quiet CPU onnxruntime session of the file at ``path``, on as many threads as torch uses here
+    (one inside a fit, :mod:`torchcal.core.threads`: a check run beside other work then takes no
+    core from it; per-pose graphs give the same numbers on any count)."""
     import onnxruntime as ort
 
     options = ort.SessionOptions()
     options.log_severity_level = 3
+    options.intra_op_num_threads = torch.get_num_threads()
     return ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
 
 

@@ -232,10 +232,22 @@ class RuntimeOptions(_Checked):
     Attributes:
         device: ``cpu`` or a torch device string.
         progress: show progress of long steps.
+        jobs: processes that fit a fit's independent pieces side by side (the heads of a
+            cross-validation fold; :mod:`torchcal.core.workers`): ``null`` (default) = the
+            ``TORCHCAL_JOBS`` environment variable, else the usable cores; ``1`` = this process only.
+            The results are the same for every value.
     """
 
     device: str = "cpu"
     progress: bool = True
+    jobs: int | None = None
+
+    def __post_init__(self) -> None:
+        if self.jobs is not None:
+            check_range(self, "jobs", low=1, high=1024)
+            if self.jobs != int(self.jobs):
+                raise TorchcalError(f"jobs must be a whole number of processes, got {self.jobs!r}")
+        super().__post_init__()
 
 
 @dataclass

@@ -13,6 +13,9 @@ to pass the gate it would then need well over ``residual_margin`` on the remaini
 that learns something real gains on every fold and is never stopped; one that does not is
 stopped as soon as that shows (docs/benchmarks.md: the default fit on 3000 UR10 poses). A
 stopped head is reported as such.
+
+The heads of one fold are independent of each other: with ``jobs > 1`` they are fitted side by side
+in worker processes (:mod:`torchcal.core.workers`), each exactly as it would be fitted here.
 """
 
 from __future__ import annotations
@@ -22,9 +25,12 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from torchcal.core.threads import fit_threads
+from torchcal.core.workers import side_by_side
 from torchcal.data.measurements import Measurements
 from torchcal.model_selection.compare import Candidate
 from torchcal.model_selection.structure import StructureCV, fold_targets
+from torchcal.residual.base import ResidualHead
 from torchcal.residual.features import JointFeatures
 from torchcal.residual.selection import fit_before_gate
 
@@ -48,9 +54,27 @@ def make_features(robot, data: Measurements) -> JointFeatures:
     return JointFeatures(robot.turn_limits.to(torch.float64), temperature)  # one turn for a continuous joint
 
 
+def fit_and_predict(head: ResidualHead, x_train: np.ndarray, y_train: np.ndarray, x_test: np.ndarray, seed: int,
+                    device: str = "cpu") -> np.ndarray:
+    """``head`` fitted on one fold's training part (its own tuning on a slice of it, as
+    :func:`~torchcal.residual.selection.fit_before_gate` splits it), predicting the held-out part.
+
+    Arrays in and out (features, targets and predictions in mm): a worker process can run it
+    (:func:`torchcal.core.workers.side_by_side`), on one thread like the fit that sends it.
+    """
+    with fit_threads():
+        x_fit, y_fit, x_held = (torch.from_numpy(a).to(device) for a in (x_train, y_train, x_test))
+        fit_before_gate(head, x_fit, y_fit, seed=seed)
+        with torch.no_grad():
+            return head.predict(x_held).cpu().numpy()
+
+
 def cross_validate_heads(robot, data: Measurements, structure: StructureCV, parent: str, make_heads, *,
-                         margin: float, seed: int = 0, progress=None) -> HeadCV:
-    """Out-of-fold errors (mm) of each head from ``make_heads() -> [ResidualHead]`` on ``parent``'s fold fits."""
+                         margin: float, seed: int = 0, progress=None, jobs: int = 1) -> HeadCV:
+    """Out-of-fold errors (mm) of each head from ``make_heads() -> [ResidualHead]`` on ``parent``'s fold fits.
+
+    ``jobs``: processes that fit a fold's heads side by side (1: one after the other, here).
+    """
     folds = structure.folds
     parent_errors = next(c.errors_mm for c in structure.candidates if c.name == parent)
     names = [h.name for h in make_heads()]
@@ -68,13 +92,12 @@ def cross_validate_heads(robot, data: Measurements, structure: StructureCV, pare
         y_train = fold_targets(result, data, train_idx)
         y_test = fold_targets(result, data, test_idx)
         x_train, x_test = features(train.q, train.temperature), features(test.q, test.temperature)
-        for head in make_heads():
-            if head.name not in active:
-                continue
-            fit_before_gate(head, x_train, y_train, seed=seed)
-            with torch.no_grad():
-                predicted = head.predict(x_test)
-            errors[head.name][test_idx] = (y_test - predicted).norm(dim=-1).cpu().numpy()
+        heads = [head for head in make_heads() if head.name in active]
+        arrays = tuple(t.cpu().numpy() for t in (x_train, y_train, x_test))
+        predictions = side_by_side(fit_and_predict, [(head, *arrays, seed, str(x_test.device)) for head in heads], jobs)
+        for head, predicted in zip(heads, predictions):
+            predicted_mm = torch.from_numpy(predicted).to(y_test.device)
+            errors[head.name][test_idx] = (y_test - predicted_mm).norm(dim=-1).cpu().numpy()
         done = np.flatnonzero(np.isin(folds.fold, np.arange(f + 1)))
         if FUTILITY_AFTER_FOLDS <= f + 1 < folds.k:
             base = float(np.sqrt(np.mean(np.square(parent_errors[done]))))

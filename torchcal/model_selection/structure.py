@@ -17,6 +17,8 @@ import numpy as np
 import torch
 
 from torchcal.core.errors import IdentifiabilityWarning
+from torchcal.core.threads import fit_threads
+from torchcal.core.workers import side_by_side
 from torchcal.data.folds import Folds
 from torchcal.data.measurements import Measurements
 from torchcal.identify.calibrate import CalibrationResult
@@ -65,33 +67,47 @@ def structure_label(gravity: str, harmonics: str) -> str:
 
 def cross_validate_structures(robot, data: Measurements, fit_geometry, options: list[tuple[str, str]], folds: Folds,
                               *, tolerance: float = 0.01, harmonic_min_range_deg: float = 0.0,
-                              progress=None) -> StructureCV:
+                              progress=None, jobs: int = 1) -> StructureCV:
     """Score every option on ``folds``; ``fit_geometry(train) -> CalibrationResult``.
 
-    ``progress(step: str)``, if given, is called before each fold.
+    ``progress(step: str)``, if given, is called before the folds. ``jobs``: processes that fit the
+    folds side by side (:func:`torchcal.core.workers.side_by_side`; the same fits as one by one).
     """
     n = len(data)
     vectors = {structure_label(*o): np.zeros((n, 3)) for o in options}
     fold_results: dict[str, list] = {structure_label(*o): [] for o in options}
-    with warnings.catch_warnings():
-        # a fold's fit repeats the identifiability warnings of the full fit, which is reported once
-        warnings.simplefilter("ignore", IdentifiabilityWarning)
-        for f, (train_idx, test_idx) in enumerate(folds.splits()):
-            if progress is not None:
-                progress(f"cross-validating structures: fold {f + 1} of {folds.k}")
-            train, test = data.subset(train_idx), data.subset(test_idx)
-            geometry = fit_geometry(train)
-            for gravity, harmonics in options:
-                label = structure_label(gravity, harmonics)
-                result = fit_joint_errors(robot, train, geometry, POINT_SETS[gravity], HARMONIC_SETS[harmonics],
-                                          harmonic_min_range_deg)
-                # pooled series: each later series in the frame the fold fit gives it (identify.series_frames)
-                held_out = series_held_out(partial(predicted_positions, result), train, test)
-                vectors[label][test_idx] = held_out.detach().cpu().numpy() * 1e3
-                fold_results[label].append(result)
+    if progress is not None:
+        progress(f"cross-validating structures on {folds.k} folds")
+    splits = list(folds.splits())
+    tasks = [(robot, data, train_idx, test_idx, fit_geometry, options, harmonic_min_range_deg)
+             for train_idx, test_idx in splits]
+    for (_train_idx, test_idx), fits in zip(splits, side_by_side(fit_fold, tasks, jobs)):
+        for (gravity, harmonics), (held_out_mm, result) in zip(options, fits):
+            label = structure_label(gravity, harmonics)
+            vectors[label][test_idx] = held_out_mm
+            fold_results[label].append(result)
     candidates = [Candidate(label, np.linalg.norm(v, axis=1)) for label, v in vectors.items()]
     comparison = compare_candidates(candidates, folds.units(), folds.description, tolerance=tolerance)
     return StructureCV(folds, options, candidates, fold_results, comparison, vectors)
+
+
+def fit_fold(robot, data: Measurements, train_idx: np.ndarray, test_idx: np.ndarray, fit_geometry,
+             options: list[tuple[str, str]], harmonic_min_range_deg: float) -> list[tuple[np.ndarray, CalibrationResult]]:
+    """One fold: geometry identified on the training part, every option refining it there; per option,
+    the held-out error vectors (instrument frame, mm ``(k, 3)``) and the fit. A worker process can run it."""
+    with warnings.catch_warnings(), fit_threads():
+        # a fold's fit repeats the identifiability warnings of the full fit, which is reported once
+        warnings.simplefilter("ignore", IdentifiabilityWarning)
+        train, test = data.subset(train_idx), data.subset(test_idx)
+        geometry = fit_geometry(train)
+        fits = []
+        for gravity, harmonics in options:
+            result = fit_joint_errors(robot, train, geometry, POINT_SETS[gravity], HARMONIC_SETS[harmonics],
+                                      harmonic_min_range_deg)
+            # pooled series: each later series in the frame the fold fit gives it (identify.series_frames)
+            held_out = series_held_out(partial(predicted_positions, result), train, test)
+            fits.append((held_out.detach().cpu().numpy() * 1e3, result))
+    return fits
 
 
 def fold_targets(result, data: Measurements, index: np.ndarray) -> torch.Tensor:

@@ -20,6 +20,9 @@ class ResidualHead(ABC):
     name = "head"
     #: whether ``fit`` steers itself with its validation pair (search, early stopping)
     tunes_on_validation = True
+    #: modules ``fit`` imports on first use: a worker process imports them before its first fit
+    #: (:func:`torchcal.core.workers.warm_up`)
+    imports: tuple[str, ...] = ()
 
     @abstractmethod
     def fit(self, x_train: torch.Tensor, y_train: torch.Tensor, x_val: torch.Tensor, y_val: torch.Tensor) -> ResidualHead:

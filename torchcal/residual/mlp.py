@@ -64,6 +64,8 @@ class MLPHead(ResidualHead):
     """
 
     name = "mlp"
+    # Lightning Fabric, and torch._dynamo (which Adam's constructor imports): about 2 s on first use
+    imports = ("lightning.fabric", "torch._dynamo")
 
     @classmethod
     def from_options(cls, options: Any) -> MLPHead:

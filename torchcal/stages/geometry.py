@@ -18,6 +18,7 @@ import torch
 
 from torchcal.config.schema import FitConfig
 from torchcal.core.errors import DataError
+from torchcal.core.workers import resolve_jobs
 from torchcal.data.folds import make_folds
 from torchcal.data.measurements import Measurements
 from torchcal.identify import IDENTIFIERS
@@ -200,7 +201,8 @@ def fit_with_selection(robot: RobotModel, data: Measurements, config: FitConfig,
     if len(options) > 1 or config.residual != "none" or config.uncertainty != "none":
         folds = make_config_folds(robot, data, config)
         structure = cross_validate_structures(robot, data, geometry, options, folds, progress=progress,
-                                              harmonic_min_range_deg=config.harmonic_min_range_deg)
+                                              harmonic_min_range_deg=config.harmonic_min_range_deg,
+                                              jobs=resolve_jobs(config.jobs))
         structure.prior, structure.prior_start = prior, full
         gravity, harmonics = structure.chosen
         if is_series(HARMONIC_SETS[harmonics]) and config.head_time_check and config.split != "blocks":
@@ -244,7 +246,7 @@ def _learned_time_check(robot: RobotModel, data: Measurements, config: FitConfig
     blocks = make_folds("blocks", robot, data.q, k=config.cv_folds, seed=config.seed, order=order,
                         series=data.series)
     check = cross_validate_structures(robot, data, geometry, [rival, chosen], blocks,
-                                      harmonic_min_range_deg=config.harmonic_min_range_deg)
+                                      harmonic_min_range_deg=config.harmonic_min_range_deg, jobs=resolve_jobs(config.jobs))
     rows = ", ".join(f"{r['name']} {r['cv_rms_mm']:.4f} mm" for r in check.comparison.rows)
     comparison = structure.comparison
     if check.chosen == chosen:
@@ -273,7 +275,8 @@ def cross_validate_stored_structure(stored: StoredModel, data: Measurements, con
         base = base_spec(stored.robot, config)
         prior = None if base is None else replace(base, scale=float(stored.metadata["prior"]["scale"]))
     structure = cross_validate_structures(stored.robot, data, geometry_fitter(stored.robot, config, prior),
-                                          [(gravity, harmonics)], folds, harmonic_min_range_deg=config.harmonic_min_range_deg)
+                                          [(gravity, harmonics)], folds, harmonic_min_range_deg=config.harmonic_min_range_deg,
+                                          jobs=resolve_jobs(config.jobs))
     structure.prior = prior
     return structure
 

@@ -13,13 +13,14 @@ real-data validation and every study trial call :func:`fit_model`; what they do 
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from torchcal.config.compose import save_resolved_config
 from torchcal.core.threads import fit_threads
+from torchcal.core.workers import resolve_jobs, warm_up
 from torchcal.data.measurements import Measurements
 from torchcal.identify.calibrate import CalibrationResult
 from torchcal.kinematics.robot import RobotModel
@@ -27,7 +28,15 @@ from torchcal.model_selection.compare import Comparison
 from torchcal.model_selection.structure import StructureCV
 from torchcal.stages.geometry import fit_with_selection, save_fit
 from torchcal.stages.prior_options import prior_metadata
-from torchcal.stages.residual import ResidualOutcome, fit_residual_stage, write_selection
+from torchcal.stages.residual import (
+    ResidualOutcome,
+    fit_residual_stage,
+    head_modules,
+    write_selection,
+)
+
+#: What the structure cross-validation's fold fits import (a worker imports it when it starts).
+STRUCTURE_MODULES = ("torchcal.model_selection.structure",)
 
 #: The decision recorded in ``model_selection.json`` when no head was asked for.
 NO_HEADS = "residual=none: no head considered"
@@ -76,6 +85,27 @@ class FitRun:
         return lines
 
 
+def start_workers(config: Any) -> None:
+    """Start the worker processes of a fit with ``config`` in the background (:mod:`torchcal.core.workers`),
+    importing what the structure cross-validation's fold fits need. Nothing to do with ``jobs=1``.
+
+    A worker runs its queue in order, imports included: each later piece's imports are queued when
+    the fit is about to need them (:func:`prepare_workers`), not here, so that they do not hold up
+    the folds."""
+    warm_up(_processes(config), STRUCTURE_MODULES)
+
+
+def prepare_workers(config: Any, modules: Sequence[str]) -> None:
+    """Queue the import of ``modules`` in the started workers (the next piece's, while this process
+    does the serial work before it)."""
+    warm_up(_processes(config), modules)
+
+
+def _processes(config: Any) -> int:
+    # the folds are the most pieces a fit deals out at once
+    return min(resolve_jobs(config.jobs), max(config.cv_folds, 2))
+
+
 def fit_model(
     folder: str | Path,
     robot: RobotModel,
@@ -102,7 +132,10 @@ def fit_model(
 
 def _fit_model(folder: Path, robot: RobotModel, data: Measurements, config: Any, metadata, fitted, progress,
                residual_progress) -> FitRun:
+    start_workers(config)  # their start-up overlaps the fit's serial part (core.workers)
     result, structure = fitted if fitted is not None else fit_with_selection(robot, data, config, progress=progress)
+    if config.residual != "none":
+        prepare_workers(config, head_modules(config))  # imported there while the model folder is written
     extra = metadata(result) if callable(metadata) else dict(metadata or {})
     folder = save_fit(Path(folder), robot, data, result, extra, structure=structure, uncertainty=config.uncertainty)
     save_resolved_config(folder / "config.yaml", config)

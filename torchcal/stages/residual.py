@@ -19,6 +19,7 @@ from pathlib import Path
 import torch
 
 from torchcal.core.folder import write_member_json
+from torchcal.core.workers import resolve_jobs
 from torchcal.data.folds import make_folds
 from torchcal.data.measurements import Measurements
 from torchcal.identify.joint_fit import CV_TOLERANCE
@@ -61,6 +62,11 @@ class ResidualOutcome:
         return {"decision": self.decision, "kept": self.kept, "comparison": self.comparison.to_dict(), "table": self.table}
 
 
+def head_modules(config) -> list[str]:
+    """The modules the heads of ``config`` import when they fit (a worker imports them ahead)."""
+    return list(dict.fromkeys(m for h in _candidates(config) for m in (type(h).__module__, *h.imports)))
+
+
 def _candidates(config) -> list[ResidualHead]:
     """The heads of ``config.residual``, each built by its own :meth:`ResidualHead.from_options`."""
     return [HEADS[name].from_options(config) for name in head_names(config.residual)]
@@ -88,7 +94,8 @@ def select_with_heads(robot, data: Measurements, structure: StructureCV, config,
     assert structure.comparison is not None
     parent = structure.comparison.chosen
     heads = cross_validate_heads(robot, data, structure, parent, lambda: _candidates(config),
-                                 margin=config.residual_margin, seed=config.seed, progress=progress)
+                                 margin=config.residual_margin, seed=config.seed, progress=progress,
+                                 jobs=resolve_jobs(config.jobs))
     candidates = structure.candidates + heads.candidates
     units, protocol = structure.folds.units(), structure.folds.description
     comparison = compare_candidates(candidates, units, protocol, tolerance=structure_tolerance())
@@ -158,7 +165,7 @@ def _check_on_time_blocks(robot, data: Measurements, structure: StructureCV, hea
     blocks = make_folds("blocks", robot, data.q, k=config.cv_folds, order=order, series=data.series)
     timed = cross_validate_structures(robot, data, geometry_fitter(robot, config, structure.prior, start=structure.prior_start), [structure.chosen], blocks,
                                       harmonic_min_range_deg=config.harmonic_min_range_deg,
-                                      progress=progress)
+                                      progress=progress, jobs=resolve_jobs(config.jobs))
     heads = cross_validate_heads(robot, data, timed, parent,
                                  lambda: [h for h in _candidates(config) if h.name == head_name],
                                  margin=config.residual_margin, seed=config.seed, progress=progress)

@@ -24,6 +24,7 @@ import logging
 import sys
 import threading
 import time
+from dataclasses import replace
 from pathlib import Path
 
 from torchcal.core.errors import TorchcalError
@@ -245,4 +246,6 @@ def work(base, config: StudyConfig, study_dir: str, threads: int = 1) -> int:
 
     torch.set_num_threads(max(1, threads))
     optuna.logging.set_verbosity(optuna.logging.WARNING)
+    if base.fit.jobs is None:  # the study's workers are its parallelism: each trial fits in its own process
+        base = replace(base, fit=replace(base.fit, jobs=1))
     return Worker(base, config, Path(study_dir)).run()

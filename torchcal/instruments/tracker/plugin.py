@@ -48,9 +48,10 @@ class TrackerInstrument(Instrument):
         from torchcal.identify.joint_fit import predicted_positions
         from torchcal.kinematics.robot import load_robot
         from torchcal.stages.geometry import NOMINAL_PROTOCOL, nominal_errors, with_tool
-        from torchcal.stages.pipeline import fit_model
+        from torchcal.stages.pipeline import fit_model, start_workers
 
         config = compose_fit_config(request.overrides)
+        start_workers(config)  # they start while the files are read and checked
         robot = with_tool(load_robot(request.robot, base_link=request.base_link, end_link=request.end_link), config)
         files = (request.data, *request.more_data)
         series, set_aside = [], {}

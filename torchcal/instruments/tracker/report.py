@@ -100,7 +100,8 @@ class ReportInputs:
             ``observed_p95_mm``, ``per_pose_predicted_p95_mm``) on the last pose set, if the model
             predicts its own uncertainty.
         leakage: ``metrics["leakage"]`` of a held-out file.
-        compensation_on_truth: the twin only: exported commands sent to the true robot.
+        compensation_on_truth: the twin only: exported commands sent to the true robot (or a function
+            giving them, called when the report reaches the compensator: the export may still run).
         truth_x: the twin only: the truth expressed in the fitted parameter set (SI).
         joint_truth: the twin only: its periodic (gear) joint errors, ``q (B, N) rad -> (B, N) rad``,
             drawn beside the learned per-joint curves.
@@ -112,7 +113,7 @@ class ReportInputs:
     compensator: dict | None = None
     uncertainty: dict | None = None
     leakage: dict | None = None
-    compensation_on_truth: dict | None = None
+    compensation_on_truth: dict | Callable[[], dict] | None = None
     truth_x: torch.Tensor | None = None
     truth_note: str = ""
     joint_truth: Callable[[torch.Tensor], torch.Tensor] | None = None
@@ -367,6 +368,8 @@ def _compensator(pose_sets: list[PoseSet], inputs: ReportInputs) -> Section:
             Table("compensator", ["what", "protocol", "RMS [mm]", "p95 [mm]", "max [mm]"], rows),
         ]
     truth = inputs.compensation_on_truth
+    if callable(truth):  # the export's check, run beside the report: asked for only here
+        truth = truth()
     if truth:
         rows = [[name, _f(truth[key]["position_rms_mm"]), _f(truth[key]["position_max_mm"])]
                 for name, key in (("uncompensated", "uncompensated"), ("compensated, torch", "torch"),
@@ -496,7 +499,7 @@ def _convergence(stored: StoredModel) -> Section | None:
 def calibration_report(title: str, stored: StoredModel, pose_sets: list[PoseSet], inputs: ReportInputs | None = None) -> Report:
     """The whole report (see the module docstring); ``pose_sets`` in the order shown, held-out last."""
     inputs = inputs or ReportInputs()
-    sections: list[Section | None] = [
+    before: list[Section | None] = [
         _summary(stored, pose_sets, inputs),
         _accuracy(pose_sets),
         _selection(inputs),
@@ -504,7 +507,8 @@ def calibration_report(title: str, stored: StoredModel, pose_sets: list[PoseSet]
         _per_pose(pose_sets),
         *_joints_and_workspace(pose_sets),
         _iso9283(pose_sets),
-        _compensator(pose_sets, inputs),
+    ]
+    after: list[Section | None] = [
         _uncertainty(pose_sets, inputs),
         *parameter_sections(stored, inputs.truth_x, inputs.truth_note),
         _joint_terms(stored, pose_sets, inputs.joint_truth),
@@ -512,4 +516,6 @@ def calibration_report(title: str, stored: StoredModel, pose_sets: list[PoseSet]
         _notes(stored, inputs),
         _convergence(stored),
     ]
-    return Report(title, [s for s in sections if s is not None])
+    # built last, shown in its place: on the twin it may wait for the export's check running beside
+    compensator = _compensator(pose_sets, inputs)
+    return Report(title, [s for s in [*before, compensator, *after] if s is not None])

@@ -21,6 +21,7 @@ from torchcal.core.io import atomic_write_json
 from torchcal.core.metrics import position_metrics
 from torchcal.core.outputs import check_name
 from torchcal.core.threads import fit_threads
+from torchcal.core.workers import in_background, resolve_jobs
 from torchcal.data.measurements import Measurements, load_measurements
 from torchcal.identify.calibrate import CalibrationResult
 from torchcal.identify.lm import LevenbergMarquardt
@@ -39,7 +40,7 @@ from torchcal.kinematics.robot import load_robot
 from torchcal.report.document import write_report
 from torchcal.sim.twin import Twin
 from torchcal.stages.geometry import NOMINAL_PROTOCOL, held_out_errors, nominal_errors
-from torchcal.stages.pipeline import fit_model
+from torchcal.stages.pipeline import fit_model, prepare_workers, start_workers
 from torchcal.stages.store import load_model
 
 
@@ -58,6 +59,10 @@ def projected_truth(twin: Twin, result: CalibrationResult, n: int = 2000) -> tup
     sol = LevenbergMarquardt(max_iterations=50).solve(problem, result.x)
     r = problem.residuals(sol.x)
     return sol.x, float(r.pow(2).mean().sqrt())
+
+
+#: What the export imports on first use: the worker that exports imports it ahead (core.workers.warm_up).
+EXPORT_MODULES = ("torchcal.compensate.export", "onnx", "onnxruntime", "torch.onnx")
 
 
 def run(config: RunConfig, console=None) -> dict:
@@ -87,6 +92,8 @@ def _run_into(folder: Path, destination: Path, config: RunConfig, console) -> di
     """The run's steps, writing into ``folder`` (staging); recorded paths name ``destination``, where it will be."""
     started = time.perf_counter()
     save_resolved_config(folder / "config.yaml", config)
+    jobs = resolve_jobs(config.fit.jobs)
+    start_workers(config.fit)  # they start while the twin is simulated
     with console.status("[bold]simulating the twin") as status:
         case = write_twin_case(folder / "case", config.twin)
         robot = load_robot(case["robot.yaml"])
@@ -113,6 +120,8 @@ def _run_into(folder: Path, destination: Path, config: RunConfig, console) -> di
         if fitted.residual is not None:
             console.print(fitted.residual.table)
             console.log(fitted.residual.decision)
+        if config.export:
+            prepare_workers(config.fit, EXPORT_MODULES)  # imported there while the held-out poses are scored
         status.update("[bold]evaluating on held-out poses")
         stored = load_model(model_dir)
         stages = {"nominal": nominal_errors(robot, test), "geometric": held_out_errors(stored, test, residual=False)}
@@ -140,13 +149,25 @@ def _run_into(folder: Path, destination: Path, config: RunConfig, console) -> di
         "elapsed_s": None,
     }
     write_member_json(model_dir, "metrics.json", {"held_out_data": test.source, "stages": metrics, "final_stage": summary["final_stage"]})
+    joint_truth = twin.gear_deviation if config.twin.gear else None
     if config.export:
-        export_dir = Path(config.export_dir) / config.name
-        summary["export"] = export_and_check(model_dir, export_dir, test, true_tcp_positions=twin.true_tcp_positions)
-        console.log(summary["export"]["summary"])
-        _log_compensation_on_twin(summary["export"]["compensation_on_true_robot"], console)
-    report = _write_report(folder, stored, train, test, structure, summary, truth_x, case["test.csv"],
-                           joint_truth=twin.gear_deviation if config.twin.gear else None)
+        # the export and its checks in a worker while the report's figures are drawn here (core.workers)
+        with in_background(export_and_check, model_dir, Path(config.export_dir) / config.name, test,
+                           twin.true_tcp_positions, jobs=min(jobs, 2)) as pending:
+
+            def exported() -> dict:
+                if "export" not in summary:
+                    summary["export"] = pending.result()
+                    console.log(summary["export"]["summary"])
+                    _log_compensation_on_twin(summary["export"]["compensation_on_true_robot"], console)
+                return summary["export"]
+
+            report = _write_report(folder, stored, train, test, structure, summary, truth_x, case["test.csv"],
+                                   joint_truth=joint_truth, exported=exported)
+            exported()
+    else:
+        report = _write_report(folder, stored, train, test, structure, summary, truth_x, case["test.csv"],
+                               joint_truth=joint_truth)
     final = summary["test"][summary["final_stage"]]
     # the model as chosen (structure and head), not the stage key: "geometric" also holds joint-space terms
     console.log(f"report: {destination / report.relative_to(folder)}; final held-out RMS {final['position_rms_mm']:.4f} mm ({summary['model']})")
@@ -156,8 +177,11 @@ def _run_into(folder: Path, destination: Path, config: RunConfig, console) -> di
 
 
 def _write_report(folder: Path, stored, train: Measurements, test: Measurements, structure, summary: dict,
-                  truth_x: torch.Tensor, test_file: Path, joint_truth=None) -> Path:
-    """The run's report (the one report builder of ``fit`` and ``evaluate``): training and held-out file, truth."""
+                  truth_x: torch.Tensor, test_file: Path, joint_truth=None, exported=None) -> Path:
+    """The run's report (the one report builder of ``fit`` and ``evaluate``): training and held-out file, truth.
+
+    ``exported()``: the export's summary, asked for only when the report reaches the compensator.
+    """
     cv = cross_validated_stage(stored, structure)
     extra = [cv] if cv is not None else []
     pose_sets = [score_pose_set(stored, train, held_out=False, extra=extra, focus_extra=bool(extra)),
@@ -176,7 +200,7 @@ def _write_report(folder: Path, stored, train: Measurements, test: Measurements,
                   f"{tc['projection_residual_rms_mm']:.2e} mm).")
     inputs = ReportInputs(selection=_selection(stored.folder), compensator=scored.metrics["compensator"],
                           uncertainty=scored.metrics.get("uncertainty"), leakage=scored.metrics.get("leakage"),
-                          compensation_on_truth=(summary.get("export") or {}).get("compensation_on_true_robot"),
+                          compensation_on_truth=(lambda: exported()["compensation_on_true_robot"]) if exported else None,
                           truth_x=truth_x, truth_note=truth_note, joint_truth=joint_truth, context=context)
     report = calibration_report(f"torchcal report: {stored.robot.name} ({summary['name']})", stored, pose_sets, inputs)
     return write_report(folder, report)["report.md"]

@@ -1,0 +1,34 @@
+"""`torchcal run` with its export checked in a worker beside the report: the report waits for the
+export's check and states what it found, and the run's summary carries it."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from torchcal.config.schema import RunConfig
+from torchcal.core.workers import ready_workers, warm_up
+from torchcal.instruments.tracker.run import run
+from torchcal.sim.twin import TwinConfig
+
+
+@pytest.mark.slow
+def test_export_beside_the_report_reaches_the_report_and_the_summary(tmp_path):
+    out, exported = tmp_path / "runs", tmp_path / "exported"
+    config = RunConfig(name="small", out=str(out), export_dir=str(exported),
+                       twin=TwinConfig(seed=2, gravity=True, n_train=150, n_test=60))
+    config.fit.residual, config.fit.gravity_compliance, config.fit.joint_harmonics = "none", "elbow+wrist", "none"
+    config.fit.progress, config.fit.jobs = False, 2
+    warm_up(2, ["torchcal.compensate.export"], wait=True)  # a worker ready when the export starts
+    assert ready_workers() == 1
+    summary = run(config)
+    truth = summary["export"]["compensation_on_true_robot"]
+    report = (out / "small" / "report.md").read_text(encoding="utf-8")
+    # the report's table of the exported commands on the true twin holds the export's own numbers
+    table = report[report.index("exported commands sent to the true robot"):]
+    for key in ("uncompensated", "torch", "onnx_float64", "onnx_float32"):
+        assert f"{truth[key]['position_rms_mm']:.4f}" in table
+    manifest = json.loads((exported / "small" / "manifest.json").read_text(encoding="utf-8"))
+    assert sorted(manifest["files"]) == ["compensator", "compensator_f32", "monitor", "monitor_f32"]
+    assert json.loads((out / "small" / "metrics.json").read_text(encoding="utf-8"))["export"] == summary["export"]

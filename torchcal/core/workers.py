@@ -1,0 +1,202 @@
+"""Independent pieces of a fit side by side, on the cores a single fit leaves idle.
+
+A fit runs on one intra-op thread (:mod:`torchcal.core.threads`: its operations are too small to
+split), so on a machine with more cores the others sit idle while, for example, the heads'
+cross-validation trains an MLP after an MMA-ELM on the same fold although neither needs the
+other. :func:`side_by_side` deals such pieces out between this process and worker processes of
+loky's reusable executor (the process pool of joblib and scikit-learn, started by fork + exec, so
+no OpenMP state is inherited); :func:`in_background` runs one piece there while this process goes on. Each piece computes exactly what it would compute
+here, on one thread, from the same inputs and seeds: the results are the same to the bit.
+
+How many processes (``jobs``): the ``jobs`` option of a command, else the ``TORCHCAL_JOBS``
+environment variable, else the cores this process may run on (:func:`resolve_jobs`). ``1`` runs
+everything in this process. A study's workers fit with ``jobs=1``: they are the parallelism there.
+
+Workers start in the background (:func:`warm_up`) while this process does the serial part of a
+fit; their imports (torch, about 2 s) delay nothing, since pieces go to a worker only once it is
+ready (until then this process does them all). They ignore Ctrl-C: the main process handles it
+and stops them (:func:`stop_workers`). Idle workers exit after :data:`IDLE_TIMEOUT_S`.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
+from typing import Any
+
+#: Environment variable that sets the default number of processes of a fit.
+JOBS_ENV = "TORCHCAL_JOBS"
+#: Seconds an idle worker waits for the next piece before it exits.
+IDLE_TIMEOUT_S = 60
+
+
+def usable_cores() -> int:
+    """Cores this process may run on (its CPU affinity where the platform tells it)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # not every platform has an affinity mask
+        return max(1, os.cpu_count() or 1)
+
+
+def resolve_jobs(requested: int | None) -> int:
+    """Processes a fit may use: ``requested``, else ``$TORCHCAL_JOBS``, else :func:`usable_cores`."""
+    if requested is not None:
+        return max(1, int(requested))
+    env = os.environ.get(JOBS_ENV, "").strip()
+    if env:
+        try:
+            return max(1, int(env))
+        except ValueError:
+            from torchcal.core.errors import TorchcalError
+
+            raise TorchcalError(f"{JOBS_ENV} must be a whole number of processes, got {env!r}") from None
+    return usable_cores()
+
+
+def _ignore_interrupt() -> None:
+    """Worker start-up: Ctrl-C is the main process's to handle (it stops the workers)."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+@contextmanager
+def _interrupts_ignored_by_new_workers() -> Iterator[None]:
+    """Workers started in the body inherit an ignored SIGINT, so that a Ctrl-C of the terminal (sent
+    to the whole process group) reaches them not even while they import, before their initializer.
+    Only the main thread may set a handler; elsewhere the initializer alone does it."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
+#: The pool of this process: its executor, its number of workers and the futures of its warm-up tasks.
+_pool: dict[str, Any] = {}
+
+
+def _import(modules: Sequence[str]) -> None:
+    import importlib
+
+    for name in modules:
+        importlib.import_module(name)
+
+
+def warm_up(jobs: int, *module_groups: Sequence[str], wait: bool = False) -> None:
+    """Start ``jobs - 1`` workers now and import each group of modules in them (a group after
+    another, in order), without waiting for either unless ``wait``.
+
+    Pieces go to workers only once one has finished a warm-up group (:func:`ready_workers`): until
+    then this process does them, so a fit never waits for a worker to start.
+    """
+    if jobs <= 1:
+        return
+    from joblib.externals.loky import get_reusable_executor
+
+    # one intra-op thread per worker, like the fit in the main process (core.threads); set before any import
+    threads = dict.fromkeys(("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"), "1")
+    with _interrupts_ignored_by_new_workers():
+        executor = get_reusable_executor(max_workers=jobs - 1, timeout=IDLE_TIMEOUT_S, initializer=_ignore_interrupt,
+                                         env=threads)
+        futures = [executor.submit(_import, tuple(group)) for group in module_groups or [()]]
+    earlier = _pool.get("ready", []) if _pool.get("executor") is executor else []
+    _pool.update(executor=executor, workers=jobs - 1, ready=earlier + futures)
+    if wait:
+        for future in futures:
+            future.result()
+
+
+def ready_workers() -> int:
+    """Workers of this process's pool that have started and imported a warm-up group (0: none yet)."""
+    futures = _pool.get("ready", [])
+    started = any(f.done() and not f.cancelled() and f.exception() is None for f in futures)
+    return int(_pool["workers"]) if started else 0
+
+
+def stop_workers() -> None:
+    """Stop the workers at once, pieces under way included: after an error or an interrupt here, and
+    when a command ends (one that ends by ``os._exit`` would otherwise leave them waiting for work)."""
+    executor = _pool.pop("executor", None)
+    _pool.clear()
+    if executor is not None:
+        executor.shutdown(wait=True, kill_workers=True)
+
+
+def side_by_side(fn: Callable[..., Any], tasks: Sequence[tuple], jobs: int) -> list[Any]:
+    """``[fn(*task) for task in tasks]``, shared between this process and up to ``jobs - 1`` ready workers.
+
+    The tasks are dealt in turn: with one worker, the 1st, 3rd, 5th ... run here and the others there.
+    ``fn`` and the tasks' arguments travel by pickle (cloudpickle: functions, arrays, tensors, fits).
+    With ``jobs == 1``, one task or no ready worker (:func:`ready_workers`), everything runs here, in
+    order. An error in any task is raised here, as it was raised there; a task whose worker was lost
+    is done here.
+    """
+    workers = min(jobs - 1, ready_workers(), len(tasks) - 1)
+    if workers < 1:
+        return [fn(*task) for task in tasks]
+    processes = workers + 1
+    try:
+        with _interrupts_ignored_by_new_workers():  # a worker that timed out idle is started again here
+            futures = {i: _pool["executor"].submit(fn, *task) for i, task in enumerate(tasks) if i % processes}
+        results = {i: fn(*task) for i, task in enumerate(tasks) if not i % processes}
+        for i, future in futures.items():
+            results[i] = _result_or_here(future, fn, tasks[i])
+        return [results[i] for i in range(len(tasks))]
+    except BaseException:
+        stop_workers()
+        raise
+
+
+def _result_or_here(future: Any, fn: Callable[..., Any], args: tuple) -> Any:
+    """The piece's result from its worker; if the worker was lost (killed, out of memory) or could not
+    take the piece, the workers are stopped and the piece is done here."""
+    from concurrent.futures import BrokenExecutor
+
+    try:
+        return future.result()
+    except BrokenExecutor:
+        stop_workers()
+        return fn(*args)
+
+
+class Pending:
+    """A piece started by :func:`in_background`; :meth:`result` waits for it and returns (or raises) what it did."""
+
+    def __init__(self, fn: Callable[..., Any], args: tuple, future: Any = None) -> None:
+        self._fn, self._args, self._future = fn, args, future
+        self._value = fn(*args) if future is None else None
+
+    def result(self) -> Any:
+        if self._future is not None:
+            self._value, self._future = _result_or_here(self._future, self._fn, self._args), None
+        return self._value
+
+
+@contextmanager
+def in_background(fn: Callable[..., Any], *args: Any, jobs: int) -> Iterator[Pending]:
+    """``fn(*args)`` in a ready worker while the body runs here; with ``jobs == 1`` or no ready worker,
+    here and first.
+
+    Leaving the body by an error or an interrupt stops the worker, the piece under way included.
+    """
+    there = jobs > 1 and ready_workers() > 0
+    if there:
+        with _interrupts_ignored_by_new_workers():
+            pending = Pending(fn, args, _pool["executor"].submit(fn, *args))
+    else:
+        pending = Pending(fn, args)
+    try:
+        yield pending
+        pending.result()
+    except BaseException:
+        if there:
+            stop_workers()
+        raise
