@@ -16,6 +16,7 @@ from torchcal.core.errors import DataError, TorchcalError
 from torchcal.core.workers import (
     JOBS_ENV,
     in_background,
+    in_worker,
     ready_workers,
     resolve_jobs,
     side_by_side,
@@ -113,3 +114,11 @@ def test_a_piece_whose_worker_is_killed_is_done_here(one_worker):
     squared, pid = pending.result()
     np.testing.assert_array_equal(squared, [9.0, 9.0])
     assert pid == os.getpid() and ready_workers() == 0
+
+
+def _where(_: int) -> bool:
+    return in_worker()
+
+
+def test_a_worker_knows_it_is_one(one_worker):
+    assert side_by_side(_where, [(0,), (1,)], 2) == [False, True]

@@ -8,14 +8,17 @@ import torch
 
 
 def ort_session(path: Path):
-    """A quiet CPU onnxruntime session of the file at ``path``, on as many threads as torch uses here
-    (one inside a fit, :mod:`torchcal.core.threads`: a check run beside other work then takes no
-    core from it; per-pose graphs give the same numbers on any count)."""
+    """A quiet CPU onnxruntime session of the file at ``path``: on one thread in a worker process (a
+    check run there beside the main process's work takes no core from it), else on onnxruntime's
+    default; per-pose graphs give the same numbers on any count."""
     import onnxruntime as ort
+
+    from torchcal.core.workers import in_worker
 
     options = ort.SessionOptions()
     options.log_severity_level = 3
-    options.intra_op_num_threads = torch.get_num_threads()
+    if in_worker():
+        options.intra_op_num_threads = 1
     return ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
 
 

@@ -54,11 +54,20 @@ def resolve_jobs(requested: int | None) -> int:
     return usable_cores()
 
 
-def _ignore_interrupt() -> None:
+_in_worker = [False]  # set in a worker process when it starts
+
+
+def in_worker() -> bool:
+    """Whether this process is one of the workers (its pieces run beside the main process's work)."""
+    return _in_worker[0]
+
+
+def _worker_start() -> None:
     """Worker start-up: Ctrl-C is the main process's to handle (it stops the workers)."""
     import signal
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    _in_worker[0] = True
 
 
 @contextmanager
@@ -104,7 +113,7 @@ def warm_up(jobs: int, *module_groups: Sequence[str], wait: bool = False) -> Non
     # one intra-op thread per worker, like the fit in the main process (core.threads); set before any import
     threads = dict.fromkeys(("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"), "1")
     with _interrupts_ignored_by_new_workers():
-        executor = get_reusable_executor(max_workers=jobs - 1, timeout=IDLE_TIMEOUT_S, initializer=_ignore_interrupt,
+        executor = get_reusable_executor(max_workers=jobs - 1, timeout=IDLE_TIMEOUT_S, initializer=_worker_start,
                                          env=threads)
         futures = [executor.submit(_import, tuple(group)) for group in module_groups or [()]]
     earlier = _pool.get("ready", []) if _pool.get("executor") is executor else []
@@ -112,6 +121,13 @@ def warm_up(jobs: int, *module_groups: Sequence[str], wait: bool = False) -> Non
     if wait:
         for future in futures:
             future.result()
+
+
+def import_in_workers(*module_groups: Sequence[str]) -> None:
+    """Queue the import of each group of modules in the workers already started (nothing without them)."""
+    executor = _pool.get("executor")
+    if executor is not None:
+        _pool["ready"] += [executor.submit(_import, tuple(group)) for group in module_groups]
 
 
 def ready_workers() -> int:

@@ -169,7 +169,8 @@ def _identifier_options(robot: RobotModel, config: FitConfig) -> dict:
     return {"folds": config.cv_folds, "seed": config.seed, "split": config.split, "robot": robot}
 
 
-def _structure_options(config: FitConfig) -> list[tuple[str, str]]:
+def structure_options(config: FitConfig) -> list[tuple[str, str]]:
+    """The joint-space structures ``config`` lets the cross-validation choose from, simplest first."""
     try:
         return joint_error_options(config.gravity_compliance, config.joint_harmonics)
     except ValueError as exc:
@@ -188,7 +189,7 @@ def fit_with_selection(robot: RobotModel, data: Measurements, config: FitConfig,
         raise DataError(f"unknown method '{config.method}'; choose one of {sorted(IDENTIFIERS)}")
     if config.residual != "none":
         head_names(config.residual)  # an unknown head is refused before anything is fitted
-    options = _structure_options(config)
+    options = structure_options(config)
     few = pose_count_warning(len(data), int(ErrorModel(robot, parallel_threshold_deg=config.parallel_threshold_deg)
                                              .default_active().sum()))
     if few is not None:

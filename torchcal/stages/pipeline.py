@@ -20,13 +20,13 @@ from typing import Any
 
 from torchcal.config.compose import save_resolved_config
 from torchcal.core.threads import fit_threads
-from torchcal.core.workers import resolve_jobs, warm_up
+from torchcal.core.workers import import_in_workers, resolve_jobs, warm_up
 from torchcal.data.measurements import Measurements
 from torchcal.identify.calibrate import CalibrationResult
 from torchcal.kinematics.robot import RobotModel
 from torchcal.model_selection.compare import Comparison
 from torchcal.model_selection.structure import StructureCV
-from torchcal.stages.geometry import fit_with_selection, save_fit
+from torchcal.stages.geometry import fit_with_selection, save_fit, structure_options
 from torchcal.stages.prior_options import prior_metadata
 from torchcal.stages.residual import (
     ResidualOutcome,
@@ -87,23 +87,22 @@ class FitRun:
 
 def start_workers(config: Any) -> None:
     """Start the worker processes of a fit with ``config`` in the background (:mod:`torchcal.core.workers`),
-    importing what the structure cross-validation's fold fits need. Nothing to do with ``jobs=1``.
+    importing what the structure cross-validation's fold fits need.
 
-    A worker runs its queue in order, imports included: each later piece's imports are queued when
-    the fit is about to need them (:func:`prepare_workers`), not here, so that they do not hold up
-    the folds."""
-    warm_up(_processes(config), STRUCTURE_MODULES)
-
-
-def prepare_workers(config: Any, modules: Sequence[str]) -> None:
-    """Queue the import of ``modules`` in the started workers (the next piece's, while this process
-    does the serial work before it)."""
-    warm_up(_processes(config), modules)
+    Nothing to do with ``jobs=1``, nor for a fit that cross-validates one structure and no heads
+    (geometry alone: its folds take a fraction of a second, less than a worker's start-up costs
+    beside it: docs/benchmarks.md). A worker runs its queue in order, imports included: each later
+    piece's imports are queued when the fit is about to need them (:func:`prepare_workers`), not
+    here, so that they do not hold up the folds."""
+    if config.residual == "none" and len(structure_options(config)) <= 1:
+        return
+    warm_up(min(resolve_jobs(config.jobs), max(config.cv_folds, 2)), STRUCTURE_MODULES)
 
 
-def _processes(config: Any) -> int:
-    # the folds are the most pieces a fit deals out at once
-    return min(resolve_jobs(config.jobs), max(config.cv_folds, 2))
+def prepare_workers(modules: Sequence[str]) -> None:
+    """Queue the import of ``modules`` in the workers the fit started, if it started any (the next
+    piece's imports, while this process does the serial work before it)."""
+    import_in_workers(modules)
 
 
 def fit_model(
@@ -135,7 +134,7 @@ def _fit_model(folder: Path, robot: RobotModel, data: Measurements, config: Any,
     start_workers(config)  # their start-up overlaps the fit's serial part (core.workers)
     result, structure = fitted if fitted is not None else fit_with_selection(robot, data, config, progress=progress)
     if config.residual != "none":
-        prepare_workers(config, head_modules(config))  # imported there while the model folder is written
+        prepare_workers(head_modules(config))  # imported there while the model folder is written
     extra = metadata(result) if callable(metadata) else dict(metadata or {})
     folder = save_fit(Path(folder), robot, data, result, extra, structure=structure, uncertainty=config.uncertainty)
     save_resolved_config(folder / "config.yaml", config)

@@ -121,7 +121,7 @@ def _run_into(folder: Path, destination: Path, config: RunConfig, console) -> di
             console.print(fitted.residual.table)
             console.log(fitted.residual.decision)
         if config.export:
-            prepare_workers(config.fit, EXPORT_MODULES)  # imported there while the held-out poses are scored
+            prepare_workers(EXPORT_MODULES)  # imported there while the held-out poses are scored
         status.update("[bold]evaluating on held-out poses")
         stored = load_model(model_dir)
         stages = {"nominal": nominal_errors(robot, test), "geometric": held_out_errors(stored, test, residual=False)}
