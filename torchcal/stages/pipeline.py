@@ -13,7 +13,7 @@ real-data validation and every study trial call :func:`fit_model`; what they do 
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -92,17 +92,11 @@ def start_workers(config: Any) -> None:
     Nothing to do with ``jobs=1``, nor for a fit that cross-validates one structure and no heads
     (geometry alone: its folds take a fraction of a second, less than a worker's start-up costs
     beside it: docs/benchmarks.md). A worker runs its queue in order, imports included: each later
-    piece's imports are queued when the fit is about to need them (:func:`prepare_workers`), not
-    here, so that they do not hold up the folds."""
+    piece's imports are queued when the fit is about to need them
+    (:func:`~torchcal.core.workers.import_in_workers`), not here, so that they do not hold up the folds."""
     if config.residual == "none" and len(structure_options(config)) <= 1:
         return
     warm_up(min(resolve_jobs(config.jobs), max(config.cv_folds, 2)), STRUCTURE_MODULES)
-
-
-def prepare_workers(modules: Sequence[str]) -> None:
-    """Queue the import of ``modules`` in the workers the fit started, if it started any (the next
-    piece's imports, while this process does the serial work before it)."""
-    import_in_workers(modules)
 
 
 def fit_model(
@@ -134,7 +128,7 @@ def _fit_model(folder: Path, robot: RobotModel, data: Measurements, config: Any,
     start_workers(config)  # their start-up overlaps the fit's serial part (core.workers)
     result, structure = fitted if fitted is not None else fit_with_selection(robot, data, config, progress=progress)
     if config.residual != "none":
-        prepare_workers(head_modules(config))  # imported there while the model folder is written
+        import_in_workers(head_modules(config))  # imported there while the model folder is written
     extra = metadata(result) if callable(metadata) else dict(metadata or {})
     folder = save_fit(Path(folder), robot, data, result, extra, structure=structure, uncertainty=config.uncertainty)
     save_resolved_config(folder / "config.yaml", config)

@@ -21,7 +21,7 @@ from torchcal.core.io import atomic_write_json
 from torchcal.core.metrics import position_metrics
 from torchcal.core.outputs import check_name
 from torchcal.core.threads import fit_threads
-from torchcal.core.workers import in_background, resolve_jobs
+from torchcal.core.workers import import_in_workers, in_background, resolve_jobs
 from torchcal.data.measurements import Measurements, load_measurements
 from torchcal.identify.calibrate import CalibrationResult
 from torchcal.identify.lm import LevenbergMarquardt
@@ -40,7 +40,7 @@ from torchcal.kinematics.robot import load_robot
 from torchcal.report.document import write_report
 from torchcal.sim.twin import Twin
 from torchcal.stages.geometry import NOMINAL_PROTOCOL, held_out_errors, nominal_errors
-from torchcal.stages.pipeline import fit_model, prepare_workers, start_workers
+from torchcal.stages.pipeline import fit_model, start_workers
 from torchcal.stages.store import load_model
 
 
@@ -92,7 +92,6 @@ def _run_into(folder: Path, destination: Path, config: RunConfig, console) -> di
     """The run's steps, writing into ``folder`` (staging); recorded paths name ``destination``, where it will be."""
     started = time.perf_counter()
     save_resolved_config(folder / "config.yaml", config)
-    jobs = resolve_jobs(config.fit.jobs)
     start_workers(config.fit)  # they start while the twin is simulated
     with console.status("[bold]simulating the twin") as status:
         case = write_twin_case(folder / "case", config.twin)
@@ -121,7 +120,7 @@ def _run_into(folder: Path, destination: Path, config: RunConfig, console) -> di
             console.print(fitted.residual.table)
             console.log(fitted.residual.decision)
         if config.export:
-            prepare_workers(EXPORT_MODULES)  # imported there while the held-out poses are scored
+            import_in_workers(EXPORT_MODULES)  # imported there while the held-out poses are scored
         status.update("[bold]evaluating on held-out poses")
         stored = load_model(model_dir)
         stages = {"nominal": nominal_errors(robot, test), "geometric": held_out_errors(stored, test, residual=False)}
@@ -153,7 +152,7 @@ def _run_into(folder: Path, destination: Path, config: RunConfig, console) -> di
     if config.export:
         # the export and its checks in a worker while the report's figures are drawn here (core.workers)
         with in_background(export_and_check, model_dir, Path(config.export_dir) / config.name, test,
-                           twin.true_tcp_positions, jobs=min(jobs, 2)) as pending:
+                           twin.true_tcp_positions, jobs=resolve_jobs(config.fit.jobs)) as pending:
 
             def exported() -> dict:
                 if "export" not in summary:
