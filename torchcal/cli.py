@@ -15,6 +15,7 @@ import sys
 from collections.abc import Callable
 from pathlib import Path
 
+from torchcal.core.shutdown import skip_collection_at_exit
 from torchcal.core.workers import stop_workers
 
 
@@ -455,6 +456,7 @@ def main(argv: list[str] | None = None) -> int:
 
     global _terminated
     _terminated = False
+    skip_collection_at_exit()  # most of a second of the command's exit (torchcal.core.shutdown)
     in_main_thread = threading.current_thread() is threading.main_thread()
     previous = signal.signal(signal.SIGTERM, _on_sigterm) if in_main_thread else None
     try:

@@ -20,6 +20,7 @@ from torchcal.compensate.export import export_model
 from torchcal.config import save_resolved_config
 from torchcal.core.errors import TorchcalError
 from torchcal.core.outputs import claim_folder, stamp_folder
+from torchcal.core.shutdown import skip_collection_at_exit
 from torchcal.data.measurements import load_measurements
 from torchcal.instruments.base import EvaluateRequest
 from torchcal.instruments.registry import default
@@ -57,6 +58,7 @@ def _enqueue_default(study, base, config: StudyConfig) -> None:
 
 def _worker_process(base, config: StudyConfig, study_dir: str, threads: int) -> None:
     """A local worker process: a user-facing error is one line on stderr and exit status 1."""
+    skip_collection_at_exit()
     try:
         work(base, config, study_dir, threads)
     except TorchcalError as exc:
