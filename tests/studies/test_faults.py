@@ -89,7 +89,8 @@ def test_server_restarted_mid_study(tmp_path, private_postgres):
 def test_server_gone_longer_than_reconnect(tmp_path, private_postgres):
     """A server that stays away: each worker stops with one line; the next run finishes the study."""
     name, url = f"gone-{uuid.uuid4().hex[:8]}", private_postgres.url
-    a, b = _two_workers(tmp_path, name, url, "study.reconnect_s=3")
+    # a reconnect period of 1 s: the workers give up about 2 s after the server went (with 3 s, about 4 s)
+    a, b = _two_workers(tmp_path, name, url, "study.reconnect_s=1")
     _wait_finished(name, url, 1)
     private_postgres.control("stop")
     try:
