@@ -71,3 +71,25 @@ def test_the_command_ends_with_its_status_after_flushing_atexit_handlers_and_thr
     lines = proc.stderr.splitlines()
     assert lines[0].startswith("torchcal: error:"), proc.stderr
     assert lines[-2:] == ["thread finished", "atexit handler ran"], proc.stderr
+
+
+# An idle thread pool (its worker threads are not daemons): a normal exit tells it to stop first.
+IDLE_POOL = textwrap.dedent("""
+    import sys
+    from concurrent.futures import ThreadPoolExecutor
+    from torchcal import cli
+
+    pool = ThreadPoolExecutor(2)
+    pool.submit(print, "pool task ran", file=sys.stderr, flush=True).result()
+    sys.argv = ["torchcal", *sys.argv[1:]]
+    cli.console_main()
+""")
+
+
+def test_an_idle_thread_pool_does_not_keep_the_command_waiting(tmp_path):
+    script = tmp_path / "pool.py"
+    script.write_text(IDLE_POOL)
+    proc = subprocess.run([sys.executable, str(script), "evaluate", "--model", str(tmp_path / "none"),
+                           "--data", str(tmp_path / "none.csv")], capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 2, (proc.returncode, proc.stderr)
+    assert "pool task ran" in proc.stderr
