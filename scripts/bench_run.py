@@ -48,7 +48,9 @@ def run_once(tree: Path, out: Path, export: Path, extra: tuple[str, ...] = ()) -
     load = os.getloadavg()[0]
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     start = time.perf_counter()
-    code = "import sys; from torchcal.cli import main; sys.argv[0] = 'torchcal'; sys.exit(main())"
+    # as the `torchcal` command runs it (console_main), or main() in trees older than it
+    code = ("import sys; from torchcal import cli; sys.argv[0] = 'torchcal'; "
+            "cli.console_main() if hasattr(cli, 'console_main') else sys.exit(cli.main())")
     proc = subprocess.run([sys.executable, "-c", code, "run", f"out={out}", f"export_dir={export}", *extra],
                           env=env, cwd=tree, capture_output=True, text=True)
     wall = time.perf_counter() - start

@@ -33,7 +33,9 @@ def _run(tree: Path, out: Path, name: str) -> tuple[float, float, float]:
     """Wall seconds of one ``torchcal run`` from ``tree``, its CPU seconds (user + system: less
     sensitive to other load on a shared machine) and the held-out RMS it reports (mm)."""
     env = dict(os.environ, PYTHONPATH=str(tree))
-    code = "import sys; from torchcal.cli import main; sys.argv[0] = 'torchcal'; sys.exit(main())"
+    # as the `torchcal` command runs it (console_main), or main() in trees older than it
+    code = ("import sys; from torchcal import cli; sys.argv[0] = 'torchcal'; "
+            "cli.console_main() if hasattr(cli, 'console_main') else sys.exit(cli.main())")
     start, cpu = time.perf_counter(), _cpu()
     subprocess.run([sys.executable, "-c", code, "run", f"out={out}", f"export_dir={out / 'exported'}", f"name={name}",
                     "fit.progress=false"], cwd=tree, env=env, check=True, capture_output=True)

@@ -9,7 +9,11 @@ import pytest
 import torch
 
 from torchcal.residual import ELM, HEADS, MayflyELM, MLPHead, rms
-from torchcal.residual.elm import solve_output_weights
+from torchcal.residual.elm import (
+    candidate_activations_t,
+    solve_candidates_output_weights,
+    solve_output_weights,
+)
 from torchcal.residual.features import JointFeatures
 from torchcal.residual.selection import select_head
 
@@ -59,6 +63,22 @@ def test_ridge_solve_matches_normal_equations():
     gram = h.T @ h
     lam = 1e-3 * gram.diagonal().mean()
     assert torch.allclose(v, torch.linalg.solve(gram + lam * torch.eye(20, dtype=torch.float64), h.T @ y), atol=1e-10)
+
+
+@pytest.mark.parametrize("ridge", [1e-6, None])
+def test_candidates_solved_together_match_each_solved_alone(ridge):
+    """The Mayfly search's batched layout (one product for all candidates) is each candidate's own ELM."""
+    x, y = _smooth_problem(300, seed=4)
+    gen = torch.Generator().manual_seed(5)
+    weights = torch.rand(7, 25, x.shape[1], generator=gen, dtype=torch.float64) * 2 - 1
+    bias = torch.rand(7, 25, generator=gen, dtype=torch.float64)
+    hidden_t = candidate_activations_t(x, weights, bias)
+    together = solve_candidates_output_weights(hidden_t, y, ridge)
+    for c in range(7):
+        h = torch.sigmoid(x @ weights[c].T + bias[c])
+        assert torch.allclose(hidden_t[c].T, h, rtol=0, atol=1e-14)
+        alone = solve_output_weights(h, y, ridge)
+        assert torch.allclose(together[c], alone, rtol=1e-9, atol=1e-12 * float(alone.abs().max()))
 
 
 def test_mma_elm_beats_random_elm_of_the_same_size():

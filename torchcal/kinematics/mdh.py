@@ -15,6 +15,8 @@ from dataclasses import dataclass
 
 import torch
 
+from torchcal.kinematics.transforms import broadcast_shapes
+
 
 def link_transform(
     alpha: torch.Tensor,
@@ -30,7 +32,7 @@ def link_transform(
     ca, sa = torch.cos(alpha), torch.sin(alpha)
     cb, sb = torch.cos(beta), torch.sin(beta)
     ct, st = torch.cos(theta), torch.sin(theta)
-    shape = torch.broadcast_shapes(ca.shape, cb.shape, ct.shape, a.shape, d.shape)
+    shape = broadcast_shapes(ca.shape, cb.shape, ct.shape, a.shape, d.shape)
     ca, sa, cb, sb, ct, st = (x.expand(shape) for x in (ca, sa, cb, sb, ct, st))
     a, d = a.expand(shape), d.expand(shape)
     sasb, casb = sa * sb, ca * sb
@@ -78,7 +80,7 @@ class ChainFrames:
     def stacked(self, name: str) -> torch.Tensor:
         """Field ``name`` as one ``(..., N, 3)`` tensor (rows, joint on dim ``-2``)."""
         entries = getattr(self, name)
-        shape = torch.broadcast_shapes(*(v.shape for v in entries))
+        shape = broadcast_shapes(*(v.shape for v in entries))
         return torch.stack([v.expand(shape) for v in entries], -1).movedim(0, -1)
 
 
@@ -118,7 +120,7 @@ def _propagate(
     per-matrix overhead at large batch). Sines and cosines of ``alpha`` and ``beta`` are
     computed once per table; ``theta + q`` once for all joints. Vectors are ``(3, ...)``.
     """
-    batch = torch.broadcast_shapes(q.shape[:-1], table.shape[:-2])
+    batch = broadcast_shapes(q.shape[:-1], table.shape[:-2])
     nb = len(batch)
     a, d, ca, sa, nsa, cb, sb, nsb, ct, st, nst = _fields(q, table, nb)
     if r_start is None:
@@ -189,7 +191,7 @@ def chain_transforms(
     Returns:
         ``(R, p)`` with ``R (..., 3, 3)`` and ``p (..., 3)`` (or ``(..., N, 3, 3)`` / ``(..., N, 3)``).
     """
-    batch = torch.broadcast_shapes(q.shape[:-1], table.shape[:-2])
+    batch = broadcast_shapes(q.shape[:-1], table.shape[:-2])
     if all_frames:
         f = chain_frames(q, table)
         rot = torch.stack([f.stacked("x"), f.stacked("y"), f.stacked("z")], -1)
@@ -221,7 +223,7 @@ def chain_point(
         r_start, p_start: optional ``(..., 3, 3)`` / ``(..., 3)`` pose of frame 0 in an outer
             frame; the result is then expressed in that frame.
     """
-    batch = torch.broadcast_shapes(q.shape[:-1], table.shape[:-2])
+    batch = broadcast_shapes(q.shape[:-1], table.shape[:-2])
     a, d, ca, sa, nsa, cb, sb, nsb, ct, st, nst = _fields(q, table, len(batch))
     vx, vy, vz = point.unbind(-1)
     for i in range(q.shape[-1] - 1, -1, -1):
@@ -240,7 +242,7 @@ def chain_point(
         vx, vy, vz = out if p_start is None else (out[k] + p_start[..., k] for k in range(3))
     elif p_start is not None:
         vx, vy, vz = vx + p_start[..., 0], vy + p_start[..., 1], vz + p_start[..., 2]
-    shape = torch.broadcast_shapes(vx.shape, vy.shape, vz.shape)
+    shape = broadcast_shapes(vx.shape, vy.shape, vz.shape)
     return torch.stack([vx.expand(shape), vy.expand(shape), vz.expand(shape)], -1)
 
 

@@ -5,12 +5,22 @@ Angles in rad, lengths in whatever unit the caller uses (SI inside torchcal).
 
 from __future__ import annotations
 
+import numpy as np
 import torch
+
+
+def broadcast_shapes(*shapes: tuple[int, ...]) -> torch.Size:
+    """The shape ``shapes`` broadcast to, as :func:`torch.broadcast_shapes` gives it.
+
+    numpy's rule is the same; torch's first call imports its symbolic-shape machinery (sympy),
+    0.6 s once in every process that computes a transform.
+    """
+    return torch.Size(np.broadcast_shapes(*shapes))
 
 
 def homogeneous(rotation: torch.Tensor, translation: torch.Tensor) -> torch.Tensor:
     """Stack a rotation ``(..., 3, 3)`` and translation ``(..., 3)`` into ``(..., 4, 4)``."""
-    batch = torch.broadcast_shapes(rotation.shape[:-2], translation.shape[:-1])
+    batch = broadcast_shapes(rotation.shape[:-2], translation.shape[:-1])
     out = torch.zeros(*batch, 4, 4, dtype=rotation.dtype, device=rotation.device)
     out[..., :3, :3] = rotation
     out[..., :3, 3] = translation

@@ -39,11 +39,39 @@ def solve_output_weights(hidden: torch.Tensor, targets: torch.Tensor, ridge: flo
     """``V`` for hidden activations ``(..., n, L)`` and targets ``(..., n, K)`` (batched over candidates)."""
     if ridge is None:
         return torch.linalg.pinv(hidden) @ targets
-    gram = hidden.transpose(-1, -2) @ hidden
+    return _ridge_solve(hidden.transpose(-1, -2) @ hidden, hidden.transpose(-1, -2) @ targets, ridge)
+
+
+def candidate_activations_t(features: torch.Tensor, weights: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:
+    """``H^T`` ``(C, L, n)`` of ``C`` candidate hidden layers (``weights (C, L, d)``, ``bias (C, L)``) on
+    ``features (n, d)``.
+
+    One matrix product for all candidates: broadcasting ``features @ weights^T`` over the candidates
+    runs as ``C`` small products and took three times as long as this.
+    """
+    c, hidden, n_in = weights.shape
+    linear = torch.addmm(bias.reshape(-1, 1), weights.reshape(-1, n_in), features.T)
+    return linear.sigmoid_().reshape(c, hidden, -1)
+
+
+def solve_candidates_output_weights(hidden_t: torch.Tensor, targets: torch.Tensor, ridge: float | None) -> torch.Tensor:
+    """``V (C, L, K)`` of each candidate from its ``H^T (C, L, n)`` and the targets ``(n, K)`` all share.
+
+    The estimate of :func:`solve_output_weights`, with ``H^T T`` as one product for all candidates.
+    """
+    if ridge is None:
+        return solve_output_weights(hidden_t.transpose(-1, -2), targets, None)
+    c, hidden, n = hidden_t.shape
+    rhs = (hidden_t.reshape(-1, n) @ targets).reshape(c, hidden, -1)
+    return _ridge_solve(hidden_t @ hidden_t.transpose(-1, -2), rhs, ridge)
+
+
+def _ridge_solve(gram: torch.Tensor, rhs: torch.Tensor, ridge: float) -> torch.Tensor:
+    """``(G + ridge * mean(diag G) I)^-1 R`` by Cholesky, batched."""
     eye = torch.eye(gram.shape[-1], dtype=gram.dtype, device=gram.device)
     scale = gram.diagonal(dim1=-2, dim2=-1).mean(-1)[..., None, None]
     chol = torch.linalg.cholesky(gram + ridge * scale * eye)
-    return torch.cholesky_solve(hidden.transpose(-1, -2) @ targets, chol)
+    return torch.cholesky_solve(rhs, chol)
 
 
 class ELM(ResidualHead):

@@ -16,7 +16,7 @@ import torch
 from torchcal.optimize.base import Metaheuristic, OptimizeResult
 from torchcal.optimize.mayfly import Mayfly
 from torchcal.residual.base import ResidualHead
-from torchcal.residual.elm import ELM, solve_output_weights
+from torchcal.residual.elm import ELM, candidate_activations_t, solve_candidates_output_weights
 
 
 class MayflyELM(ResidualHead):
@@ -61,10 +61,8 @@ class MayflyELM(ResidualHead):
 
         def fitness(candidates: torch.Tensor) -> torch.Tensor:
             w, b = unpack(candidates)
-            h_train = torch.sigmoid(x_train @ w.transpose(-1, -2) + b[:, None, :])
-            out = solve_output_weights(h_train, y_train.expand(len(candidates), -1, -1), self.ridge)
-            h_val = torch.sigmoid(x_val @ w.transpose(-1, -2) + b[:, None, :])
-            err = h_val @ out - y_val
+            out = solve_candidates_output_weights(candidate_activations_t(x_train, w, b), y_train, self.ridge)
+            err = candidate_activations_t(x_val, w, b).transpose(-1, -2) @ out - y_val
             return err.norm(dim=-1).pow(2).mean(-1).sqrt()
 
         search = self.optimizer.minimize(fitness, lower, upper, seed=self.seed, progress=self.progress,
