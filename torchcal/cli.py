@@ -16,7 +16,6 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import NoReturn
 
-from torchcal.core.shutdown import skip_collection_at_exit
 from torchcal.core.workers import stop_workers
 
 
@@ -457,7 +456,6 @@ def main(argv: list[str] | None = None) -> int:
 
     global _terminated
     _terminated = False
-    skip_collection_at_exit()  # most of a second of the command's exit (torchcal.core.shutdown)
     in_main_thread = threading.current_thread() is threading.main_thread()
     previous = signal.signal(signal.SIGTERM, _on_sigterm) if in_main_thread else None
     try:
