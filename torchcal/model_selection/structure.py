@@ -18,7 +18,7 @@ import torch
 
 from torchcal.core.errors import IdentifiabilityWarning
 from torchcal.core.threads import fit_threads
-from torchcal.core.workers import side_by_side
+from torchcal.core.workers import ready_workers, side_by_side
 from torchcal.data.folds import Folds
 from torchcal.data.measurements import Measurements
 from torchcal.identify.calibrate import CalibrationResult
@@ -79,13 +79,20 @@ def cross_validate_structures(robot, data: Measurements, fit_geometry, options: 
     if progress is not None:
         progress(f"cross-validating structures on {folds.k} folds")
     splits = list(folds.splits())
-    tasks = [(robot, data, train_idx, test_idx, fit_geometry, options, harmonic_min_range_deg)
-             for train_idx, test_idx in splits]
-    for (_train_idx, test_idx), fits in zip(splits, side_by_side(fit_fold, tasks, jobs)):
-        for (gravity, harmonics), (held_out_mm, result) in zip(options, fits):
-            label = structure_label(gravity, harmonics)
-            vectors[label][test_idx] = held_out_mm
-            fold_results[label].append(result)
+    # With a worker, each fold's options go out in two halves (every other option: their costs alike):
+    # k whole folds on two processes would leave one of them a fold more. A half repeats the fold's
+    # geometry fit, a few steps from the warm start; each option's fit is the same as in one piece.
+    halves = 2 if jobs > 1 and len(options) > 1 and ready_workers() > 0 else 1
+    chunks = [list(range(len(options)))[h::halves] for h in range(halves)]
+    tasks = [(robot, data, train_idx, test_idx, fit_geometry, [options[i] for i in chunk], harmonic_min_range_deg)
+             for train_idx, test_idx in splits for chunk in chunks]
+    pieces = iter(side_by_side(fit_fold, tasks, jobs))
+    for _train_idx, test_idx in splits:  # in fold order: fold_results[label][f] is fold f's fit
+        for chunk in chunks:
+            for i, (held_out_mm, result) in zip(chunk, next(pieces)):
+                label = structure_label(*options[i])
+                vectors[label][test_idx] = held_out_mm
+                fold_results[label].append(result)
     candidates = [Candidate(label, np.linalg.norm(v, axis=1)) for label, v in vectors.items()]
     comparison = compare_candidates(candidates, folds.units(), folds.description, tolerance=tolerance)
     return StructureCV(folds, options, candidates, fold_results, comparison, vectors)
