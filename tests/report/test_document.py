@@ -6,14 +6,19 @@ import base64
 import json
 import re
 
+import numpy as np
+
+from torchcal.core.workers import ready_workers, warm_up
 from torchcal.report import plots
 from torchcal.report.document import (
     Figure,
     Paragraph,
+    PendingFigure,
     Preformatted,
     Report,
     Section,
     Table,
+    draw_figures,
     to_html,
     to_markdown,
     write_report,
@@ -57,3 +62,34 @@ def test_write_report_records_model_folder_members(tmp_path):
     listed = json.loads((tmp_path / "checksums.json").read_text())["files"]
     assert {"report.md", "report.html"} <= set(listed) and paths["report.md"] == tmp_path / "report.md"
     assert not list(tmp_path.rglob("*.tmp"))  # written through temporary files, none left
+
+
+def _pending_report() -> Report:
+    rng = np.random.default_rng(3)
+    errors = {"nominal": rng.gamma(2.0, 0.5, 200), "calibrated": rng.gamma(2.0, 0.02, 200)}
+    return Report("pending", [
+        Section("a", [PendingFigure("hist", plots.error_histogram, (errors, "3-D error"), "histogram"),
+                      Paragraph("between")]),
+        Section("b", [PendingFigure("conv", plots.convergence, ([1.0, 0.1, 0.01],), "convergence"),
+                      PendingFigure("pose", plots.per_pose_errors, (np.arange(2, 202), errors, "per pose"), "per pose")]),
+    ])
+
+
+def test_pending_figures_are_drawn_in_place_with_their_own_bytes():
+    report = _pending_report()
+    drawn = draw_figures(report)
+    assert [b.name for b in drawn.figures()] == ["hist", "conv", "pose"]
+    assert [type(b).__name__ for b in drawn.sections[0].blocks] == ["Figure", "Paragraph"]
+    assert drawn.figures()[1].png == plots.convergence([1.0, 0.1, 0.01])
+    # the renderings draw what is still pending themselves
+    assert to_markdown(report) == to_markdown(drawn)
+    assert to_html(report) == to_html(drawn)
+
+
+def test_figures_drawn_side_by_side_are_the_same_bytes():
+    warm_up(2, plots.IMPORTS, wait=True)
+    assert ready_workers() == 1
+    serial = draw_figures(_pending_report(), jobs=1)
+    parallel = draw_figures(_pending_report(), jobs=2)
+    assert [f.png for f in parallel.figures()] == [f.png for f in serial.figures()]
+    assert [f.name for f in parallel.figures()] == ["hist", "conv", "pose"]

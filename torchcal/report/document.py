@@ -10,11 +10,13 @@ from __future__ import annotations
 
 import base64
 import html
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from torchcal.core.folder import FIGURES, write_member_text
 from torchcal.core.io import atomic_write_bytes, atomic_write_text
+from torchcal.core.workers import side_by_side
 
 
 @dataclass(frozen=True)
@@ -44,13 +46,27 @@ class Figure:
 
 
 @dataclass(frozen=True)
+class PendingFigure:
+    """A figure still to be drawn: ``draw(*args)`` returns its PNG bytes.
+
+    ``draw`` is a pure function of its arguments (those of :mod:`torchcal.report.plots`), so the
+    figures of a report can be drawn side by side in worker processes (:func:`draw_figures`).
+    """
+
+    name: str
+    draw: Callable[..., bytes]
+    args: tuple
+    caption: str
+
+
+@dataclass(frozen=True)
 class Preformatted:
     """Fixed-width text kept as it is (console tables, identifiability summaries)."""
 
     text: str
 
 
-Block = Paragraph | Table | Figure | Preformatted
+Block = Paragraph | Table | Figure | PendingFigure | Preformatted
 
 
 @dataclass
@@ -71,12 +87,31 @@ class Report:
         return [b for s in self.sections for b in s.blocks if isinstance(b, Table)]
 
 
+def draw_figures(report: Report, jobs: int = 1) -> Report:
+    """``report`` with its :class:`PendingFigure` blocks drawn, shared between this process and up to
+    ``jobs - 1`` ready workers (:func:`torchcal.core.workers.side_by_side`: the same bytes either way)."""
+    pending = [b for s in report.sections for b in s.blocks if isinstance(b, PendingFigure)]
+    if not pending:
+        return report
+    drawn = dict(zip(map(id, pending), side_by_side(_draw, [(p.draw, p.args) for p in pending], jobs)))
+
+    def block(b: Block) -> Block:
+        return Figure(b.name, drawn[id(b)], b.caption) if isinstance(b, PendingFigure) else b
+
+    return Report(report.title, [Section(s.heading, [block(b) for b in s.blocks]) for s in report.sections])
+
+
+def _draw(draw: Callable[..., bytes], args: tuple) -> bytes:
+    return draw(*args)
+
+
 def _md_cell(text: str) -> str:
     return str(text).replace("|", "\\|").replace("\n", " ")
 
 
 def to_markdown(report: Report) -> str:
     """The Markdown page; figures are linked as ``figures/<name>.png``."""
+    report = draw_figures(report)
     out = [f"# {report.title}", ""]
     for section in report.sections:
         out += [f"## {section.heading}", ""]
@@ -87,7 +122,7 @@ def to_markdown(report: Report) -> str:
                 out += ["```", block.text.rstrip(), "```", ""]
             elif isinstance(block, Figure):
                 out += [f"![{block.caption}]({FIGURES}/{block.name}.png)", "", f"*{block.caption}*", ""]
-            else:
+            elif isinstance(block, Table):
                 if block.caption:
                     out += [block.caption, ""]
                 out.append("| " + " | ".join(_md_cell(c) for c in block.columns) + " |")
@@ -118,6 +153,7 @@ def _numeric(text: str) -> bool:
 def to_html(report: Report) -> str:
     """One self-contained HTML page: inline style, figures as base64 ``data:`` URIs, nothing external."""
     esc = html.escape
+    report = draw_figures(report)
     out = ["<!DOCTYPE html>", '<html lang="en">', "<head>", '<meta charset="utf-8">',
            f"<title>{esc(report.title)}</title>", f"<style>{_STYLE}</style>", "</head>", "<body>",
            f"<h1>{esc(report.title)}</h1>"]
@@ -132,7 +168,7 @@ def to_html(report: Report) -> str:
                 data = base64.b64encode(block.png).decode("ascii")
                 out.append(f'<figure><img src="data:image/png;base64,{data}" alt="{esc(block.caption)}" '
                            f'data-figure="{esc(block.name)}"><figcaption>{esc(block.caption)}</figcaption></figure>')
-            else:
+            elif isinstance(block, Table):
                 caption = f"<caption>{esc(block.caption)}</caption>" if block.caption else ""
                 head = "".join(f"<th>{esc(c)}</th>" for c in block.columns)
                 body = "".join("<tr>" + "".join(f'<td class="n">{esc(c)}</td>' if _numeric(c) else f"<td>{esc(c)}</td>"
@@ -151,6 +187,7 @@ def write_report(folder: str | Path, report: Report, *, member: bool = False) ->
     its ``checksums.json`` like every other file of it. Returns the paths by file name.
     """
     folder = Path(folder)
+    report = draw_figures(report)  # figures still pending are drawn here
     paths = {}
     for figure in report.figures():
         path = folder / FIGURES / f"{figure.name}.png"

@@ -13,7 +13,7 @@ import numpy as np
 import torch
 
 from torchcal.report import plots
-from torchcal.report.document import Figure, Paragraph, Section, Table
+from torchcal.report.document import Paragraph, PendingFigure, Section, Table
 from torchcal.report.prior import prior_sections
 from torchcal.stages.store import StoredModel, frame_entries
 
@@ -105,7 +105,7 @@ def parameter_sections(stored: StoredModel, truth_x: torch.Tensor | None = None,
         pairs = [(abs(corr[a, b]), names[a], names[b], corr[a, b]) for a in range(len(names)) for b in range(a + 1, len(names))
                  if abs(corr[a, b]) > STRONG_CORRELATION]
         pairs.sort(reverse=True)
-        blocks.append(Figure("correlation", plots.correlation_heatmap(corr, names),
+        blocks.append(PendingFigure("correlation", plots.correlation_heatmap, (corr, names),
                              "Correlation matrix of the identified parameters (from the fit's covariance)."))
         if pairs:
             blocks.append(Table("correlations", ["parameter", "parameter", "correlation"],

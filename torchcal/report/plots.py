@@ -13,6 +13,9 @@ from collections.abc import Sequence
 import numpy as np
 
 DPI = 100
+#: What drawing a figure imports on first use: a worker that will draw figures imports it ahead
+#: (:func:`torchcal.core.workers.import_in_workers`).
+IMPORTS = ("torchcal.report.plots", "matplotlib.figure", "matplotlib.backends.backend_agg", "PIL.PngImagePlugin")
 #: Colours of the stages, in order (nominal first, the delivered model last).
 COLOURS = ("#9e9e9e", "#1f77b4", "#2ca02c", "#d62728", "#9467bd", "#8c564b")
 

@@ -203,6 +203,7 @@ def _selection(folder: Path) -> dict | None:
 def _write_fit_report(folder: Path, data: Any, structure: Any, lines: list[str], config: Any) -> str:
     """Write the fit's report into its folder; returns the console line that sums the model up."""
     from torchcal.core.metrics import position_metrics
+    from torchcal.core.workers import resolve_jobs
     from torchcal.instruments.tracker.evaluate import score
     from torchcal.instruments.tracker.report import (
         ReportInputs,
@@ -233,7 +234,8 @@ def _write_fit_report(folder: Path, data: Any, structure: Any, lines: list[str],
     report = calibration_report(
         f"Calibration report: {stored.robot.name}, fit on {Path(data.source).name}", stored, [pose_set],
         ReportInputs(selection=_selection(folder), compensator=scored.metrics["compensator"],
-                     uncertainty=scored.metrics.get("uncertainty"), lines=[*lines, summary]))
+                     uncertainty=scored.metrics.get("uncertainty"), lines=[*lines, summary]),
+        jobs=resolve_jobs(config.jobs))  # the fit's worker is idle now: it draws every other figure
     write_report(folder, report, member=True)
     return summary
 

@@ -23,11 +23,20 @@ import numpy as np
 import torch
 
 from torchcal.core.metrics import iso9283_repeated, position_metrics
+from torchcal.core.workers import import_in_workers
 from torchcal.data.measurements import Measurements
 from torchcal.identify.joint_errors import JointSpaceErrors
 from torchcal.model_selection.leakage import LeakageReport
 from torchcal.report import plots
-from torchcal.report.document import Figure, Paragraph, Preformatted, Report, Section, Table
+from torchcal.report.document import (
+    Paragraph,
+    PendingFigure,
+    Preformatted,
+    Report,
+    Section,
+    Table,
+    draw_figures,
+)
 from torchcal.report.parameters import parameter_sections
 from torchcal.stages.base import ModelStage
 from torchcal.stages.geometry import (
@@ -235,7 +244,7 @@ def _accuracy(pose_sets: list[PoseSet]) -> Section:
         Table("accuracy", ["file", "model stage", "protocol", "poses", "RMS [mm]", "mean [mm]", "p95 [mm]", "max [mm]"], rows),
     ]
     for k, p in enumerate(pose_sets):
-        blocks.append(Figure(f"error_histogram_{k + 1}", plots.error_histogram(
+        blocks.append(PendingFigure(f"error_histogram_{k + 1}", plots.error_histogram, (
             {s.name: np.linalg.norm(s.mm, axis=1) for s in p.stages}, f"3-D error, {p.label}"),
             f"Distribution of the 3-D error per model stage, {p.label}."))
     return Section("Accuracy before and after", blocks)
@@ -274,8 +283,8 @@ def _per_axis(pose_sets: list[PoseSet]) -> Section:
         Table("per_axis", ["file", "model stage", "protocol", "x mean", "x RMS", "y mean", "y RMS", "z mean", "z RMS"], rows),
     ]
     for k, p in enumerate(pose_sets):
-        blocks.append(Figure(f"axis_errors_{k + 1}", plots.axis_errors(p.rows, p.focused.mm, p.focused.name,
-                                                                       f"per-axis error, {p.label}"),
+        blocks.append(PendingFigure(f"axis_errors_{k + 1}", plots.axis_errors, (p.rows, p.focused.mm, p.focused.name,
+                                                                                f"per-axis error, {p.label}"),
                              f"x, y, z error of every pose of {p.label} (instrument frame) under {p.focused.name} "
                              f"({p.focused.protocol}); the nominal's are in the table."))
     return Section("Errors per axis", blocks)
@@ -285,7 +294,7 @@ def _per_pose(pose_sets: list[PoseSet]) -> Section:
     blocks: list = []
     for k, p in enumerate(pose_sets):
         shown = {s.name: np.linalg.norm(s.mm, axis=1) for s in (p.stages[0], p.focused)}
-        blocks.append(Figure(f"per_pose_{k + 1}", plots.per_pose_errors(p.rows, shown, f"3-D error per pose, {p.label}"),
+        blocks.append(PendingFigure(f"per_pose_{k + 1}", plots.per_pose_errors, (p.rows, shown, f"3-D error per pose, {p.label}"),
                              f"3-D error of every pose against its row in {Path(p.data.source).name}: nominal and "
                              f"{p.focused.name} ({p.focused.protocol})."))
         e = p.focused.mm
@@ -307,13 +316,13 @@ def _joints_and_workspace(pose_sets: list[PoseSet]) -> list[Section]:
     for k, p in enumerate(pose_sets):
         q_deg = np.degrees(p.data.q.detach().cpu().numpy())
         shown = np.linalg.norm(p.focused.mm, axis=1)
-        joint_blocks.append(Figure(f"error_vs_joints_{k + 1}", plots.error_vs_joints(q_deg, shown, p.focused.name,
-                                                                                     f"3-D error against each joint, {p.label}"),
+        joint_blocks.append(PendingFigure(f"error_vs_joints_{k + 1}", plots.error_vs_joints, (q_deg, shown, p.focused.name,
+                                                                                              f"3-D error against each joint, {p.label}"),
                                    f"3-D error against each commanded joint angle, {p.label}, under {p.focused.name} "
                                    f"({p.focused.protocol}); line: median per tenth of the joint's range. A trend "
                                    "along one joint is an error of that joint the model does not carry."))
         norm = np.linalg.norm(p.focused.mm, axis=1)
-        space_blocks.append(Figure(f"workspace_{k + 1}", plots.workspace(p.points_base_mm, norm, f"{p.focused.name}, {p.label}", "base"),
+        space_blocks.append(PendingFigure(f"workspace_{k + 1}", plots.workspace, (p.points_base_mm, norm, f"{p.focused.name}, {p.label}", "base"),
                                    f"TCP positions of {p.label} in the robot base frame, coloured by the 3-D error of "
                                    f"{p.focused.name} ({p.focused.protocol})."))
     return [Section("Error against the joint angles", joint_blocks),
@@ -400,7 +409,7 @@ def _uncertainty(pose_sets: list[PoseSet], inputs: ReportInputs) -> Section:
                               "observed p95 [mm]"], rows),
     ]
     if len(predicted) == len(observed) and len(predicted):
-        blocks.append(Figure("uncertainty", plots.predicted_vs_observed(predicted, observed, float(unc["coverage_95"])),
+        blocks.append(PendingFigure("uncertainty", plots.predicted_vs_observed, (predicted, observed, float(unc["coverage_95"])),
                              f"Observed 3-D error of each pose of {last.label} against its predicted 95 % radius."))
     else:
         blocks.append(Paragraph(f"No per-pose figure: {len(predicted)} predicted radii for {len(observed)} poses."))
@@ -458,8 +467,8 @@ def _joint_curves(stored: StoredModel, q: torch.Tensor, harmonics, joint_truth) 
         caption += ("; thick: the twin's gear error (truth). RMS of learned - truth per joint: "
                     + ", ".join(f"q{j + 1} {miss[j]:.2f} of {size[j]:.2f} mdeg" for j in range(len(miss))))
         caption += ". The last joint has none by design (identify.harmonics: it aliases with the tool lever)"
-    return [Figure("joint_curves", plots.joint_curves(np.degrees(grid.numpy()), learned, truth,
-                                                      "Learned periodic joint errors", "learned"), caption + ".")]
+    return [PendingFigure("joint_curves", plots.joint_curves, (np.degrees(grid.numpy()), learned, truth,
+                                                               "Learned periodic joint errors", "learned"), caption + ".")]
 
 
 def _notes(stored: StoredModel, inputs: ReportInputs) -> Section:
@@ -493,12 +502,20 @@ def _convergence(stored: StoredModel) -> Section | None:
         return None
     return Section("Convergence", [
         Paragraph(f"{stored.metadata.get('method', '')}: {solver.get('iterations')} iterations, {solver.get('message')}."),
-        Figure("convergence", plots.convergence(history), "Sum of squared residuals per accepted iteration of the geometric fit.")])
+        PendingFigure("convergence", plots.convergence, (history,),
+                      "Sum of squared residuals per accepted iteration of the geometric fit.")])
 
 
-def calibration_report(title: str, stored: StoredModel, pose_sets: list[PoseSet], inputs: ReportInputs | None = None) -> Report:
-    """The whole report (see the module docstring); ``pose_sets`` in the order shown, held-out last."""
+def calibration_report(title: str, stored: StoredModel, pose_sets: list[PoseSet], inputs: ReportInputs | None = None,
+                       jobs: int = 1) -> Report:
+    """The whole report (see the module docstring); ``pose_sets`` in the order shown, held-out last.
+
+    ``jobs``: processes that draw the figures side by side (:func:`~torchcal.report.document.draw_figures`;
+    the same bytes with one). ``torchcal run`` draws them here: its worker is exporting meanwhile.
+    """
     inputs = inputs or ReportInputs()
+    if jobs > 1:
+        import_in_workers(plots.IMPORTS)  # imported there while the sections are built here
     before: list[Section | None] = [
         _summary(stored, pose_sets, inputs),
         _accuracy(pose_sets),
@@ -516,6 +533,8 @@ def calibration_report(title: str, stored: StoredModel, pose_sets: list[PoseSet]
         _notes(stored, inputs),
         _convergence(stored),
     ]
+    shown_before = [s for s in before if s is not None]
+    drawn = draw_figures(Report(title, [*shown_before, *(s for s in after if s is not None)]), jobs).sections
     # built last, shown in its place: on the twin it may wait for the export's check running beside
     compensator = _compensator(pose_sets, inputs)
-    return Report(title, [s for s in [*before, compensator, *after] if s is not None])
+    return Report(title, [*drawn[:len(shown_before)], compensator, *drawn[len(shown_before):]])
