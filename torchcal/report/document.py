@@ -110,8 +110,7 @@ def _md_cell(text: str) -> str:
 
 
 def to_markdown(report: Report) -> str:
-    """The Markdown page; figures are linked as ``figures/<name>.png``."""
-    report = draw_figures(report)
+    """The Markdown page; figures are linked as ``figures/<name>.png`` (drawn or still pending)."""
     out = [f"# {report.title}", ""]
     for section in report.sections:
         out += [f"## {section.heading}", ""]
@@ -120,7 +119,7 @@ def to_markdown(report: Report) -> str:
                 out += [block.text.strip(), ""]
             elif isinstance(block, Preformatted):
                 out += ["```", block.text.rstrip(), "```", ""]
-            elif isinstance(block, Figure):
+            elif isinstance(block, Figure | PendingFigure):
                 out += [f"![{block.caption}]({FIGURES}/{block.name}.png)", "", f"*{block.caption}*", ""]
             elif isinstance(block, Table):
                 if block.caption:
