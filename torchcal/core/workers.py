@@ -137,6 +137,11 @@ def ready_workers() -> int:
     return int(_pool["workers"]) if started else 0
 
 
+def workers_for(jobs: int) -> int:
+    """Workers that may take pieces now with ``jobs`` processes: ready ones (:func:`ready_workers`), at most ``jobs - 1``."""
+    return max(0, min(jobs - 1, ready_workers()))
+
+
 def stop_workers() -> None:
     """Stop the workers at once, pieces under way included: after an error or an interrupt here, and
     when a command ends (one that ends by ``os._exit`` would otherwise leave them waiting for work)."""
@@ -155,7 +160,7 @@ def side_by_side(fn: Callable[..., Any], tasks: Sequence[tuple], jobs: int) -> l
     order. An error in any task is raised here, as it was raised there; a task whose worker was lost
     is done here.
     """
-    workers = min(jobs - 1, ready_workers(), len(tasks) - 1)
+    workers = min(workers_for(jobs), len(tasks) - 1)
     if workers < 1:
         return [fn(*task) for task in tasks]
     processes = workers + 1
@@ -203,7 +208,7 @@ def in_background(fn: Callable[..., Any], *args: Any, jobs: int) -> Iterator[Pen
 
     Leaving the body by an error or an interrupt stops the worker, the piece under way included.
     """
-    there = jobs > 1 and ready_workers() > 0
+    there = workers_for(jobs) > 0
     if there:
         with _interrupts_ignored_by_new_workers():
             pending = Pending(fn, args, _pool["executor"].submit(fn, *args))
