@@ -16,6 +16,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import NoReturn
 
+from torchcal.core.shutdown import end_process
 from torchcal.core.workers import stop_workers
 
 
@@ -534,15 +535,10 @@ def _main(argv: list[str] | None) -> int:
 
 
 def console_main() -> NoReturn:
-    """The ``torchcal`` command: :func:`main`, then the process ends without tearing down its modules.
-
-    What a normal exit does that matters still happens, in its order: threads that are not daemons
-    are waited for (after the hooks that tell thread pools to stop), ``atexit`` handlers run
-    (logging, multiprocessing, temporary folders), the standard streams are flushed. Only the
-    interpreter's teardown of every module is skipped: with torch imported it took 0.5-0.9 s at the
-    end of every command (files are closed by then: every write is atomic, :mod:`torchcal.core.io`).
-    A command stopped by Ctrl-C or SIGTERM (130, 143) ends at once: its outputs are already cleaned
-    up when ``main`` returns, and it waits for no thread.
+    """The ``torchcal`` command: :func:`main`, then the process ends without tearing down its modules
+    (:func:`torchcal.core.shutdown.end_process`: with torch imported the teardown took 0.5-0.9 s at
+    the end of every command; files are closed by then, every write is atomic). A command stopped by
+    Ctrl-C or SIGTERM ends at once: its outputs are already cleaned up when ``main`` returns.
 
     ``python -m torchcal.cli`` ends here too, for a second reason: under ``-m``, CPython remembers a
     ``KeyboardInterrupt`` that ended any code run from a string (``exec`` of source text, as
@@ -550,27 +546,7 @@ def console_main() -> NoReturn:
     interpreter with SIGINT instead of returning the status: a terminated command would say
     "terminated" and end as if interrupted (seen as status -2).
     """
-    _end_process(main())
-
-
-def _end_process(status: int) -> NoReturn:
-    import atexit
-    import contextlib
-    import threading
-
-    if status not in (130, 143):
-        # what the interpreter runs first at exit: thread pools' exit hooks, then joins non-daemon threads
-        shutdown = getattr(threading, "_shutdown", None)
-        if shutdown is not None:
-            shutdown()
-        for thread in threading.enumerate():
-            if thread is not threading.current_thread() and not thread.daemon:
-                thread.join()
-        atexit._run_exitfuncs()
-    for stream in (sys.stdout, sys.stderr):
-        with contextlib.suppress(OSError, ValueError):  # a reader that went away, a stream closed by a handler
-            stream.flush()
-    os._exit(status)
+    end_process(main())
 
 
 if __name__ == "__main__":
