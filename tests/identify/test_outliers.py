@@ -3,12 +3,13 @@
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import replace
 
 import pytest
 import torch
 
-from torchcal.core.errors import DataError
+from torchcal.core.errors import DataError, IdentifiabilityWarning
 from torchcal.identify.outliers import find_outlier_rows
 from torchcal.sim.twin import Twin, TwinConfig
 
@@ -29,6 +30,15 @@ def _with_q_offset(data, rows, deg):
 def test_clean_twin_rows_are_all_kept(twin_data):
     robot, data = twin_data
     assert find_outlier_rows(robot, data, parallel_threshold_deg=2.0) is None
+
+
+def test_the_screening_fit_leaves_identifiability_to_the_fit_proper(twin_data):
+    # its rank cut would say "stay at nominal" beside the prior fit's "stay at their prior"
+    robot, data = twin_data
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        find_outlier_rows(robot, data, parallel_threshold_deg=2.0)
+    assert not [w for w in caught if issubclass(w.category, IdentifiabilityWarning)]
 
 
 def test_mistyped_angles_are_found_and_named(twin_data):

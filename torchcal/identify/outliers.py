@@ -12,11 +12,12 @@ inconsistent (two set-ups, two units) and nothing is fitted.
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 
 import torch
 
-from torchcal.core.errors import DataError
+from torchcal.core.errors import DataError, IdentifiabilityWarning
 from torchcal.data.measurements import Measurements
 from torchcal.identify.calibrate import calibrate
 from torchcal.identify.lm import LevenbergMarquardt
@@ -52,8 +53,12 @@ def _row_errors_mm(robot: RobotModel, data: Measurements, parallel_threshold_deg
     """3-D error (mm) of every row under a geometry fit, with per-row ``weights`` (through the
     whitening, positions only) or with the orientation rows."""
     whitening = None if weights is None else weights.sqrt()[:, None, None] * torch.eye(3, dtype=torch.float64)
-    result = calibrate(robot, data, identifier=LevenbergMarquardt(max_iterations=30), use_orientation=use_orientation,
-                       parallel_threshold_deg=parallel_threshold_deg, whitening=whitening)
+    with warnings.catch_warnings():
+        # a screening fit (rank cut): what the data cannot identify is the fit proper's to report,
+        # with its prior; this fit's "stay at nominal" would contradict it
+        warnings.simplefilter("ignore", IdentifiabilityWarning)
+        result = calibrate(robot, data, identifier=LevenbergMarquardt(max_iterations=30), use_orientation=use_orientation,
+                           parallel_threshold_deg=parallel_threshold_deg, whitening=whitening)
     return (data.position - result.model.tcp_position(data.q, result.x)).norm(dim=-1) * 1e3
 
 
