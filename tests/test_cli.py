@@ -189,3 +189,35 @@ def test_fit_takes_two_series_each_in_its_own_frame(tmp_path, capsys):
     assert main(["fit", "--robot", str(case / "robot.yaml"), "--data", str(case / "train.csv"), "--data",
                  str(tmp_path / "nothere.csv"), "--out", str(tmp_path / "m2")]) == 2
     assert "Traceback" not in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_evaluate_scores_the_tool_orientation_where_the_file_measures_it(tmp_path, twin_fit):
+    """A file with rx, ry, rz: the position-only model's flange orientation against the nominal robot's."""
+    import torch
+
+    from torchcal.data.measurements import write_measurements_csv
+    from torchcal.kinematics import transforms as tf
+    from torchcal.sim.twin import Twin, TwinConfig
+
+    case, model = twin_fit
+    twin = Twin.create(TwinConfig(n_train=150, n_test=100, seed=5))  # the twin `simulate seed=5` wrote
+    generator = torch.Generator().manual_seed(11)
+    q = twin.robot.sample_joints(80, generator)
+    flange = twin.T_instrument_base() @ twin.model.base_flange_pose(q + twin.joint_deviation(q), twin.x_true)
+    probe = tf.so3_exp(torch.tensor([0.4, 0.1, -2.0], dtype=torch.float64))  # mounted at an angle the fit never saw
+    angles = tf.matrix_to_euler_xyz(flange[..., :3, :3] @ probe) * (180.0 / np.pi)
+    path, out, report = tmp_path / "six_d.csv", tmp_path / "m.json", tmp_path / "report"
+    write_measurements_csv(path, q, twin.measure(q, generator), extra={"rx": angles[:, 0], "ry": angles[:, 1],
+                                                                        "rz": angles[:, 2]})
+    assert main(["evaluate", "--model", str(model), "--data", str(path), "--json", str(out), "--report", str(report)]) == 0
+    metrics = json.loads(out.read_text())
+    assert metrics["position_rms_mm"] < 0.1  # the fitted twin's robot: a guard that the file is of it
+    orientation = metrics["orientation"]
+    assert "probe rotation on the flange fitted to these orientations" in orientation["protocol"]
+    assert orientation["n_poses"] == 80 and orientation["nominal"]["n_poses"] == 80
+    # the model's flange orientation, known from positions alone, is closer than the nominal robot's
+    assert orientation["orientation_rms_deg"] < 0.6 * orientation["nominal"]["orientation_rms_deg"]
+    assert metrics["orientation_rms_deg"] == orientation["orientation_rms_deg"]
+    text = (report / "report.md").read_text()
+    assert "RMS [deg]" in text and f"{orientation['orientation_rms_deg']:.4f}" in text

@@ -32,13 +32,19 @@ def test_ur5_source_split(tmp_path):
 
 @pytest.mark.slow
 def test_ur10_fit_on_series_c_score_on_series_b_after_registration(tmp_path):
-    """Series B and C were measured in different tracker frames: --register re-fits only the frame."""
-    metrics = _fit_and_score(tmp_path, "ipa-ur10-tmac", "poses_C_random.csv", "poses_B_joint.csv", "--register")
+    """Series B and C were measured in different tracker frames: --register re-fits only the frame.
+
+    B's 6-D file (the same rows with the T-Mac's orientation) also scores the orientation that the
+    position-only fit of C claims for the flange."""
+    metrics = _fit_and_score(tmp_path, "ipa-ur10-tmac", "poses_C_random.csv", "poses_B_joint_6d.csv", "--register")
     assert metrics["n_poses"] > 1000
     # geometry alone 0.904 mm; first harmonics fitted over C's short joint arcs 1.40 mm; the default's
-    # structure (gravity compliance; harmonics only on joints that turned half a revolution) 0.535 mm
+    # structure (gravity compliance; harmonics only on joints that turned half a revolution) 0.532 mm
     assert metrics["position_rms_mm"] < 0.60
     assert metrics["leakage"]["twin_share"] < 0.01 and not metrics["leakage"]["warning"]  # only the home pose repeats
+    # orientation never measured in the fit: 0.0597 deg RMS against the nominal robot's 0.0852 deg
+    orientation = metrics["orientation"]
+    assert orientation["orientation_rms_deg"] < 0.8 * orientation["nominal"]["orientation_rms_deg"]
 
 
 @pytest.mark.slow

@@ -137,9 +137,30 @@ def rigid_registration(source: torch.Tensor, target: torch.Tensor) -> torch.Tens
         ``(4, 4)`` transform ``T_target_source`` without scaling.
     """
     mu_s, mu_t = source.mean(0), target.mean(0)
-    cov = (target - mu_t).T @ (source - mu_s)
-    u, _, vt = torch.linalg.svd(cov)
-    d = torch.sign(torch.linalg.det(u @ vt))
-    fix = torch.diag(torch.stack([torch.ones_like(d), torch.ones_like(d), d]))
-    rotation = u @ fix @ vt
+    rotation = project_to_so3((target - mu_t).T @ (source - mu_s))
     return homogeneous(rotation, mu_t - rotation @ mu_s)
+
+
+def project_to_so3(matrix: torch.Tensor) -> torch.Tensor:
+    """The rotation ``(..., 3, 3)`` nearest to ``matrix`` in the Frobenius norm (SVD polar factor, det +1).
+
+    Of a sum ``sum_i A_i^T B_i`` it is the rotation ``X`` that best fits ``B_i ~ A_i X`` (the chordal
+    mean, Kabsch's solution).
+    """
+    u, _, vh = torch.linalg.svd(matrix)
+    d = torch.sign(torch.linalg.det(u @ vh))
+    fix = torch.ones(*d.shape, 3, dtype=matrix.dtype, device=matrix.device)
+    fix[..., -1] = d
+    return (u * fix.unsqueeze(-2)) @ vh
+
+
+def rotation_angle(rotation: torch.Tensor) -> torch.Tensor:
+    """Angle ``(...)`` (rad, in ``[0, pi]``) of rotation matrices ``(..., 3, 3)``: the geodesic distance to the identity.
+
+    From the skew part and the trace together (``atan2``): ``acos`` of the trace alone loses half the
+    digits of a small angle (1e-8 rad reads as 0 or 1.5e-8).
+    """
+    vee = torch.stack([rotation[..., 2, 1] - rotation[..., 1, 2], rotation[..., 0, 2] - rotation[..., 2, 0],
+                       rotation[..., 1, 0] - rotation[..., 0, 1]], -1)
+    trace = rotation.diagonal(dim1=-2, dim2=-1).sum(-1)
+    return torch.atan2(vee.norm(dim=-1), trace - 1.0)

@@ -67,19 +67,11 @@ def fit_planes(points: torch.Tensor, point_plane: torch.Tensor, n_planes: int) -
     return torch.stack(normals), torch.stack(offsets), torch.stack(spreads)
 
 
-def project_to_so3(matrix: torch.Tensor) -> torch.Tensor:
-    """The rotation nearest to ``matrix`` in the Frobenius norm (SVD polar projection, det +1)."""
-    u, _, vh = torch.linalg.svd(matrix)
-    d = torch.ones(3, dtype=matrix.dtype, device=matrix.device)
-    d[-1] = torch.sign(torch.det(u @ vh))
-    return u @ torch.diag(d) @ vh
-
-
 def unit_columns(r1: torch.Tensor, r3: torch.Tensor) -> torch.Tensor:
     """The patent's normalization: ``r1, r3`` scaled to unit length, ``r2 = r3 x r1`` normalized.
 
     Unit-norm columns but not exactly orthogonal when ``r1 . r3 != 0`` (their angle error is kept,
-    as least squares left it); :func:`project_to_so3` gives the orthonormal matrix.
+    as least squares left it); :func:`~torchcal.kinematics.transforms.project_to_so3` gives the orthonormal matrix.
     """
     a = r1 / r1.norm()
     c = r3 / r3.norm()
@@ -88,8 +80,8 @@ def unit_columns(r1: torch.Tensor, r3: torch.Tensor) -> torch.Tensor:
 
 
 def rotation_from_columns(r1: torch.Tensor, r3: torch.Tensor) -> torch.Tensor:
-    """``[r1, r3 x r1, r3]`` projected onto SO(3) by :func:`project_to_so3`."""
-    return project_to_so3(torch.stack([r1, torch.linalg.cross(r3, r1), r3], -1))
+    """``[r1, r3 x r1, r3]`` projected onto SO(3) by :func:`~torchcal.kinematics.transforms.project_to_so3`."""
+    return tf.project_to_so3(torch.stack([r1, torch.linalg.cross(r3, r1), r3], -1))
 
 
 def rotation_angle_deg(R_a: torch.Tensor, R_b: torch.Tensor) -> float:

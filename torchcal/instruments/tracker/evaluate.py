@@ -15,7 +15,8 @@ from torchcal.core.errors import DataError
 from torchcal.core.metrics import iso9283_repeated, position_metrics
 from torchcal.data.measurements import Measurements, load_measurements
 from torchcal.model_selection.leakage import leakage_report
-from torchcal.stages.geometry import NOMINAL_PROTOCOL, held_out_errors, nominal_errors
+from torchcal.stages.geometry import NOMINAL_PROTOCOL, held_out_errors, nominal_fit
+from torchcal.stages.orientation import model_orientation_errors, nominal_orientation_errors
 from torchcal.stages.prediction_uncertainty import score as score_uncertainty
 from torchcal.stages.prediction_uncertainty import stored_prediction
 from torchcal.stages.store import StoredModel, load_model
@@ -86,9 +87,16 @@ def score(stored: StoredModel, data: Measurements, *, register: bool = False, le
     metrics: dict[str, Any] = position_metrics(errors)
     metrics.update({"model": str(stored.folder), "data": str(data.source), "registered": register})
     # the fair 'before' on the same poses: what the uncalibrated robot misses them by
-    before = position_metrics(nominal_errors(stored.robot, data))
+    nominal_errors, nominal_frame, _ = nominal_fit(stored.robot, data)
+    before = position_metrics(nominal_errors)
     metrics["nominal"] = {**before, "protocol": NOMINAL_PROTOCOL}
     metrics["nominal_position_rms_mm"] = before["position_rms_mm"]
+    if data.rotation is not None:  # the file measures the tool's orientation too: scored alike
+        orientation = model_orientation_errors(stored, data, register=register).metrics()
+        orientation["nominal"] = nominal_orientation_errors(stored.robot, data, nominal_frame).metrics()
+        metrics["orientation"] = orientation
+        metrics["orientation_rms_deg"] = orientation["orientation_rms_deg"]
+        metrics["nominal_orientation_rms_deg"] = orientation["nominal"]["orientation_rms_deg"]
     prediction = stored_prediction(stored, data.q)
     if prediction is not None:
         uncertainty = score_uncertainty(prediction, errors,

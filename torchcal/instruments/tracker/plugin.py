@@ -123,6 +123,11 @@ class TrackerInstrument(Instrument):
         metrics = scored.metrics
         lines = [(f"{len(data)} poses: the model misses them by {metrics['position_rms_mm']:.4f} mm RMS, the nominal robot "
                   f"by {metrics['nominal_position_rms_mm']:.4f} mm ({metrics['nominal']['protocol']})")]
+        if "orientation" in metrics:
+            o = metrics["orientation"]
+            lines.append(f"tool orientation (rx, ry, rz): the model misses it by {o['orientation_rms_deg']:.4f} deg RMS "
+                         f"({o['protocol']}), the nominal robot by {o['nominal']['orientation_rms_deg']:.4f} deg "
+                         f"({o['nominal']['protocol']})")
         if "leakage" in metrics:
             leakage = LeakageReport(**metrics["leakage"])
             lines.append(f"{'warning: ' if leakage.warning else ''}{leakage.summary()}")
@@ -144,7 +149,8 @@ class TrackerInstrument(Instrument):
 
     def shown_metrics(self, metrics: dict) -> dict:
         # the point figures; leakage, uncertainty and the compensator are in the lines printed above
-        return {k: v for k, v in metrics.items() if k.startswith(("n_", "position_", "nominal_position_"))}
+        return {k: v for k, v in metrics.items()
+                if k.startswith(("n_", "position_", "nominal_position_", "orientation_", "nominal_orientation_"))}
 
     def options(self) -> type:
         from torchcal.config.schema import FitConfig

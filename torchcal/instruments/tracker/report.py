@@ -42,8 +42,13 @@ from torchcal.stages.base import ModelStage
 from torchcal.stages.geometry import (
     NOMINAL_PROTOCOL,
     held_out_errors,
-    nominal_errors,
+    nominal_fit,
     predict_positions,
+)
+from torchcal.stages.orientation import (
+    OrientationErrors,
+    model_orientation_errors,
+    nominal_orientation_errors,
 )
 from torchcal.stages.store import CALIBRATED_URDF, StoredModel, not_in_geometry
 
@@ -76,6 +81,8 @@ class PoseSet:
         stages: nominal first, the model as delivered last; extra stages (cross-validation) between.
         focus: index into ``stages`` of the errors the per-pose, per-joint and workspace figures show.
         points_base_mm: ``(n, 3)`` the TCP positions in the robot ``base`` frame, mm (workspace figures).
+        orientation: where the file measures the tool's orientation, ``(name, errors)`` of the
+            nominal robot and of the model (:mod:`torchcal.stages.orientation`).
     """
 
     label: str
@@ -83,6 +90,7 @@ class PoseSet:
     stages: list[StageErrors]
     points_base_mm: np.ndarray
     focus: int = -1
+    orientation: list[tuple[str, OrientationErrors]] = field(default_factory=list)
 
     @property
     def delivered(self) -> StageErrors:
@@ -167,7 +175,8 @@ def score_pose_set(stored: StoredModel, data: Measurements, *, held_out: bool, r
             "; instrument frame re-fitted to it first (--register)" if register else "")
     else:
         protocol = f"training poses of {name}, optimistic: the model was fitted to them"
-    stages = [StageErrors("nominal", nominal_errors(stored.robot, data), f"{NOMINAL_PROTOCOL}; generous to the nominal")]
+    nominal_errors, nominal_frame, _ = nominal_fit(stored.robot, data)
+    stages = [StageErrors("nominal", nominal_errors, f"{NOMINAL_PROTOCOL}; generous to the nominal")]
     stages += list(extra)
     structure = structure_name(stored)
     delivered = model_name(stored)
@@ -178,8 +187,12 @@ def score_pose_set(stored: StoredModel, data: Measurements, *, held_out: bool, r
         predicted = predict_positions(stored, data.q, data.temperature, data.wrench)
         transform = stored.model.instrument_from_base(stored.x)
         base = (predicted - transform[:3, 3]) @ transform[:3, :3]
+    orientation = [] if data.rotation is None else [
+        ("nominal", nominal_orientation_errors(stored.robot, data, nominal_frame)),
+        (structure, model_orientation_errors(stored, data, register=register))]
     return PoseSet(label=f"{'held-out' if held_out else 'training'} file {name}", data=data, stages=stages,
-                   points_base_mm=base.detach().cpu().numpy() * 1e3, focus=1 if (focus_extra and extra) else -1)
+                   points_base_mm=base.detach().cpu().numpy() * 1e3, focus=1 if (focus_extra and extra) else -1,
+                   orientation=orientation)
 
 
 def cross_validated_stage(stored: StoredModel, structure) -> StageErrors | None:
@@ -243,6 +256,18 @@ def _accuracy(pose_sets: list[PoseSet]) -> Section:
                   "poses; numbers on the poses a model was fitted to are optimistic."),
         Table("accuracy", ["file", "model stage", "protocol", "poses", "RMS [mm]", "mean [mm]", "p95 [mm]", "max [mm]"], rows),
     ]
+    oriented = [(p, name, o.metrics()) for p in pose_sets for name, o in p.orientation]
+    if oriented:
+        blocks += [
+            Paragraph("Where a file measures the tool's orientation (rx, ry, rz): the angle between the measured and the "
+                      "predicted orientation (deg). A learned residual head corrects positions only, so the model's "
+                      "row is its kinematic chain with its joint-space terms."),
+            Table("orientation", ["file", "model stage", "protocol", "poses", "RMS [deg]", "mean [deg]", "p95 [deg]",
+                                  "max [deg]"],
+                  [[p.label, name, m["protocol"], str(m["n_poses"]), _f(m["orientation_rms_deg"]),
+                    _f(m["orientation_mean_deg"]), _f(m["orientation_p95_deg"]), _f(m["orientation_max_deg"])]
+                   for p, name, m in oriented]),
+        ]
     for k, p in enumerate(pose_sets):
         blocks.append(PendingFigure(f"error_histogram_{k + 1}", plots.error_histogram, (
             {s.name: np.linalg.norm(s.mm, axis=1) for s in p.stages}, f"3-D error, {p.label}"),

@@ -1,0 +1,79 @@
+"""Orientation scoring against a twin's known orientations."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from torchcal.data.measurements import Measurements
+from torchcal.kinematics import transforms as tf
+from torchcal.sim.twin import Twin, TwinConfig
+from torchcal.stages.geometry import nominal_fit
+from torchcal.stages.orientation import PROBE_FITTED, angles_to_measured, nominal_orientation_errors
+
+PROBE = tf.so3_exp(torch.tensor([0.3, -0.2, 1.0], dtype=torch.float64))  # a probe mounted at some angle
+
+
+def _geometric_twin(**true_deltas: float) -> Twin:
+    twin = Twin.create(TwinConfig(gear=False, gravity=False, angle_error_deg=0.0, length_error_mm=0.0, tool_error_mm=0.0))
+    return twin.changed(**true_deltas)
+
+
+def _measured(twin: Twin, n: int = 60) -> Measurements:
+    """Exact positions and orientations of the probe (mounted at :data:`PROBE` on the flange)."""
+    q = twin.robot.sample_joints(n, torch.Generator().manual_seed(4))
+    flange = twin.T_instrument_base() @ twin.model.base_flange_pose(q, twin.x_true)
+    return Measurements(q=q, position=twin.true_positions(q), rotation=flange[..., :3, :3] @ PROBE)
+
+
+def test_the_truth_leaves_no_error_once_the_probe_rotation_is_fitted():
+    twin = _geometric_twin(alpha4=math.radians(0.5))
+    data = _measured(twin)
+    flange = twin.T_instrument_base() @ twin.model.base_flange_pose(data.q, twin.x_true)
+    assert float(angles_to_measured(flange[..., :3, :3], data.rotation, fit_probe=True).max()) < 1e-12
+    # without the fitted probe rotation the whole mounting angle is counted
+    counted = angles_to_measured(flange[..., :3, :3], data.rotation, fit_probe=False)
+    torch.testing.assert_close(counted, tf.rotation_angle(PROBE).expand(len(data)), rtol=0, atol=1e-12)
+
+
+def test_a_joint_6_zero_offset_is_a_probe_rotation_and_not_counted():
+    # theta6 turns the flange about its own axis by a constant: the fitted probe rotation takes it
+    data = _measured(_geometric_twin(theta6=math.radians(0.8)))
+    _, frame, _ = nominal_fit(_geometric_twin().robot, data)
+    scored = nominal_orientation_errors(_geometric_twin().robot, data, frame)
+    assert scored.metrics()["orientation_max_deg"] < 1e-6
+    assert PROBE_FITTED.split(" (")[0] in scored.protocol
+
+
+def test_a_tilted_wrist_axis_is_counted_pose_by_pose_in_proportion():
+    # alpha4 turns everything after joint 4 about the forearm: an orientation error that varies with the pose,
+    # of the tilt's size, and (small angles) three times as large for three times the tilt
+    robot = _geometric_twin().robot
+    rms = {}
+    for delta_deg in (0.2, 0.6):
+        data = _measured(_geometric_twin(alpha4=math.radians(delta_deg)))
+        _, frame, _ = nominal_fit(robot, data)
+        metrics = nominal_orientation_errors(robot, data, frame).metrics()
+        assert metrics["n_poses"] == len(data)
+        assert 0.5 * delta_deg < metrics["orientation_rms_deg"] < 1.5 * delta_deg
+        rms[delta_deg] = metrics["orientation_rms_deg"]
+    assert rms[0.6] / rms[0.2] == pytest.approx(3.0, rel=0.01)
+
+
+def test_the_fitted_probe_rotation_is_the_least_squares_one(generator):
+    # chordal least squares: any other constant rotation fits the measured orientations worse
+    twin = _geometric_twin(alpha4=math.radians(0.6))
+    data = _measured(twin)
+    flange = (twin.T_instrument_base() @ twin.model.base_flange_pose(data.q, _geometric_twin().x_true))[..., :3, :3]
+    measured = data.rotation
+    fitted = tf.project_to_so3((flange.transpose(-1, -2) @ measured).sum(0))
+
+    def chordal(rotation: torch.Tensor) -> float:
+        return float((flange @ rotation - measured).pow(2).sum())
+
+    best = chordal(fitted)
+    for _ in range(12):
+        nudge = tf.so3_exp(torch.randn(3, generator=generator, dtype=torch.float64) * 1e-3)
+        assert chordal(fitted @ nudge) > best

@@ -1,0 +1,88 @@
+"""The tool's orientation scored where a file measures it (``rx, ry, rz``): the model's and the nominal robot's.
+
+What is scored is the orientation a compensator would act on: the calibrated chain's flange
+orientation (with its joint-space terms; a learned residual head corrects positions only) in the
+instrument frame, against the measured one, as the angle of ``R_predicted^T R_measured`` (deg).
+
+**Protocols.** The instrument frame is the model's (``--register``: re-fitted to the file's
+positions, as for the position errors). The probe's rotation on the flange is a constant the fit
+identified only if it measured orientation; otherwise it is fitted to the file's orientations first
+(3 parameters: the nominal robot gets the same), so that what remains is the orientation error that
+varies from pose to pose: what a position-only calibration may claim to know about the orientation.
+The nominal robot's instrument frame is the one fitted to the file's positions
+(:func:`~torchcal.stages.geometry.nominal_fit`), its probe rotation fitted as above.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+from torchcal.data.measurements import Measurements
+from torchcal.kinematics import transforms as tf
+from torchcal.kinematics.error_model import ErrorModel
+from torchcal.kinematics.robot import RobotModel
+from torchcal.stages.geometry import model_joints, predict_positions
+from torchcal.stages.store import StoredModel
+
+PROBE_FITTED = "probe rotation on the flange fitted to these orientations (the fit measured positions only)"
+PROBE_IDENTIFIED = "probe rotation as the fit identified it from measured orientations"
+
+
+@dataclass(frozen=True)
+class OrientationErrors:
+    """Angles ``(n,)`` (rad) between predicted and measured tool orientations, and how they were obtained."""
+
+    angles_rad: torch.Tensor
+    protocol: str
+
+    def metrics(self) -> dict:
+        """RMS, mean, p95 and largest angle (deg), the pose count and the protocol."""
+        deg = self.angles_rad.detach().cpu().to(torch.float64) * (180.0 / math.pi)
+        return {"n_poses": int(deg.numel()), "orientation_rms_deg": float(deg.pow(2).mean().sqrt()),
+                "orientation_mean_deg": float(deg.mean()), "orientation_p95_deg": float(deg.quantile(0.95)),
+                "orientation_max_deg": float(deg.max()), "protocol": self.protocol}
+
+
+def angles_to_measured(predicted: torch.Tensor, measured: torch.Tensor, *, fit_probe: bool) -> torch.Tensor:
+    """Angles ``(n,)`` rad between ``predicted`` and ``measured`` rotations ``(n, 3, 3)`` (same frame).
+
+    ``fit_probe``: first right-multiply ``predicted`` by the constant rotation that fits the
+    measurements best (``measured ~ predicted X``; the chordal least-squares ``X``).
+    """
+    if fit_probe:
+        predicted = predicted @ tf.project_to_so3((predicted.transpose(-1, -2) @ measured).sum(0))
+    return tf.rotation_angle(predicted.transpose(-1, -2) @ measured)
+
+
+def model_orientation_errors(stored: StoredModel, data: Measurements, *, register: bool = False) -> OrientationErrors:
+    """The orientation errors of ``stored`` on ``data`` (which must carry ``rx, ry, rz``); see the module docstring."""
+    if data.rotation is None:
+        raise ValueError("the file has no orientation columns (rx, ry, rz)")
+    model, x = stored.model, stored.x
+    with torch.no_grad():
+        frame = model.instrument_from_base(x)
+        if register:  # the frame the position errors are scored in: re-fitted to the file's points
+            frame = tf.rigid_registration(predict_positions(stored, data.q, data.temperature, data.wrench),
+                                          data.position) @ frame
+        flange = model.base_flange_pose(model_joints(stored, data.q), x)
+        predicted = frame[:3, :3] @ flange[..., :3, :3] @ model.flange_from_tool(x)[:3, :3]
+        angles = angles_to_measured(predicted, data.rotation.to(predicted), fit_probe=not model.with_orientation)
+    frame_text = "instrument frame re-fitted to the file's positions (--register)" if register else "the model's instrument frame"
+    probe = PROBE_IDENTIFIED if model.with_orientation else PROBE_FITTED
+    return OrientationErrors(angles, f"{frame_text}; {probe}")
+
+
+def nominal_orientation_errors(robot: RobotModel, data: Measurements, T_instrument_base: torch.Tensor) -> OrientationErrors:
+    """The nominal robot's orientation errors on ``data``, in the instrument frame ``T_instrument_base``
+    ``(4, 4)`` fitted to the file's positions (:func:`~torchcal.stages.geometry.nominal_fit`)."""
+    if data.rotation is None:
+        raise ValueError("the file has no orientation columns (rx, ry, rz)")
+    model = ErrorModel(robot)
+    with torch.no_grad():
+        flange = model.base_flange_pose(data.q.to(torch.float64), model.nominal_vector())
+        predicted = T_instrument_base.to(flange)[:3, :3] @ flange[..., :3, :3]
+        angles = angles_to_measured(predicted, data.rotation.to(predicted), fit_probe=True)
+    return OrientationErrors(angles, f"nominal robot, instrument frame fitted to these positions; {PROBE_FITTED.split(' (')[0]}")
