@@ -27,7 +27,7 @@ from torchcal.kinematics.robot import RobotModel
 from torchcal.stages.geometry import model_joints, predict_positions
 from torchcal.stages.store import StoredModel
 
-PROBE_FITTED = "probe rotation on the flange fitted to these orientations (the fit measured positions only)"
+PROBE_FITTED = "probe rotation on the flange fitted to these orientations"
 PROBE_IDENTIFIED = "probe rotation as the fit identified it from measured orientations"
 
 
@@ -71,7 +71,7 @@ def model_orientation_errors(stored: StoredModel, data: Measurements, *, registe
         predicted = frame[:3, :3] @ flange[..., :3, :3] @ model.flange_from_tool(x)[:3, :3]
         angles = angles_to_measured(predicted, data.rotation.to(predicted), fit_probe=not model.with_orientation)
     frame_text = "instrument frame re-fitted to the file's positions (--register)" if register else "the model's instrument frame"
-    probe = PROBE_IDENTIFIED if model.with_orientation else PROBE_FITTED
+    probe = PROBE_IDENTIFIED if model.with_orientation else f"{PROBE_FITTED} (the fit measured positions only)"
     return OrientationErrors(angles, f"{frame_text}; {probe}")
 
 
@@ -85,4 +85,4 @@ def nominal_orientation_errors(robot: RobotModel, data: Measurements, T_instrume
         flange = model.base_flange_pose(data.q.to(torch.float64), model.nominal_vector())
         predicted = T_instrument_base.to(flange)[:3, :3] @ flange[..., :3, :3]
         angles = angles_to_measured(predicted, data.rotation.to(predicted), fit_probe=True)
-    return OrientationErrors(angles, f"nominal robot, instrument frame fitted to these positions; {PROBE_FITTED.split(' (')[0]}")
+    return OrientationErrors(angles, f"nominal robot, instrument frame fitted to these positions; {PROBE_FITTED}")
