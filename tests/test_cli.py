@@ -196,12 +196,14 @@ def test_evaluate_scores_the_tool_orientation_where_the_file_measures_it(tmp_pat
     """A file with rx, ry, rz: the position-only model's flange orientation against the nominal robot's."""
     import torch
 
-    from torchcal.data.measurements import write_measurements_csv
+    from torchcal.data.measurements import load_measurements, write_measurements_csv
     from torchcal.kinematics import transforms as tf
     from torchcal.sim.twin import Twin, TwinConfig
 
     case, model = twin_fit
-    twin = Twin.create(TwinConfig(n_train=150, n_test=100, seed=5))  # the twin `simulate seed=5` wrote
+    twin = Twin.create(TwinConfig(n_train=150, n_test=100, seed=5))
+    written = load_measurements(case / "test.csv", twin.robot)  # it is the twin `simulate seed=5` wrote: noise apart
+    assert float((written.position - twin.true_positions(written.q)).norm(dim=-1).max()) < 2e-4
     generator = torch.Generator().manual_seed(11)
     q = twin.robot.sample_joints(80, generator)
     flange = twin.T_instrument_base() @ twin.model.base_flange_pose(q + twin.joint_deviation(q), twin.x_true)
