@@ -141,8 +141,10 @@ def _cmd_export(args) -> int:
     for where, e in manifest["corrections"]["extent"].items():
         what = "flange" if tcp.get("is_flange") else f"TCP {tcp['rpy_deg']} deg,"
         print(f"{what} {[round(v, 3) for v in tcp['position_mm']]} mm in the flange frame: over the {where} the largest joint "
-              f"correction is {e['largest_joint_correction_deg']:.3g} deg (joint {e['joint']}), the tool orientation "
-              f"deviation up to {e['largest_tool_rotation_deg']:.3g} deg")
+              f"correction is {e['largest_joint_correction_deg']:.3g} deg (joint {e['joint']}"
+              + (f"; 1-sigma {e['largest_joint_correction_sigma_deg']:.2g} deg from the calibration's uncertainty"
+                 if "largest_joint_correction_sigma_deg" in e else "")
+              + f"), the tool orientation deviation up to {e['largest_tool_rotation_deg']:.3g} deg")
     for line in manifest["corrections"]["exceeded_but_allowed"]:
         print(f"warning: {line} (allowed by --allow-large-corrections)")
     return 0

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import warnings
+from dataclasses import replace
 
 import pytest
 import torch
@@ -12,6 +13,7 @@ from torchcal.compensate.compensator import CompensatorGraph
 from torchcal.compensate.production_tcp import (
     check_corrections,
     correction_extent,
+    correction_sigma,
     production_view,
     tcp_transform,
 )
@@ -87,3 +89,59 @@ def test_large_corrections_are_refused_unless_allowed(tmp_path):
     with pytest.raises(TorchcalError, match="--allow-large-corrections"):
         check_corrections(extent, allow=False)
     assert check_corrections(extent, allow=True)
+
+
+@pytest.fixture(scope="module")
+def flange_view(tmp_path_factory):
+    """A MAP fit of a twin, as the compensator of its flange sees it."""
+    twin = Twin.create(TwinConfig(seed=4))
+    train = twin.sample(80, torch.Generator().manual_seed(4))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        result = calibrate(twin.robot, train, prior=PriorSpec())
+    stored = load_model(save_fit(tmp_path_factory.mktemp("m") / "m", twin.robot, train, result, {}))
+    view = production_view(stored, tcp_transform(None, None))
+    with torch.no_grad():
+        _, residual = CompensatorGraph.from_stored(view).solve(train.q[:16])
+    # poses whose orientation the steps turn all the way (one of these 16 keeps 0.37 deg: a joint then takes
+    # an offset back only in part)
+    kept = train.q[:16][residual[:, 1] < 1e-9]
+    assert len(kept) >= 12
+    return view, kept
+
+
+def _with_covariance(view, entries: dict[tuple[str, str], float]):
+    """``view`` with a covariance that has only ``entries`` (layout names, SI units squared)."""
+    names = [view.model.layout.names[i] for i in view.free.tolist()]
+    covariance = torch.zeros(len(names), len(names), dtype=torch.float64)
+    for (a, b), value in entries.items():
+        covariance[names.index(a), names.index(b)] = covariance[names.index(b), names.index(a)] = value
+    return replace(view, covariance=covariance)
+
+
+@pytest.mark.parametrize("joint", [1, 6])
+def test_a_joint_offset_known_to_sigma_is_that_joints_correction_sigma(flange_view, joint):
+    # theta1 turns the arm about base z, theta6 the flange about its own axis: joint 1 (6) takes either back one for one
+    view, q = flange_view
+    s = math.radians(0.3)
+    model = _with_covariance(view, {(f"theta{joint}", f"theta{joint}"): s * s})
+    sigma = correction_sigma(model, CompensatorGraph.from_stored(model), q)
+    torch.testing.assert_close(sigma[:, joint - 1], torch.full((len(q),), s, dtype=torch.float64), rtol=1e-4, atol=0)
+    others = [j for j in range(6) if j != joint - 1]
+    assert float(sigma[:, others].max()) < 1e-4 * s
+
+
+def test_what_only_moves_the_base_frame_is_no_uncertainty_of_a_command(flange_view):
+    # the data see theta1 and the frame's rotation about z only together (correlation -1): given the frame, theta1 is known
+    view, q = flange_view
+    s = math.radians(0.3)
+    model = _with_covariance(view, {("theta1", "theta1"): s * s, ("base_rz", "base_rz"): s * s, ("theta1", "base_rz"): -s * s})
+    sigma = correction_sigma(model, CompensatorGraph.from_stored(model), q)
+    assert float(sigma.max()) < 1e-6 * s
+
+
+def test_the_export_states_the_sigma_of_its_largest_correction(flange_view):
+    view, q = flange_view
+    extent = correction_extent(CompensatorGraph.from_stored(view), q, view)
+    assert extent["largest_joint_correction_sigma_deg"] > 0.0
+    assert len(extent["median_joint_correction_sigma_deg"]) == 6 and "posterior covariance" in extent["sigma_from"]

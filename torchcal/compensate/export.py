@@ -184,7 +184,8 @@ def _export_into(out_dir: Path, model_dir: Path, stored, *, wrench_frame: str, i
     extent = {}
     if not has_wrench_input(graphs):
         if stored.training_q is not None and len(regular_poses(stored.robot, stored.training_q)):
-            extent["training poses"] = correction_extent(compensator_of(graphs), regular_poses(stored.robot, stored.training_q))
+            extent["training poses"] = correction_extent(compensator_of(graphs), regular_poses(stored.robot, stored.training_q),
+                                                         stored)
         extent["joint range"] = correction_extent(
             compensator_of(graphs), regular_poses(stored.robot, stored.robot.sample_joints(2000, torch.Generator().manual_seed(2))))
     exceeded = check_corrections(extent, allow_large_corrections)

@@ -73,14 +73,20 @@ def tcp_entry(T_flange_tcp: torch.Tensor, position_mm, rpy_deg, stored) -> dict:
     }
 
 
-def correction_extent(graph, q: torch.Tensor) -> dict:
-    """Largest joint correction (deg, and which joint) and tool orientation deviation (deg) of ``graph``'s commands at ``q``."""
+def correction_extent(graph, q: torch.Tensor, stored=None) -> dict:
+    """Largest joint correction (deg, and which joint) and tool orientation deviation (deg) of ``graph``'s commands at ``q``.
+
+    With ``stored`` (the model ``graph`` was built from) also the corrections' 1-sigma from the
+    calibration's uncertainty (:func:`correction_sigma`): at the largest correction, and per joint
+    the median over at most :data:`SIGMA_POSES` of the poses.
+    """
+    q = q.to(torch.float64)
     with torch.no_grad():
-        q_c, residual = graph.solve(q.to(torch.float64))
+        q_c, residual = graph.solve(q)
     move = (q_c - q).abs()
-    worst = int(move.amax(0).argmax())
+    pose, worst = divmod(int(move.argmax()), move.shape[1])
     per_pose = move.amax(-1)
-    return {
+    extent = {
         "n_poses": int(q.shape[0]),
         "largest_joint_correction_deg": math.degrees(float(move.max())),
         "joint": worst + 1,
@@ -90,6 +96,61 @@ def correction_extent(graph, q: torch.Tensor) -> dict:
         "p99_tool_rotation_deg": math.degrees(float(residual[:, 1].quantile(0.99))),
         "median_tool_rotation_deg": math.degrees(float(residual[:, 1].median())),
     }
+    if stored is not None:
+        # the largest correction's pose first, then an even spread of the others
+        sample = torch.cat([torch.tensor([pose]), torch.linspace(0, len(q) - 1, min(SIGMA_POSES, len(q)) - 1).long()])
+        sigma = correction_sigma(stored, graph, q[sample])
+        extent["largest_joint_correction_sigma_deg"] = math.degrees(float(sigma[0, worst]))
+        extent["median_joint_correction_sigma_deg"] = [math.degrees(float(v)) for v in sigma.median(0).values]
+        extent["sigma_from"] = SIGMA_FROM
+    return extent
+
+
+#: Poses at which :func:`correction_extent` computes the corrections' sigma (two solves per table parameter).
+SIGMA_POSES = 50
+SIGMA_FROM = ("the posterior covariance of the calibrated MDH table given the robot base frame (the compensator's frame: "
+              "what only moves that frame is not an error of the robot in it; the measuring tool does not enter; the "
+              "joint-space terms' own uncertainty is not included), propagated through the compensator's solve")
+
+
+def correction_sigma(stored, graph, q: torch.Tensor, step: float = 0.1) -> torch.Tensor:
+    """1-sigma ``(n, N)`` (rad) of each joint correction of ``graph``'s commands at ``q`` ``(n, N)`` rad.
+
+    The covariance is that of the MDH table's parameters given the robot base frame's (Gaussian
+    conditioning): the compensator works in that frame, so a table parameter that only moves it
+    (``theta1`` with the frame's rotation about z) is no uncertainty of a command, while one the
+    data did not see (``theta6``: the flange's roll) carries its prior's sigma into the corrections
+    it drives. The solved command is differenced (central, ``step`` sigma either way) along each
+    column of a square root of that covariance (eigen-decomposition ``C = R R^T``), with the graph's
+    own task and steps; the variances of the columns add.
+    """
+    layout = stored.model.layout
+    free = stored.free.tolist()
+    rows = [k for k, i in enumerate(free) if layout.table_slice.start <= i < layout.table_slice.stop]
+    if not rows:
+        return torch.zeros(q.shape, dtype=torch.float64)
+    frame = [k for k, i in enumerate(free) if layout.base_slice.start <= i < layout.base_slice.stop]
+    index = stored.free[rows]
+    covariance = stored.covariance.to(torch.float64)
+    table = covariance[rows][:, rows]
+    if frame:
+        cross = covariance[rows][:, frame]
+        table = table - cross @ torch.linalg.pinv(covariance[frame][:, frame], hermitian=True) @ cross.T
+    values, vectors = torch.linalg.eigh(0.5 * (table + table.T))
+    root = vectors * values.clamp_min(0.0).sqrt()
+    variance = torch.zeros(q.shape, dtype=torch.float64)
+    with torch.no_grad():
+        for column in root.T:
+            if float(column.abs().max()) == 0.0:
+                continue
+            solved = []
+            for sign in (1.0, -1.0):
+                x = stored.x.clone()
+                x[index] += sign * step * column.to(x)
+                moved = type(graph).from_stored(replace(stored, x=x), task=graph.task, iterations=graph.iterations)
+                solved.append(moved.solve(q)[0])
+            variance += ((solved[0] - solved[1]) / (2.0 * step)) ** 2
+    return variance.sqrt()
 
 
 def check_corrections(extent: dict[str, dict], allow: bool) -> list[str]:
