@@ -106,23 +106,25 @@ def correction_extent(graph, q: torch.Tensor, stored=None) -> dict:
     return extent
 
 
-#: Poses at which :func:`correction_extent` computes the corrections' sigma (two solves per table parameter).
+#: Poses at which :func:`correction_extent` computes the corrections' sigma (one solve per table parameter).
 SIGMA_POSES = 50
 SIGMA_FROM = ("the posterior covariance of the calibrated MDH table given the robot base frame (the compensator's frame: "
               "what only moves that frame is not an error of the robot in it; the measuring tool does not enter; the "
-              "joint-space terms' own uncertainty is not included), propagated through the compensator's solve")
+              "joint-space terms' own uncertainty is not included), propagated through the compensator's solve "
+              "(finite differences)")
 
 
-def correction_sigma(stored, graph, q: torch.Tensor, step: float = 0.1) -> torch.Tensor:
+def correction_sigma(stored, graph, q: torch.Tensor, step: float = 0.01) -> torch.Tensor:
     """1-sigma ``(n, N)`` (rad) of each joint correction of ``graph``'s commands at ``q`` ``(n, N)`` rad.
 
     The covariance is that of the MDH table's parameters given the robot base frame's (Gaussian
     conditioning): the compensator works in that frame, so a table parameter that only moves it
     (``theta1`` with the frame's rotation about z) is no uncertainty of a command, while one the
     data did not see (``theta6``: the flange's roll) carries its prior's sigma into the corrections
-    it drives. The solved command is differenced (central, ``step`` sigma either way) along each
-    column of a square root of that covariance (eigen-decomposition ``C = R R^T``), with the graph's
-    own task and steps; the variances of the columns add.
+    it drives. The solved command is differenced (forward, ``step`` sigma: the steps converge to
+    1e-10, far below ``step`` times a correction's sensitivity) along each column of a square root of
+    that covariance (eigen-decomposition ``C = R R^T``), with the graph's own task and steps; the
+    variances of the columns add.
     """
     layout = stored.model.layout
     free = stored.free.tolist()
@@ -139,17 +141,18 @@ def correction_sigma(stored, graph, q: torch.Tensor, step: float = 0.1) -> torch
     values, vectors = torch.linalg.eigh(0.5 * (table + table.T))
     root = vectors * values.clamp_min(0.0).sqrt()
     variance = torch.zeros(q.shape, dtype=torch.float64)
+
+    def solved(x: torch.Tensor) -> torch.Tensor:
+        return type(graph).from_stored(replace(stored, x=x), task=graph.task, iterations=graph.iterations).solve(q)[0]
+
     with torch.no_grad():
+        at_fit = solved(stored.x)
         for column in root.T:
             if float(column.abs().max()) == 0.0:
                 continue
-            solved = []
-            for sign in (1.0, -1.0):
-                x = stored.x.clone()
-                x[index] += sign * step * column.to(x)
-                moved = type(graph).from_stored(replace(stored, x=x), task=graph.task, iterations=graph.iterations)
-                solved.append(moved.solve(q)[0])
-            variance += ((solved[0] - solved[1]) / (2.0 * step)) ** 2
+            x = stored.x.clone()
+            x[index] += step * column.to(x)
+            variance += ((solved(x) - at_fit) / step) ** 2
     return variance.sqrt()
 
 
