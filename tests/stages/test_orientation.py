@@ -3,15 +3,22 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import pytest
 import torch
 
+from torchcal.core.errors import DataError
 from torchcal.data.measurements import Measurements
 from torchcal.kinematics import transforms as tf
 from torchcal.sim.twin import Twin, TwinConfig
 from torchcal.stages.geometry import nominal_fit
-from torchcal.stages.orientation import PROBE_FITTED, angles_to_measured, nominal_orientation_errors
+from torchcal.stages.orientation import (
+    PROBE_FITTED,
+    angles_to_measured,
+    nominal_orientation_errors,
+    refuse_implausible,
+)
 
 PROBE = tf.so3_exp(torch.tensor([0.3, -0.2, 1.0], dtype=torch.float64))  # a probe mounted at some angle
 
@@ -77,3 +84,14 @@ def test_the_fitted_probe_rotation_is_the_least_squares_one(generator):
     for _ in range(12):
         nudge = tf.so3_exp(torch.randn(3, generator=generator, dtype=torch.float64) * 1e-3)
         assert chordal(fitted @ nudge) > best
+
+
+def test_orientation_columns_of_another_convention_are_refused():
+    robot = _geometric_twin().robot
+    data = _measured(_geometric_twin(alpha4=math.radians(0.3)))
+    _, frame, _ = nominal_fit(robot, data)
+    refuse_implausible(nominal_orientation_errors(robot, data, frame), data)  # a real arm's tenths of a degree pass
+    # the file holds the inverse rotations (probe-to-instrument read the other way round)
+    inverted = replace(data, rotation=data.rotation.transpose(-1, -2))
+    with pytest.raises(DataError, match="convention"):
+        refuse_implausible(nominal_orientation_errors(robot, inverted, frame), inverted)

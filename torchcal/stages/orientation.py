@@ -20,6 +20,7 @@ from dataclasses import dataclass
 
 import torch
 
+from torchcal.core.errors import DataError
 from torchcal.data.measurements import Measurements
 from torchcal.kinematics import transforms as tf
 from torchcal.kinematics.error_model import ErrorModel
@@ -28,6 +29,10 @@ from torchcal.stages.geometry import model_joints, predict_positions
 from torchcal.stages.store import StoredModel
 
 PROBE_FITTED = "probe rotation on the flange fitted to these orientations"
+#: Orientation columns the nominal robot misses by more than this (deg RMS, probe rotation fitted) are refused:
+#: an arm's geometry turns its tool by tenths of a degree, a wrong angle convention by degrees (near ry = 90 deg,
+#: where rx and rz nearly coincide, at some poses only: hence the RMS, not the median).
+IMPLAUSIBLE_RMS_DEG = 2.0
 PROBE_IDENTIFIED = "probe rotation as the fit identified it from measured orientations"
 
 
@@ -86,3 +91,17 @@ def nominal_orientation_errors(robot: RobotModel, data: Measurements, T_instrume
         predicted = T_instrument_base.to(flange)[:3, :3] @ flange[..., :3, :3]
         angles = angles_to_measured(predicted, data.rotation.to(predicted), fit_probe=True)
     return OrientationErrors(angles, f"nominal robot, instrument frame fitted to these positions; {PROBE_FITTED}")
+
+
+def refuse_implausible(nominal: OrientationErrors, data: Measurements) -> None:
+    """Refuse orientation columns that even the nominal robot (probe rotation fitted) misses by degrees (RMS).
+
+    Raises:
+        DataError: naming the median angle and the likely cause (the angle convention or unit).
+    """
+    rms = math.degrees(float(nominal.angles_rad.pow(2).mean().sqrt()))
+    if rms > IMPLAUSIBLE_RMS_DEG:
+        raise DataError(f"the orientation columns rx, ry, rz disagree with the robot by {rms:.2f} deg (RMS, the "
+                        f"nominal robot with the probe rotation fitted; a real arm: tenths of a degree): check their "
+                        "convention (fixed-axis XYZ in deg, R = Rz(rz) Ry(ry) Rx(rx), tool in the instrument frame) or "
+                        "remove the columns to score positions only", path=data.source)

@@ -16,7 +16,11 @@ from torchcal.core.metrics import iso9283_repeated, position_metrics
 from torchcal.data.measurements import Measurements, load_measurements
 from torchcal.model_selection.leakage import leakage_report
 from torchcal.stages.geometry import NOMINAL_PROTOCOL, held_out_errors, nominal_fit
-from torchcal.stages.orientation import model_orientation_errors, nominal_orientation_errors
+from torchcal.stages.orientation import (
+    model_orientation_errors,
+    nominal_orientation_errors,
+    refuse_implausible,
+)
 from torchcal.stages.prediction_uncertainty import score as score_uncertainty
 from torchcal.stages.prediction_uncertainty import stored_prediction
 from torchcal.stages.store import StoredModel, load_model
@@ -92,8 +96,10 @@ def score(stored: StoredModel, data: Measurements, *, register: bool = False, le
     metrics["nominal"] = {**before, "protocol": NOMINAL_PROTOCOL}
     metrics["nominal_position_rms_mm"] = before["position_rms_mm"]
     if data.rotation is not None:  # the file measures the tool's orientation too: scored alike
+        nominal_orientation = nominal_orientation_errors(stored.robot, data, nominal_frame)
+        refuse_implausible(nominal_orientation, data)
         orientation = model_orientation_errors(stored, data, register=register).metrics()
-        orientation["nominal"] = nominal_orientation_errors(stored.robot, data, nominal_frame).metrics()
+        orientation["nominal"] = nominal_orientation.metrics()
         metrics["orientation"] = orientation
         metrics["orientation_rms_deg"] = orientation["orientation_rms_deg"]
         metrics["nominal_orientation_rms_deg"] = orientation["nominal"]["orientation_rms_deg"]
