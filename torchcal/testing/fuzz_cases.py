@@ -536,6 +536,13 @@ def orientation_garbage(fx: Fixtures, w: Path) -> Case:
     return Case(_fit(fx, data, w / "out"), 2, "contradict the positions", w / "out")
 
 
+def evaluate_orientation_garbage(fx: Fixtures, w: Path) -> Case:
+    header, rows = _rows(fx.test)
+    angles = [[f"{(k * 37 + 11 * c) % 360 - 180:.1f}" for c in range(3)] for k in range(len(rows))]
+    data = _write_rows(w / "test.csv", [*header, "rx", "ry", "rz"], [r + a for r, a in zip(rows, angles)])
+    return Case(_evaluate(fx.model, data, "--json", str(w / "m.json")), 2, "convention", w / "m.json")
+
+
 def rows_in_metres(fx: Fixtures, w: Path) -> Case:
     def edit(h, k, r):
         if k < 12:  # twelve of forty rows in metres: the file mixes units
@@ -737,7 +744,7 @@ CASES: dict[str, Callable[[Fixtures, Path], Case]] = {f.__name__: f for f in (
     device_unknown, boolean_given_number, evaluate_interpolation, evaluate_fit_option, simulate_interpolation, study_workers_zero,
     study_trials_zero, export_iterations_huge, hidden_units_huge, simulate_huge, fit_points_of_other_poses,
     evaluate_points_of_other_poses, evaluate_instrument_moved, rows_with_mistyped_angle, rows_in_metres,
-    joint_never_moves, orientation_garbage, simulate_negative_mass, simulate_zero_stiffness,
+    joint_never_moves, orientation_garbage, evaluate_orientation_garbage, simulate_negative_mass, simulate_zero_stiffness,
 )}
 
 #: Cases by class (the reliability rounds' classes); every other case is a bad input file.
@@ -760,7 +767,7 @@ _BY_CLASS: dict[str, tuple[str, ...]] = {
         "threshold_negative", "threshold_nan", "residual_unknown", "unknown_option", "simulate_zero",
         "simulate_negative"),
     "bad rows and contradictory inputs": ("rows_with_mistyped_angle", "rows_in_metres", "csv_semicolon",
-                                          "joint_never_moves", "orientation_garbage", "urdf_nan_limit", "yaml_deeply_nested", "yaml_continuous_with_limits",
+                                          "joint_never_moves", "orientation_garbage", "evaluate_orientation_garbage", "urdf_nan_limit", "yaml_deeply_nested", "yaml_continuous_with_limits",
                                           "yaml_continuous_not_boolean", "simulate_negative_mass",
                                           "simulate_zero_stiffness"),
     "a file of another robot or set-up": ("yaml_wrong_sign", "fit_points_of_other_poses", "evaluate_points_of_other_poses",
