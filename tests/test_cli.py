@@ -223,3 +223,7 @@ def test_evaluate_scores_the_tool_orientation_where_the_file_measures_it(tmp_pat
     assert metrics["orientation_rms_deg"] == orientation["orientation_rms_deg"]
     text = (report / "report.md").read_text()
     assert "RMS [deg]" in text and f"{orientation['orientation_rms_deg']:.4f}" in text
+    # the compensator's joint corrections on these poses, with their uncertainty, in the metrics and the report
+    corrections = metrics["compensator"]["corrections"]
+    assert corrections["largest_joint_correction_sigma_deg"] > 0 and len(corrections["median_joint_correction_sigma_deg"]) == 6
+    assert f"{corrections['largest_joint_correction_deg']:.3g} deg (joint {corrections['joint']}; 1-sigma" in text

@@ -10,6 +10,8 @@ from typing import Any
 import torch
 
 from torchcal.compensate.compensator import CompensatorGraph
+from torchcal.compensate.export_checks import regular_poses
+from torchcal.compensate.production_tcp import correction_extent
 from torchcal.config.schema import FitConfig
 from torchcal.core.errors import DataError
 from torchcal.core.metrics import iso9283_repeated, position_metrics
@@ -125,12 +127,21 @@ def compensator_summary(stored: StoredModel, q: torch.Tensor, model_errors: torc
     ``residual`` output gives the remaining TCP position error and the tool's orientation
     deviation from the nominal target. Returns the share of poses solved to 1 um (mm and rad
     values below). With the model's errors ``(n, 3)`` (m) on these poses, ``delivered_*_mm`` bound
-    what a compensated command leaves: per pose the model's error plus the unsolved part.
+    what a compensated command leaves: per pose the model's error plus the unsolved part. ``corrections``:
+    the joint corrections over the poses not near a singularity, with their 1-sigma from the
+    calibration's uncertainty (:func:`~torchcal.compensate.production_tcp.correction_extent`).
     """
     graph = CompensatorGraph.from_stored(stored)
     with torch.no_grad():
         _, residual = graph.solve(q.to(torch.float64))
     position_mm, turn = residual[:, 0] * 1e3, residual[:, 1]
+    corrections = {}
+    regular = regular_poses(stored.robot, q)
+    if len(regular):  # the joint corrections and their uncertainty, as the export states them
+        extent = correction_extent(graph, regular, stored)
+        corrections = {"corrections": {key: extent[key] for key in (
+            "n_poses", "largest_joint_correction_deg", "joint", "median_joint_correction_deg",
+            "largest_joint_correction_sigma_deg", "median_joint_correction_sigma_deg", "sigma_from")}}
     delivered = {}
     if model_errors is not None:
         bound = model_errors.detach().to(position_mm).norm(dim=-1) * 1e3 + position_mm
@@ -145,6 +156,7 @@ def compensator_summary(stored: StoredModel, q: torch.Tensor, model_errors: torc
         "orientation_deviation_p99_rad": float(turn.quantile(0.99)),
         "orientation_deviation_max_rad": float(turn.max()),
         **delivered,
+        **corrections,
     }
 
 

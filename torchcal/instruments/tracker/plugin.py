@@ -141,7 +141,7 @@ class TrackerInstrument(Instrument):
             f"the exported compensator ({comp['task']} first, {comp['iterations']} steps) solves "
             f"{100 * comp['solved_share']:.1f} % of these poses to 1 um (worst {comp['unsolved_max_mm']:.2e} mm); "
             f"tool orientation deviation median {comp['orientation_deviation_median_rad']:.1e} rad, "
-            f"max {comp['orientation_deviation_max_rad']:.1e} rad")
+            f"max {comp['orientation_deviation_max_rad']:.1e} rad" + _corrections_text(comp))
         report = None
         if request.report is not None:
             report = _write_evaluate_report(Path(request.report), scored, request.register, lines)
@@ -266,3 +266,13 @@ def _write_evaluate_report(target: Path, scored: Any, register: bool, lines: lis
                                  lines=lines))
     paths = write_report(target, report)
     return paths["report.md"]
+
+
+def _corrections_text(comp: dict) -> str:
+    """``; joint corrections up to ...`` of an evaluation's compensator summary (empty without them)."""
+    c = comp.get("corrections")
+    if not c:
+        return ""
+    return (f"; its joint corrections (poses not near a singularity) up to {c['largest_joint_correction_deg']:.3g} deg "
+            f"(joint {c['joint']}; 1-sigma {c['largest_joint_correction_sigma_deg']:.2g} deg from the calibration's "
+            f"uncertainty), median {c['median_joint_correction_deg']:.3g} deg")

@@ -397,8 +397,8 @@ def _compensator(pose_sets: list[PoseSet], inputs: ReportInputs) -> Section:
                       f"{100 * comp['solved_share']:.1f} % to 1 um by the model's own account (largest unsolved TCP "
                       f"{comp['unsolved_max_mm']:.2e} mm); the tool orientation deviates from the nominal target by "
                       f"{comp['orientation_deviation_median_rad']:.1e} rad (median), "
-                      f"{comp['orientation_deviation_max_rad']:.1e} rad (max). The accuracy it delivers is then the model's "
-                      "own accuracy plus that unsolved part:"),
+                      f"{comp['orientation_deviation_max_rad']:.1e} rad (max).{_corrections_sentence(comp)} The accuracy "
+                      "it delivers is then the model's own accuracy plus that unsolved part:"),
             Table("compensator", ["what", "protocol", "RMS [mm]", "p95 [mm]", "max [mm]"], rows),
         ]
     truth = inputs.compensation_on_truth
@@ -413,6 +413,18 @@ def _compensator(pose_sets: list[PoseSet], inputs: ReportInputs) -> Section:
                              "poses, error against the target (truth known):"),
                    Table("compensation_on_truth", ["command", "RMS [mm]", "max [mm]"], rows)]
     return Section("The exported compensator", blocks)
+
+
+def _corrections_sentence(comp: dict) -> str:
+    """The joint corrections and their 1-sigma, where the evaluation measured them."""
+    c = comp.get("corrections")
+    if not c:
+        return ""
+    sigmas = ", ".join(f"{v:.2g}" for v in c["median_joint_correction_sigma_deg"])
+    return (f" Its joint corrections on the {c['n_poses']} of these poses not near a singularity: up to "
+            f"{c['largest_joint_correction_deg']:.3g} deg (joint {c['joint']}; 1-sigma "
+            f"{c['largest_joint_correction_sigma_deg']:.2g} deg from the calibration's uncertainty), median "
+            f"{c['median_joint_correction_deg']:.3g} deg; each joint's median 1-sigma {sigmas} deg ({c['sigma_from']}).")
 
 
 def _uncertainty(pose_sets: list[PoseSet], inputs: ReportInputs) -> Section:
