@@ -73,10 +73,13 @@ def refuse_foreign_file(errors: torch.Tensor, stored: StoredModel, data: Measure
                     f"(median; a calibrated arm: well under 1 mm): {cause}; nothing was scored", path=data.source)
 
 
-def score(stored: StoredModel, data: Measurements, *, register: bool = False, leakage: bool = True) -> Scored:
+def score(stored: StoredModel, data: Measurements, *, register: bool = False, leakage: bool = True,
+          corrections: bool = True) -> Scored:
     """The metrics of ``stored`` on ``data`` (mm): errors, ISO 9283 where poses repeat, leakage, the compensator.
 
     ``leakage``: compare the poses with the training poses (off for the training file itself).
+    ``corrections``: the compensator's joint corrections with their 1-sigma (off for the fit's own report:
+    ``export`` states them over the training poses; the sigma costs a solve per table parameter).
     """
     warning = None
     if register:
@@ -116,30 +119,31 @@ def score(stored: StoredModel, data: Measurements, *, register: bool = False, le
     metrics["iso9283"] = iso9283_repeated(errors, data.q, rows=data.line_numbers)
     if leakage and stored.training_q is not None:
         metrics["leakage"] = leakage_report(stored.robot, stored.training_q, data.q).to_dict()
-    metrics["compensator"] = compensator_summary(stored, data.q, errors)
+    metrics["compensator"] = compensator_summary(stored, data.q, errors, corrections=corrections)
     return Scored(stored, data, errors, metrics)
 
 
-def compensator_summary(stored: StoredModel, q: torch.Tensor, model_errors: torch.Tensor | None = None) -> dict:
+def compensator_summary(stored: StoredModel, q: torch.Tensor, model_errors: torch.Tensor | None = None, *,
+                        corrections: bool = True) -> dict:
     """What the default exported compensator (position first) leaves at the joints ``q``, by the model's own account.
 
     For each pose its command is solved as the exported graph does (no load), and the graph's
     ``residual`` output gives the remaining TCP position error and the tool's orientation
     deviation from the nominal target. Returns the share of poses solved to 1 um (mm and rad
     values below). With the model's errors ``(n, 3)`` (m) on these poses, ``delivered_*_mm`` bound
-    what a compensated command leaves: per pose the model's error plus the unsolved part. ``corrections``:
-    the joint corrections over the poses not near a singularity, with their 1-sigma from the
-    calibration's uncertainty (:func:`~torchcal.compensate.production_tcp.correction_extent`).
+    what a compensated command leaves: per pose the model's error plus the unsolved part. With
+    ``corrections``, also the joint corrections over the poses not near a singularity, with their
+    1-sigma from the calibration's uncertainty (:func:`~torchcal.compensate.production_tcp.correction_extent`).
     """
     graph = CompensatorGraph.from_stored(stored)
     with torch.no_grad():
         _, residual = graph.solve(q.to(torch.float64))
     position_mm, turn = residual[:, 0] * 1e3, residual[:, 1]
-    corrections = {}
-    regular = regular_poses(stored.robot, q)
+    extents = {}
+    regular = regular_poses(stored.robot, q) if corrections else q[:0]
     if len(regular):  # the joint corrections and their uncertainty, as the export states them
         extent = correction_extent(graph, regular, stored)
-        corrections = {"corrections": {key: extent[key] for key in (
+        extents = {"corrections": {key: extent[key] for key in (
             "n_poses", "largest_joint_correction_deg", "joint", "median_joint_correction_deg",
             "largest_joint_correction_sigma_deg", "median_joint_correction_sigma_deg", "sigma_from")}}
     delivered = {}
@@ -156,7 +160,7 @@ def compensator_summary(stored: StoredModel, q: torch.Tensor, model_errors: torc
         "orientation_deviation_p99_rad": float(turn.quantile(0.99)),
         "orientation_deviation_max_rad": float(turn.max()),
         **delivered,
-        **corrections,
+        **extents,
     }
 
 

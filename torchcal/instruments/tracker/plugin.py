@@ -222,7 +222,7 @@ def _write_fit_report(folder: Path, data: Any, structure: Any, lines: list[str],
     from torchcal.stages.store import load_model
 
     stored = load_model(folder)
-    scored = score(stored, data, leakage=False)
+    scored = score(stored, data, leakage=False, corrections=False)
     cv = cross_validated_stage(stored, structure)
     extra = [cv] if cv is not None else []
     cv_text = "" if cv is None else (f"; cross-validated {position_metrics(cv.errors_m)['position_rms_mm']:.4f} mm "
