@@ -145,3 +145,7 @@ def test_the_export_states_the_sigma_of_its_largest_correction(flange_view):
     extent = correction_extent(CompensatorGraph.from_stored(view), q, view)
     assert extent["largest_joint_correction_sigma_deg"] > 0.0
     assert len(extent["median_joint_correction_sigma_deg"]) == 6 and "posterior covariance" in extent["sigma_from"]
+    assert "lower bound" not in extent["sigma_from"]
+    # a rank-cut fit fixed what it could not identify: its sigma says it is a lower bound
+    rank_cut = replace(view, metadata={**view.metadata, "prior": None})
+    assert "lower bound" in correction_extent(CompensatorGraph.from_stored(rank_cut), q, rank_cut)["sigma_from"]

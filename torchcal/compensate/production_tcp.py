@@ -102,7 +102,7 @@ def correction_extent(graph, q: torch.Tensor, stored=None) -> dict:
         sigma = correction_sigma(stored, graph, q[sample])
         extent["largest_joint_correction_sigma_deg"] = math.degrees(float(sigma[0, worst]))
         extent["median_joint_correction_sigma_deg"] = [math.degrees(float(v)) for v in sigma.median(0).values]
-        extent["sigma_from"] = SIGMA_FROM
+        extent["sigma_from"] = SIGMA_FROM if stored.metadata.get("prior") else f"{SIGMA_FROM}; {RANK_CUT_NOTE}"
     return extent
 
 
@@ -112,6 +112,8 @@ SIGMA_FROM = ("the posterior covariance of the calibrated MDH table given the ro
               "what only moves that frame is not an error of the robot in it; the measuring tool does not enter; the "
               "joint-space terms' own uncertainty is not included), propagated through the compensator's solve "
               "(finite differences)")
+RANK_CUT_NOTE = ("a fit without a prior (prior=none): the parameters its rank cut fixed at nominal count as exact, "
+                 "so this sigma is a lower bound")
 
 
 def correction_sigma(stored, graph, q: torch.Tensor, step: float = 0.01) -> torch.Tensor:
