@@ -118,3 +118,22 @@ def test_fit_report_names_the_calibrated_robot_files_and_what_they_cannot_hold(r
     md = (reported["model"] / "report.md").read_text()
     section = md.split("## Calibrated robot files", 1)[1].split("\n## ", 1)[0]
     assert "calibrated_robot.urdf" in section and "residual head" in section and "calibration.json" in section
+
+
+def test_orientation_rows_say_training_or_held_out_as_the_position_rows_do(reported):
+    from dataclasses import replace
+
+    from torchcal.instruments.tracker.report import structure_name
+    from torchcal.stages.geometry import model_joints
+
+    stored = load_model(reported["model"])
+    data = load_measurements(reported["case"] / "test.csv", stored.robot)
+    with torch.no_grad():  # the model's own flange orientations (with its joint-space terms): a file that measured them
+        flange = stored.model.instrument_from_base(stored.x) @ stored.model.base_flange_pose(model_joints(stored, data.q),
+                                                                                             stored.x)
+    data = replace(data, rotation=flange[..., :3, :3])
+    held_out, training = score_pose_set(stored, data, held_out=True), score_pose_set(stored, data, held_out=False)
+    assert [name for name, _ in held_out.orientation] == ["nominal", structure_name(stored)]
+    assert "optimistic" not in held_out.orientation[1][1].protocol
+    assert "optimistic" in training.orientation[1][1].protocol
+    assert held_out.orientation[1][1].metrics()["orientation_max_deg"] < 1e-6  # its own orientations, probe fitted

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -187,9 +187,12 @@ def score_pose_set(stored: StoredModel, data: Measurements, *, held_out: bool, r
         predicted = predict_positions(stored, data.q, data.temperature, data.wrench)
         transform = stored.model.instrument_from_base(stored.x)
         base = (predicted - transform[:3, 3]) @ transform[:3, :3]
-    orientation = [] if data.rotation is None else [
-        ("nominal", nominal_orientation_errors(stored.robot, data, nominal_frame)),
-        (structure, model_orientation_errors(stored, data, register=register))]
+    orientation = []
+    if data.rotation is not None:
+        model = model_orientation_errors(stored, data, register=register)
+        if not held_out:  # as for the positions: the model was fitted to these poses
+            model = replace(model, protocol=f"{model.protocol}; training poses, optimistic: the model was fitted to them")
+        orientation = [("nominal", nominal_orientation_errors(stored.robot, data, nominal_frame)), (structure, model)]
     return PoseSet(label=f"{'held-out' if held_out else 'training'} file {name}", data=data, stages=stages,
                    points_base_mm=base.detach().cpu().numpy() * 1e3, focus=1 if (focus_extra and extra) else -1,
                    orientation=orientation)
