@@ -143,7 +143,7 @@ def _cmd_export(args) -> int:
         print(f"{what} {[round(v, 3) for v in tcp['position_mm']]} mm in the flange frame: over the {where} the largest joint "
               f"correction is {e['largest_joint_correction_deg']:.3g} deg (joint {e['joint']}"
               + (f"; 1-sigma {e['largest_joint_correction_sigma_deg']:.2g} deg from the calibration's uncertainty"
-                 if "largest_joint_correction_sigma_deg" in e else "")
+                 if e.get("largest_joint_correction_sigma_deg") is not None else "")
               + f"), the tool orientation deviation up to {e['largest_tool_rotation_deg']:.3g} deg")
     for line in manifest["corrections"]["exceeded_but_allowed"]:
         print(f"warning: {line} (allowed by --allow-large-corrections)")

@@ -149,3 +149,14 @@ def test_the_export_states_the_sigma_of_its_largest_correction(flange_view):
     # a rank-cut fit fixed what it could not identify: its sigma says it is a lower bound
     rank_cut = replace(view, metadata={**view.metadata, "prior": None})
     assert "lower bound" in correction_extent(CompensatorGraph.from_stored(rank_cut), q, rank_cut)["sigma_from"]
+
+
+def test_a_fit_without_a_finite_covariance_claims_no_sigma(flange_view):
+    import json
+
+    view, q = flange_view
+    unknown = replace(view, covariance=torch.full_like(view.covariance, float("nan")))
+    extent = correction_extent(CompensatorGraph.from_stored(unknown), q, unknown)
+    assert extent["largest_joint_correction_sigma_deg"] is None
+    assert extent["median_joint_correction_sigma_deg"] == [None] * 6
+    json.loads(json.dumps(extent, allow_nan=False))  # the manifest stays strict JSON for a controller's parser

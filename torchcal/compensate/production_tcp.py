@@ -100,10 +100,16 @@ def correction_extent(graph, q: torch.Tensor, stored=None) -> dict:
         # the largest correction's pose first, then an even spread of the others
         sample = torch.cat([torch.tensor([pose]), torch.linspace(0, len(q) - 1, min(SIGMA_POSES, len(q)) - 1).long()])
         sigma = correction_sigma(stored, graph, q[sample])
-        extent["largest_joint_correction_sigma_deg"] = math.degrees(float(sigma[0, worst]))
-        extent["median_joint_correction_sigma_deg"] = [math.degrees(float(v)) for v in sigma.median(0).values]
+        extent["largest_joint_correction_sigma_deg"] = _degrees_or_none(sigma[0, worst])
+        extent["median_joint_correction_sigma_deg"] = [_degrees_or_none(v) for v in sigma.median(0).values]
         extent["sigma_from"] = SIGMA_FROM if stored.metadata.get("prior") else f"{SIGMA_FROM}; {RANK_CUT_NOTE}"
     return extent
+
+
+def _degrees_or_none(value: torch.Tensor) -> float | None:
+    """Degrees of a rad value; ``None`` (JSON null) where the fit stated no uncertainty (NaN)."""
+    degrees = math.degrees(float(value))
+    return degrees if math.isfinite(degrees) else None
 
 
 #: Poses at which :func:`correction_extent` computes the corrections' sigma (one solve per table parameter).
@@ -136,6 +142,8 @@ def correction_sigma(stored, graph, q: torch.Tensor, step: float = 0.01) -> torc
     frame = [k for k, i in enumerate(free) if layout.base_slice.start <= i < layout.base_slice.stop]
     index = stored.free[rows]
     covariance = stored.covariance.to(torch.float64)
+    if not bool(torch.isfinite(covariance).all()):  # a fit that could not state its uncertainty claims none here
+        return torch.full(q.shape, float("nan"), dtype=torch.float64)
     table = covariance[rows][:, rows]
     if frame:
         cross = covariance[rows][:, frame]

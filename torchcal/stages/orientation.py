@@ -1,7 +1,8 @@
 """The tool's orientation scored where a file measures it (``rx, ry, rz``): the model's and the nominal robot's.
 
 What is scored is the orientation a compensator would act on: the calibrated chain's flange
-orientation (with its joint-space terms; a learned residual head corrects positions only) in the
+orientation (with its joint-space terms; a learned residual head corrects positions only, and a
+stiffness stage's deflection under a file's wrench is not turned into a rotation here) in the
 instrument frame, against the measured one, as the angle of ``R_predicted^T R_measured`` (deg).
 
 **Protocols.** The instrument frame is the model's (``--register``: re-fitted to the file's

@@ -271,7 +271,7 @@ def _write_evaluate_report(target: Path, scored: Any, register: bool, lines: lis
 def _corrections_text(comp: dict) -> str:
     """``; joint corrections up to ...`` of an evaluation's compensator summary (empty without them)."""
     c = comp.get("corrections")
-    if not c:
+    if not c or c["largest_joint_correction_sigma_deg"] is None:
         return ""
     return (f"; its joint corrections (poses not near a singularity) up to {c['largest_joint_correction_deg']:.3g} deg "
             f"(joint {c['joint']}; 1-sigma {c['largest_joint_correction_sigma_deg']:.2g} deg from the calibration's "

@@ -421,7 +421,7 @@ def _compensator(pose_sets: list[PoseSet], inputs: ReportInputs) -> Section:
 def _corrections_sentence(comp: dict) -> str:
     """The joint corrections and their 1-sigma, where the evaluation measured them."""
     c = comp.get("corrections")
-    if not c:
+    if not c or c["largest_joint_correction_sigma_deg"] is None:
         return ""
     sigmas = ", ".join(f"{v:.2g}" for v in c["median_joint_correction_sigma_deg"])
     return (f" Its joint corrections on the {c['n_poses']} of these poses not near a singularity: up to "
