@@ -227,3 +227,12 @@ def test_evaluate_scores_the_tool_orientation_where_the_file_measures_it(tmp_pat
     corrections = metrics["compensator"]["corrections"]
     assert corrections["largest_joint_correction_sigma_deg"] > 0 and len(corrections["median_joint_correction_sigma_deg"]) == 6
     assert f"{corrections['largest_joint_correction_deg']:.3g} deg (joint {corrections['joint']}; 1-sigma" in text
+    assert not any("worse than the nominal robot" in w for w in metrics.get("warnings", []))
+    # a file whose orientations follow the nominal robot (the arm turned as its drawing says): the model's are worse,
+    # and the user is told that its compensator turns the tool by them
+    nominal = twin.T_instrument_base() @ twin.robot.flange_pose(q)
+    angles = tf.matrix_to_euler_xyz(nominal[..., :3, :3] @ probe) * (180.0 / np.pi)
+    write_measurements_csv(path, q, twin.measure(q, generator), extra={"rx": angles[:, 0], "ry": angles[:, 1],
+                                                                        "rz": angles[:, 2]})
+    assert main(["evaluate", "--model", str(model), "--data", str(path), "--json", str(out)]) == 0
+    assert any("worse than the nominal robot" in w for w in json.loads(out.read_text())["warnings"])

@@ -16,6 +16,7 @@ from torchcal.config.schema import FitConfig
 from torchcal.core.errors import DataError
 from torchcal.core.metrics import iso9283_repeated, position_metrics
 from torchcal.data.measurements import Measurements, load_measurements
+from torchcal.identify.joint_errors import JointSpaceErrors
 from torchcal.model_selection.leakage import leakage_report
 from torchcal.stages.geometry import NOMINAL_PROTOCOL, held_out_errors, nominal_fit
 from torchcal.stages.orientation import (
@@ -81,7 +82,7 @@ def score(stored: StoredModel, data: Measurements, *, register: bool = False, le
     ``corrections``: the compensator's joint corrections with their 1-sigma (off for the fit's own report:
     ``export`` states them over the training poses; the sigma costs a solve per table parameter).
     """
-    warning = None
+    warning: str | None = None
     if register:
         if len(data) < REGISTER_MIN_POSES:
             raise DataError(f"--register fits the instrument frame (6 parameters) to the file's points; {len(data)} poses "
@@ -108,6 +109,16 @@ def score(stored: StoredModel, data: Measurements, *, register: bool = False, le
         metrics["orientation"] = orientation
         metrics["orientation_rms_deg"] = orientation["orientation_rms_deg"]
         metrics["nominal_orientation_rms_deg"] = orientation["nominal"]["orientation_rms_deg"]
+        if orientation["orientation_rms_deg"] > orientation["nominal"]["orientation_rms_deg"]:
+            cause = ("its joint-space terms, fitted to positions, may stand for errors that are not rotations of those "
+                     "joints (docs/prior.md); compare a geometry-only fit on this file"
+                     if not JointSpaceErrors.from_metadata(stored.metadata).empty else
+                     "check that the file's robot, tool and set-up are the fitted ones")
+            worse = (f"on these poses the model predicts the tool's orientation worse than the nominal robot "
+                     f"({orientation['orientation_rms_deg']:.4f} against {orientation['nominal']['orientation_rms_deg']:.4f} "
+                     f"deg RMS), and its compensator turns the tool by what the model predicts: {cause}")
+            warnings.warn(worse, stacklevel=2)
+            warning = worse if warning is None else f"{warning}; {worse}"
     prediction = stored_prediction(stored, data.q)
     if prediction is not None:
         uncertainty = score_uncertainty(prediction, errors,
