@@ -102,21 +102,11 @@ def score(stored: StoredModel, data: Measurements, *, register: bool = False, le
     metrics["nominal"] = {**before, "protocol": NOMINAL_PROTOCOL}
     metrics["nominal_position_rms_mm"] = before["position_rms_mm"]
     if data.rotation is not None:  # the file measures the tool's orientation too: scored alike
-        nominal_orientation = nominal_orientation_errors(stored.robot, data, nominal_frame)
-        refuse_implausible(nominal_orientation, data)
-        orientation = model_orientation_errors(stored, data, register=register).metrics()
-        orientation["nominal"] = nominal_orientation.metrics()
+        orientation, worse = orientation_metrics(stored, data, nominal_frame, register=register)
         metrics["orientation"] = orientation
         metrics["orientation_rms_deg"] = orientation["orientation_rms_deg"]
         metrics["nominal_orientation_rms_deg"] = orientation["nominal"]["orientation_rms_deg"]
-        if orientation["orientation_rms_deg"] > orientation["nominal"]["orientation_rms_deg"]:
-            cause = ("its joint-space terms, fitted to positions, may stand for errors that are not rotations of those "
-                     "joints (docs/prior.md); compare a geometry-only fit on this file"
-                     if not JointSpaceErrors.from_metadata(stored.metadata).empty else
-                     "check that the file's robot, tool and set-up are the fitted ones")
-            worse = (f"on these poses the model predicts the tool's orientation worse than the nominal robot "
-                     f"({orientation['orientation_rms_deg']:.4f} against {orientation['nominal']['orientation_rms_deg']:.4f} "
-                     f"deg RMS), and its compensator turns the tool by what the model predicts: {cause}")
+        if worse is not None:
             warnings.warn(worse, stacklevel=2)
             warning = worse if warning is None else f"{warning}; {worse}"
     prediction = stored_prediction(stored, data.q)
@@ -132,6 +122,32 @@ def score(stored: StoredModel, data: Measurements, *, register: bool = False, le
         metrics["leakage"] = leakage_report(stored.robot, stored.training_q, data.q).to_dict()
     metrics["compensator"] = compensator_summary(stored, data.q, errors, corrections=corrections)
     return Scored(stored, data, errors, metrics)
+
+
+def orientation_metrics(stored: StoredModel, data: Measurements, nominal_frame: torch.Tensor, *,
+                        register: bool) -> tuple[dict, str | None]:
+    """The model's and the nominal robot's orientation errors on ``data`` (``rx, ry, rz``; :mod:`torchcal.stages.orientation`),
+    and a warning when the model's are the larger (``None`` otherwise).
+
+    ``nominal_frame``: ``T_instrument_base`` of the nominal robot fitted to the file's positions.
+
+    Raises:
+        DataError: columns even the nominal robot misses by degrees (another angle convention).
+    """
+    nominal = nominal_orientation_errors(stored.robot, data, nominal_frame)
+    refuse_implausible(nominal, data)
+    orientation = model_orientation_errors(stored, data, register=register).metrics()
+    orientation["nominal"] = nominal.metrics()
+    model_rms, nominal_rms = orientation["orientation_rms_deg"], orientation["nominal"]["orientation_rms_deg"]
+    if model_rms <= nominal_rms:
+        return orientation, None
+    cause = ("its joint-space terms, fitted to positions, may stand for errors that are not rotations of those joints "
+             "(docs/prior.md); compare a geometry-only fit on this file"
+             if not JointSpaceErrors.from_metadata(stored.metadata).empty else
+             "check that the file's robot, tool and set-up are the fitted ones")
+    return orientation, (f"on these poses the model predicts the tool's orientation worse than the nominal robot "
+                         f"({model_rms:.4f} against {nominal_rms:.4f} deg RMS), and its compensator turns the tool by "
+                         f"what the model predicts: {cause}")
 
 
 def compensator_summary(stored: StoredModel, q: torch.Tensor, model_errors: torch.Tensor | None = None, *,
