@@ -27,7 +27,7 @@ def path_errors(
     """
     pose = model.tcp_pose(q, x)
     position = (pose[..., :3, 3] - targets[..., :3, 3]).norm(dim=-1)
-    rotation = tf.so3_log(targets[..., :3, :3] @ pose[..., :3, :3].transpose(-1, -2)).norm(dim=-1)
+    rotation = tf.rotation_angle(targets[..., :3, :3] @ pose[..., :3, :3].transpose(-1, -2))
     return position, rotation
 
 

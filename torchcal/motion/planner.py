@@ -280,7 +280,7 @@ def measure(kin: TcpKinematics, planned: PlannedMotion, settings: PrioritySettin
     pose = kin.pose(q)
     targets = torch.from_numpy(planned.targets)
     position = (pose[:, :3, 3] - targets[:, :3, 3]).norm(dim=-1).numpy() * 1e3
-    rotation = tf.so3_log(targets[:, :3, :3] @ pose[:, :3, :3].transpose(-1, -2)).norm(dim=-1).numpy() / DEG
+    rotation = tf.rotation_angle(targets[:, :3, :3] @ pose[:, :3, :3].transpose(-1, -2)).numpy() / DEG
     dt = float(planned.t[1] - planned.t[0]) if len(planned.t) > 1 else 0.0
     speed, accel = joint_rates(planned.q, dt)
     wrist = planned.sigma_orientation < settings.orientation_eps

@@ -72,7 +72,7 @@ def load_waypoints(path: str | Path, device: str | torch.device = "cpu") -> Wayp
     lines = tuple(table.line_numbers)
     for k in range(1, len(lines)):
         move = float((poses[k, :3, 3] - poses[k - 1, :3, 3]).norm())
-        turn = float(tf.so3_log(poses[k, :3, :3] @ poses[k - 1, :3, :3].T).norm())
+        turn = float(tf.rotation_angle(poses[k, :3, :3] @ poses[k - 1, :3, :3].T))
         if move < _MIN_MOVE_M and turn < _MIN_MOVE_M:
             raise DataError(f"waypoint repeats the one on row {lines[k - 1]}", path=where, row=lines[k])
         if turn > _MAX_TURN_RAD:

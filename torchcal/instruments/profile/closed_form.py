@@ -123,7 +123,7 @@ def group_scans(T_base_flange: torch.Tensor, plane: torch.Tensor, tol_deg: float
     for j in range(R.shape[0]):
         for g in groups:
             if g.plane == int(plane[j]):
-                angle = math.degrees(float(tf.so3_log(g.R_base_flange.T @ R[j]).norm()))
+                angle = math.degrees(float(tf.rotation_angle(g.R_base_flange.T @ R[j])))
                 if angle <= tol_deg:
                     g.scans.append(j)
                     break

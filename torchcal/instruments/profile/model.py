@@ -86,7 +86,7 @@ def rotation_from_columns(r1: torch.Tensor, r3: torch.Tensor) -> torch.Tensor:
 
 def rotation_angle_deg(R_a: torch.Tensor, R_b: torch.Tensor) -> float:
     """Angle of ``R_a^T R_b`` in degrees."""
-    return math.degrees(float(tf.so3_log(R_a.T @ R_b).norm()))
+    return math.degrees(float(tf.rotation_angle(R_a.T @ R_b)))
 
 
 def orthogonal_basis(normal: torch.Tensor) -> torch.Tensor:

@@ -76,7 +76,7 @@ def search_start(
     for cost, (R_other, t_other, _, _) in found[1:]:
         if cost > 2.0 * best_cost + 1e-18:
             break
-        if math.degrees(float(tf.so3_log(R.T @ R_other).norm())) > 1.0:
+        if math.degrees(float(tf.rotation_angle(R.T @ R_other))) > 1.0:
             warnings.warn(
                 f"{data.path}: the rotation search found two equally good sensor poses "
                 f"(t differs by {float((t - t_other).norm()) * 1e3:.1f} mm); pure translations at >= 3 plane "
