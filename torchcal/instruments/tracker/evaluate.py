@@ -167,8 +167,8 @@ def compensator_summary(stored: StoredModel, q: torch.Tensor, model_errors: torc
         _, residual = graph.solve(q.to(torch.float64))
     position_mm, turn = residual[:, 0] * 1e3, residual[:, 1]
     extents = {}
-    regular = regular_poses(stored.robot, q) if corrections else q[:0]
-    if len(regular):  # the joint corrections and their uncertainty, as the export states them
+    regular = regular_poses(stored.robot, q) if corrections else None
+    if regular is not None and len(regular):  # the joint corrections and their uncertainty, as the export states them
         extent = correction_extent(graph, regular, stored)
         extents = {"corrections": {key: extent[key] for key in (
             "n_poses", "largest_joint_correction_deg", "joint", "median_joint_correction_deg",
