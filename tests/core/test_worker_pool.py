@@ -63,15 +63,26 @@ def one_worker():
 
 @pytest.mark.parametrize("jobs", [1, 2])
 def test_side_by_side_gives_the_serial_results_in_order(one_worker, jobs):
-    tasks = [(np.arange(k, k + 4, dtype=np.float64),) for k in range(5)]
-    results = side_by_side(_square_with_pid, tasks, jobs)
-    for (x,), (squared, _pid) in zip(tasks, results):
+    tasks = [(np.arange(k, k + 4, dtype=np.float64), 0.2) for k in range(6)]
+    results = side_by_side(_sleep_then_square, tasks, jobs)
+    for (x, _), (squared, _pid) in zip(tasks, results):
         np.testing.assert_array_equal(squared, x * x)
-    pids = [pid for _squared, pid in results]
+    here = [pid == os.getpid() for _squared, pid in results]
     if jobs == 1:
-        assert set(pids) == {os.getpid()}
-    else:  # dealt in turn: the 1st, 3rd and 5th here, the others in the worker
-        assert pids[0] == pids[2] == pids[4] == os.getpid() != pids[1] == pids[3]
+        assert all(here)
+    else:  # this process from the first task on, the worker from the last back, each about half
+        assert here[:2] == [True, True] and here[-2:] == [False, False]
+        assert here == sorted(here, reverse=True)
+
+
+def test_side_by_side_does_not_wait_for_a_busy_worker(one_worker):
+    """A worker busy with a long piece is sent one task, queued behind it; this process does the
+    others without waiting for the worker to become free."""
+    with in_background(_sleep_then_square, np.ones(1), 2.0, jobs=2):
+        results = side_by_side(_sleep_then_square, [(np.full(2, float(k)), 0.1) for k in range(8)], 2)
+        here = [pid == os.getpid() for _squared, pid in results]
+        assert all(here[:-1]) and not here[-1]
+    np.testing.assert_array_equal([squared[0] for squared, _pid in results], np.arange(8.0) ** 2)
 
 
 def test_pieces_wait_for_no_worker_that_is_not_ready():

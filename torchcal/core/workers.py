@@ -3,7 +3,7 @@
 A fit runs on one intra-op thread (:mod:`torchcal.core.threads`: its operations are too small to
 split), so on a machine with more cores the others sit idle while, for example, the heads'
 cross-validation trains an MLP after an MMA-ELM on the same fold although neither needs the
-other. :func:`side_by_side` deals such pieces out between this process and worker processes of
+other. :func:`side_by_side` shares such pieces between this process and worker processes of
 loky's reusable executor (the process pool of joblib and scikit-learn, started by fork + exec, so
 no OpenMP state is inherited); :func:`in_background` runs one piece there while this process goes on. Each piece computes exactly what it would compute
 here, on one thread, from the same inputs and seeds: the results are the same to the bit.
@@ -154,26 +154,92 @@ def stop_workers() -> None:
 def side_by_side(fn: Callable[..., Any], tasks: Sequence[tuple], jobs: int) -> list[Any]:
     """``[fn(*task) for task in tasks]``, shared between this process and up to ``jobs - 1`` ready workers.
 
-    The tasks are dealt in turn: with one worker, the 1st, 3rd, 5th ... run here and the others there.
-    ``fn`` and the tasks' arguments travel by pickle (cloudpickle: functions, arrays, tensors, fits).
-    With ``jobs == 1``, one task or no ready worker (:func:`ready_workers`), everything runs here, in
-    order. An error in any task is raised here, as it was raised there; a task whose worker was lost
-    is done here.
+    This process takes the tasks from the first on, the workers from the last back, one at a time
+    each (a worker is sent its next task when it has finished one), until they meet: neither side
+    waits while tasks are left, whatever the tasks cost, and a worker still busy with an earlier
+    piece (:func:`in_background`) takes at most one task after it. Each task is done once, from the
+    same inputs, so the results do not depend on where it ran. ``fn`` and the tasks' arguments
+    travel by pickle (cloudpickle: functions, arrays, tensors, fits). With ``jobs == 1``, one task
+    or no ready worker (:func:`ready_workers`), everything runs here, in order. An error in any task
+    is raised here, as it was raised there; a task whose worker was lost is done here.
     """
     workers = min(workers_for(jobs), len(tasks) - 1)
     if workers < 1:
         return [fn(*task) for task in tasks]
-    processes = workers + 1
+    share = _Share(fn, tasks, workers)
     try:
-        with _interrupts_ignored_by_new_workers():  # a worker that timed out idle is started again here
-            futures = {i: _pool["executor"].submit(fn, *task) for i, task in enumerate(tasks) if i % processes}
-        results = {i: fn(*task) for i, task in enumerate(tasks) if not i % processes}
-        for i, future in futures.items():
+        results = {}
+        while (i := share.claim_first()) is not None:
+            results[i] = fn(*tasks[i])
+        for i, future in share.sent().items():
             results[i] = _result_or_here(future, fn, tasks[i])
         return [results[i] for i in range(len(tasks))]
     except BaseException:
+        share.stop()
         stop_workers()
         raise
+
+
+class _Share:
+    """The tasks of one :func:`side_by_side`: this process claims them from the front, a thread here
+    sends them to the workers from the back, each worker's next when its last is done (a task sent
+    is out of reach: loky's queue cannot take back what a worker has been given)."""
+
+    def __init__(self, fn: Callable[..., Any], tasks: Sequence[tuple], workers: int) -> None:
+        import threading
+
+        self._fn, self._tasks = fn, tasks
+        self._lock = threading.Lock()
+        self._front, self._back = 0, len(tasks)  # next task here; one past the next task for a worker
+        self._futures: dict[int, Any] = {}
+        self._stopped = False
+        with _interrupts_ignored_by_new_workers():  # a worker that timed out idle is started again here
+            first = [self._send() for _ in range(workers)]
+        self._sender = threading.Thread(target=self._send_as_workers_finish, args=([f for f in first if f],),
+                                        name="torchcal-side-by-side", daemon=True)
+        self._sender.start()
+
+    def claim_first(self) -> int | None:
+        with self._lock:
+            if self._front >= self._back:
+                return None
+            self._front += 1
+            return self._front - 1
+
+    def _send(self) -> Any:
+        with self._lock:
+            if self._stopped or self._back <= self._front:
+                return None
+            self._back -= 1
+            i = self._back
+            future = _pool["executor"].submit(self._fn, *self._tasks[i])
+            self._futures[i] = future
+            return future
+
+    def _send_as_workers_finish(self, running: list[Any]) -> None:
+        from concurrent.futures import FIRST_COMPLETED, wait
+
+        while running:
+            done, pending = wait(running, return_when=FIRST_COMPLETED)
+            running = list(pending)
+            for future in done:
+                if future.cancelled() or future.exception() is not None:
+                    return  # the error is raised when its result is asked for; nothing more is sent
+                try:
+                    sent = self._send()
+                except RuntimeError:  # the executor was shut down (an error or Ctrl-C here)
+                    return
+                if sent is not None:
+                    running.append(sent)
+
+    def sent(self) -> dict[int, Any]:
+        """The tasks sent to workers, once no more will be (this process has claimed the rest)."""
+        self._sender.join()
+        return dict(self._futures)
+
+    def stop(self) -> None:
+        with self._lock:
+            self._stopped = True
 
 
 def _result_or_here(future: Any, fn: Callable[..., Any], args: tuple) -> Any:
