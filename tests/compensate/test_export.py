@@ -4,13 +4,16 @@ import hashlib
 import json
 import math
 
+import numpy as np
 import onnx
 import onnxruntime as ort
 import pytest
 import torch
 
-from torchcal.compensate.export import export_and_check
-from torchcal.compensate.graphs import GRAPHS, OPSET, build_graphs
+from torchcal.compensate.compensator import CompensatorWithResidual
+from torchcal.compensate.export import RESIDUAL_OUTPUT, export_and_check
+from torchcal.compensate.export_checks import wrist_singular_samples
+from torchcal.compensate.graphs import GRAPHS, OPSET, build_graphs, onnx_bytes
 from torchcal.compensate.production_tcp import production_view, tcp_transform
 from torchcal.kinematics.error_model import ErrorModel
 from torchcal.kinematics.joint_jacobian import geometric_jacobian
@@ -71,6 +74,21 @@ def test_monitor_parity_on_10k_poses(exported, stored, graphs):
         ref = graphs["monitor"](q)
     assert (run(folder, "monitor", q) - ref).norm(dim=-1).max() * 1e3 <= 1e-9  # mm
     assert (run(folder, "monitor_f32", q) - ref).norm(dim=-1).max() * 1e3 <= 1e-3  # mm
+
+
+def test_float32_file_computes_what_the_traced_float32_graph_computes(exported, stored, graphs):
+    """The float32 compensator is the float64 file behind cast inputs and outputs: the same bits, on
+    uniform and wrist-singular poses, as the float32 graph traced from its own parts."""
+    folder, _ = exported
+    traced = onnx_bytes(CompensatorWithResidual(graphs["compensator_f32"]), stored.robot.dof, torch.float32, "q_nominal",
+                        "q_corrected", extra_outputs=(RESIDUAL_OUTPUT,))
+    gen = torch.Generator().manual_seed(24)
+    q = torch.cat([stored.robot.sample_joints(3000, gen), wrist_singular_samples(stored.robot, 1000, gen)]).float().numpy()
+    exported_outputs = session(folder / GRAPHS["compensator_f32"][0]).run(None, {"q_nominal": q})
+    traced_outputs = ort.InferenceSession(traced, providers=["CPUExecutionProvider"]).run(None, {"q_nominal": q})
+    assert [o.dtype for o in exported_outputs] == [np.float32, np.float32]
+    for mine, theirs in zip(exported_outputs, traced_outputs, strict=True):
+        np.testing.assert_array_equal(mine, theirs)
 
 
 def test_compensator_parity_on_10k_poses(exported, stored, graphs):

@@ -10,9 +10,10 @@ import onnxruntime as ort
 import pytest
 import torch
 
-from torchcal.compensate.export import export_model
+from torchcal.compensate.compensator import CompensatorWithResidual
+from torchcal.compensate.export import RESIDUAL_OUTPUT, export_model
 from torchcal.compensate.export_checks import sample_wrenches
-from torchcal.compensate.graphs import GRAPHS, build_graphs
+from torchcal.compensate.graphs import GRAPHS, WRENCH_INPUT, build_graphs, onnx_bytes
 from torchcal.compensate.production_tcp import production_view, tcp_transform
 from torchcal.compensate.runtime import CompensatorError, CompensatorRuntime
 from torchcal.instruments.stiffness.commands import fit_stiffness
@@ -176,3 +177,18 @@ def test_exported_compensation_on_the_loaded_twin(stiff_export):
         assert after[1] <= 0.2 * before[1], precision
     assert before[0] > 0.2  # mm: a real load
     assert rt.manifest["stages"]["stiffness"]
+
+
+def test_loaded_float32_file_computes_what_the_traced_float32_graph_computes(stiff_export, stored, graphs):
+    """With the wrench input too, the float32 file (the float64 one behind casts) gives the traced
+    float32 graph's bits."""
+    folder, _ = stiff_export
+    traced = onnx_bytes(CompensatorWithResidual(graphs["compensator_f32"]), stored.robot.dof, torch.float32, "q_nominal",
+                        "q_corrected", wrench_input=WRENCH_INPUT, extra_outputs=(RESIDUAL_OUTPUT,))
+    q = stored.robot.sample_joints(2000, torch.Generator().manual_seed(31))
+    feeds = {"q_nominal": q.float().numpy(), WRENCH_INPUT: loads(2000, 32).float().numpy()}
+    exported = ort.InferenceSession(str(folder / GRAPHS["compensator_f32"][0]), providers=["CPUExecutionProvider"])
+    theirs = ort.InferenceSession(traced, providers=["CPUExecutionProvider"]).run(None, feeds)
+    for mine, reference in zip(exported.run(None, feeds), theirs, strict=True):
+        assert mine.dtype == np.float32
+        np.testing.assert_array_equal(mine, reference)

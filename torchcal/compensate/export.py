@@ -48,6 +48,7 @@ from torchcal.compensate.graphs import (
     WRENCH_INPUT,
     build_graphs,
     compensator_of,
+    float32_compensator_bytes,
     has_wrench_input,
     onnx_bytes,
     uses_contrib_inverse,
@@ -192,11 +193,16 @@ def _export_into(out_dir: Path, model_dir: Path, stored, *, wrench_frame: str, i
     loaded = has_wrench_input(graphs)
     robot = stored.robot
     files, digests = {}, {}
+    written: dict[str, bytes] = {}
     for key, (name, dtype, input_name, output_name) in GRAPHS.items():
         is_compensator = key.startswith("compensator")
-        module = CompensatorWithResidual(compensator_of(graphs, key)) if is_compensator else graphs[key]
-        data = onnx_bytes(module, robot.dof, dtype, input_name, output_name, wrench_input=WRENCH_INPUT if loaded else None,
-                          extra_outputs=(RESIDUAL_OUTPUT,) if is_compensator else ())
+        if key == "compensator_f32":  # the float64 graph's parts behind float32 inputs and outputs
+            data = float32_compensator_bytes(written["compensator"])
+        else:
+            module = CompensatorWithResidual(compensator_of(graphs, key)) if is_compensator else graphs[key]
+            data = onnx_bytes(module, robot.dof, dtype, input_name, output_name, wrench_input=WRENCH_INPUT if loaded else None,
+                              extra_outputs=(RESIDUAL_OUTPUT,) if is_compensator else ())
+        written[key] = data
         atomic_write_bytes(out_dir / name, data)
         files[key] = name
         digests[key] = sha256_bytes(data)

@@ -90,6 +90,17 @@ def onnx_bytes(
     return buffer.getvalue()
 
 
+def float32_compensator_bytes(compensator_f64: bytes) -> bytes:
+    """The float32 compensator file from the float64 one's bytes (:func:`onnx_bytes` of
+    ``compensator``): the same graph behind float32 inputs and outputs, as tracing the float32
+    graph gives it (:func:`~torchcal.compensate.loop_graph.with_float32_interface`)."""
+    import onnx
+
+    from torchcal.compensate.loop_graph import with_float32_interface
+
+    return with_float32_interface(onnx.load_from_string(compensator_f64)).SerializeToString()
+
+
 def uses_contrib_inverse(module: torch.nn.Module) -> bool:
     """Whether a graph holds onnxruntime's contrib ``Inverse`` (the compensators' default solves;
     ``module`` may be the exported wrapper :class:`CompensatorWithResidual`)."""

@@ -183,3 +183,44 @@ def compensator_model(graph: CompensatorGraph, n_joints: int, input_name: str, o
     model.ir_version = 8
     onnx.checker.check_model(model)
     return model
+
+
+def with_float32_interface(model):
+    """The float64 compensator ``model`` (a ``ModelProto`` of :func:`compensator_model`) behind a float32
+    interface: its inputs cast to float64 on the way in, its outputs to float32 on the way out.
+
+    This is what the graph of the same parts traced with ``dtype=float32`` computes (a float32
+    compensator widens its inputs and narrows its outputs and is float64 in between:
+    :meth:`CompensatorGraph.widen`, :meth:`CompensatorGraph.narrow`), without tracing it again.
+    """
+    import onnx
+    from onnx import TensorProto, helper
+
+    wide = onnx.ModelProto()
+    wide.CopyFrom(model)
+    graph = wide.graph
+    inputs = {v.name: f"{v.name}/float64" for v in graph.input}
+    outputs = {v.name: f"{v.name}/float64" for v in graph.output}
+    _rename_uses(graph, inputs)
+    for node in graph.node:
+        node.output[:] = [outputs.get(n, n) for n in node.output]
+    body = list(graph.node)
+    del graph.node[:]
+    graph.node.extend([helper.make_node("Cast", [n], [w], to=TensorProto.DOUBLE, name=f"widen/{n}") for n, w in inputs.items()])
+    graph.node.extend(body)
+    graph.node.extend([helper.make_node("Cast", [w], [n], to=TensorProto.FLOAT, name=f"narrow/{n}") for n, w in outputs.items()])
+    for v in (*graph.input, *graph.output):
+        v.type.tensor_type.elem_type = TensorProto.FLOAT
+    onnx.checker.check_model(wide)
+    return wide
+
+
+def _rename_uses(graph, names: dict[str, str]) -> None:
+    """Every node of ``graph`` and of its subgraphs reads ``names[n]`` where it read ``n`` (in place)."""
+    import onnx
+
+    for node in graph.node:
+        node.input[:] = [names.get(n, n) for n in node.input]
+        for attribute in node.attribute:
+            if attribute.type == onnx.AttributeProto.GRAPH:
+                _rename_uses(attribute.g, names)
