@@ -85,6 +85,37 @@ def test_side_by_side_does_not_wait_for_a_busy_worker(one_worker):
     np.testing.assert_array_equal([squared[0] for squared, _pid in results], np.arange(8.0) ** 2)
 
 
+@pytest.fixture
+def slow_starting_worker(tmp_path, monkeypatch):
+    """``start(seconds)``: one worker whose warm-up import takes ``seconds`` (a module that sleeps;
+    a worker gets this process's ``sys.path``)."""
+    monkeypatch.syspath_prepend(str(tmp_path))
+
+    def start(seconds: float) -> None:
+        stop_workers()
+        name = f"slow_start_{int(seconds * 1000)}"
+        (tmp_path / f"{name}.py").write_text(f"import time\ntime.sleep({seconds})\n")
+        warm_up(2, [name])
+
+    yield start
+    stop_workers()
+
+
+def test_a_starting_worker_joins_in_once_ready(slow_starting_worker):
+    slow_starting_worker(1.0)
+    assert ready_workers() == 0
+    results = side_by_side(_sleep_then_square, [(np.full(2, float(k)), 0.2) for k in range(15)], 2)
+    here = [pid == os.getpid() for _squared, pid in results]
+    assert here[:5] == [True] * 5 and not here[-1] and here == sorted(here, reverse=True)
+
+
+def test_pieces_wait_for_no_worker_that_is_starting(slow_starting_worker):
+    slow_starting_worker(4.0)
+    started = time.perf_counter()
+    results = side_by_side(_sleep_then_square, [(np.full(2, float(k)), 0.1) for k in range(5)], 2)
+    assert {pid for _squared, pid in results} == {os.getpid()} and time.perf_counter() - started < 3.0
+
+
 def test_pieces_wait_for_no_worker_that_is_not_ready():
     stop_workers()
     assert ready_workers() == 0

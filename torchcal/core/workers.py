@@ -142,6 +142,14 @@ def workers_for(jobs: int) -> int:
     return max(0, min(jobs - 1, ready_workers()))
 
 
+def started_workers(jobs: int) -> int:
+    """Workers of this process's pool, ready or still starting, at most ``jobs - 1`` (0: none, or the
+    start of every one failed)."""
+    futures = _pool.get("ready", [])
+    failed = bool(futures) and all(f.done() and (f.cancelled() or f.exception() is not None) for f in futures)
+    return 0 if failed or "executor" not in _pool else max(0, min(jobs - 1, int(_pool["workers"])))
+
+
 def stop_workers() -> None:
     """Stop the workers at once, pieces under way included: after an error or an interrupt here, and
     when a command ends (one that ends by ``os._exit`` would otherwise leave them waiting for work)."""
@@ -152,18 +160,19 @@ def stop_workers() -> None:
 
 
 def side_by_side(fn: Callable[..., Any], tasks: Sequence[tuple], jobs: int) -> list[Any]:
-    """``[fn(*task) for task in tasks]``, shared between this process and up to ``jobs - 1`` ready workers.
+    """``[fn(*task) for task in tasks]``, shared between this process and up to ``jobs - 1`` workers.
 
     This process takes the tasks from the first on, the workers from the last back, one at a time
     each (a worker is sent its next task when it has finished one), until they meet: neither side
-    waits while tasks are left, whatever the tasks cost, and a worker still busy with an earlier
+    waits while tasks are left, whatever the tasks cost. A worker still starting is sent its first
+    task once it is ready (until then this process goes on alone), and one busy with an earlier
     piece (:func:`in_background`) takes at most one task after it. Each task is done once, from the
     same inputs, so the results do not depend on where it ran. ``fn`` and the tasks' arguments
     travel by pickle (cloudpickle: functions, arrays, tensors, fits). With ``jobs == 1``, one task
-    or no ready worker (:func:`ready_workers`), everything runs here, in order. An error in any task
-    is raised here, as it was raised there; a task whose worker was lost is done here.
+    or no worker started (:func:`started_workers`), everything runs here, in order. An error in any
+    task is raised here, as it was raised there; a task whose worker was lost is done here.
     """
-    workers = min(workers_for(jobs), len(tasks) - 1)
+    workers = min(started_workers(jobs), len(tasks) - 1)
     if workers < 1:
         return [fn(*task) for task in tasks]
     share = _Share(fn, tasks, workers)
@@ -193,9 +202,11 @@ class _Share:
         self._front, self._back = 0, len(tasks)  # next task here; one past the next task for a worker
         self._futures: dict[int, Any] = {}
         self._stopped = False
-        with _interrupts_ignored_by_new_workers():  # a worker that timed out idle is started again here
-            first = [self._send() for _ in range(workers)]
-        self._sender = threading.Thread(target=self._send_as_workers_finish, args=([f for f in first if f],),
+        first: list[Any] = []
+        if ready_workers():  # else the thread below sends them once a worker is ready
+            with _interrupts_ignored_by_new_workers():  # a worker that timed out idle is started again here
+                first = [f for f in (self._send() for _ in range(workers)) if f is not None]
+        self._sender = threading.Thread(target=self._send_as_workers_finish, args=(first, workers),
                                         name="torchcal-side-by-side", daemon=True)
         self._sender.start()
 
@@ -216,9 +227,17 @@ class _Share:
             self._futures[i] = future
             return future
 
-    def _send_as_workers_finish(self, running: list[Any]) -> None:
+    def _send_as_workers_finish(self, running: list[Any], workers: int) -> None:
         from concurrent.futures import FIRST_COMPLETED, wait
 
+        if not running:  # the workers are still starting: their first tasks go once one is ready
+            wait(_pool.get("ready", []), return_when=FIRST_COMPLETED)
+            if not ready_workers():
+                return  # their start failed: this process does every task
+            try:
+                running = [f for f in (self._send() for _ in range(workers)) if f is not None]
+            except (RuntimeError, KeyError):  # the pool was shut down meanwhile (an error or Ctrl-C here)
+                return
         while running:
             done, pending = wait(running, return_when=FIRST_COMPLETED)
             running = list(pending)
@@ -227,15 +246,16 @@ class _Share:
                     return  # the error is raised when its result is asked for; nothing more is sent
                 try:
                     sent = self._send()
-                except RuntimeError:  # the executor was shut down (an error or Ctrl-C here)
+                except (RuntimeError, KeyError):  # the pool was shut down (an error or Ctrl-C here)
                     return
                 if sent is not None:
                     running.append(sent)
 
     def sent(self) -> dict[int, Any]:
-        """The tasks sent to workers, once no more will be (this process has claimed the rest)."""
-        self._sender.join()
-        return dict(self._futures)
+        """The tasks sent to workers, once no more can be (this process has claimed the rest): the
+        sending thread may still wait for a worker to start, with nothing left to send."""
+        with self._lock:
+            return dict(self._futures)
 
     def stop(self) -> None:
         with self._lock:

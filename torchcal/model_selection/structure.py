@@ -18,7 +18,7 @@ import torch
 
 from torchcal.core.errors import IdentifiabilityWarning
 from torchcal.core.threads import fit_threads
-from torchcal.core.workers import side_by_side, workers_for
+from torchcal.core.workers import side_by_side, started_workers
 from torchcal.data.folds import Folds
 from torchcal.data.measurements import Measurements
 from torchcal.identify.calibrate import CalibrationResult
@@ -82,7 +82,7 @@ def cross_validate_structures(robot, data: Measurements, fit_geometry, options: 
     # With a worker, each fold's options go out in two halves (every other option: their costs alike):
     # k whole folds on two processes would leave one of them a fold more. A half repeats the fold's
     # geometry fit, a few steps from the warm start; each option's fit is the same as in one piece.
-    halves = 2 if len(options) > 1 and workers_for(jobs) > 0 else 1
+    halves = 2 if len(options) > 1 and started_workers(jobs) > 0 else 1
     chunks = [list(range(len(options)))[h::halves] for h in range(halves)]
     tasks = [(robot, data, train_idx, test_idx, fit_geometry, [options[i] for i in chunk], harmonic_min_range_deg)
              for train_idx, test_idx in splits for chunk in chunks]
