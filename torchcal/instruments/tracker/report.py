@@ -551,7 +551,8 @@ def calibration_report(title: str, stored: StoredModel, pose_sets: list[PoseSet]
     """The whole report (see the module docstring); ``pose_sets`` in the order shown, held-out last.
 
     ``jobs``: processes that draw the figures side by side (:func:`~torchcal.report.document.draw_figures`;
-    the same bytes with one). ``torchcal run`` draws them here: its worker is exporting meanwhile.
+    the same bytes with one). In ``torchcal run`` the worker is exporting meanwhile: it takes the
+    figures left when it is done.
     """
     inputs = inputs or ReportInputs()
     if jobs > 1:

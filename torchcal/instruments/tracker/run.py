@@ -162,7 +162,7 @@ def _run_into(folder: Path, destination: Path, config: RunConfig, console) -> di
                 return summary["export"]
 
             report = _write_report(folder, stored, train, test, structure, summary, truth_x, case["test.csv"],
-                                   joint_truth=joint_truth, exported=exported)
+                                   joint_truth=joint_truth, exported=exported, jobs=resolve_jobs(config.fit.jobs))
             exported()
     else:
         report = _write_report(folder, stored, train, test, structure, summary, truth_x, case["test.csv"],
@@ -176,10 +176,12 @@ def _run_into(folder: Path, destination: Path, config: RunConfig, console) -> di
 
 
 def _write_report(folder: Path, stored, train: Measurements, test: Measurements, structure, summary: dict,
-                  truth_x: torch.Tensor, test_file: Path, joint_truth=None, exported=None) -> Path:
+                  truth_x: torch.Tensor, test_file: Path, joint_truth=None, exported=None, jobs: int = 1) -> Path:
     """The run's report (the one report builder of ``fit`` and ``evaluate``): training and held-out file, truth.
 
     ``exported()``: the export's summary, asked for only when the report reaches the compensator.
+    ``jobs``: processes that draw the figures (a worker exporting meanwhile takes its first figure
+    when the export is done, :func:`~torchcal.core.workers.side_by_side`).
     """
     cv = cross_validated_stage(stored, structure)
     extra = [cv] if cv is not None else []
@@ -201,7 +203,8 @@ def _write_report(folder: Path, stored, train: Measurements, test: Measurements,
                           uncertainty=scored.metrics.get("uncertainty"), leakage=scored.metrics.get("leakage"),
                           compensation_on_truth=(lambda: exported()["compensation_on_true_robot"]) if exported else None,
                           truth_x=truth_x, truth_note=truth_note, joint_truth=joint_truth, context=context)
-    report = calibration_report(f"torchcal report: {stored.robot.name} ({summary['name']})", stored, pose_sets, inputs)
+    report = calibration_report(f"torchcal report: {stored.robot.name} ({summary['name']})", stored, pose_sets, inputs,
+                                jobs=jobs)
     return write_report(folder, report)["report.md"]
 
 
