@@ -76,13 +76,17 @@ def test_side_by_side_gives_the_serial_results_in_order(one_worker, jobs):
 
 
 def test_side_by_side_does_not_wait_for_a_busy_worker(one_worker):
-    """A worker busy with a long piece is sent one task, queued behind it; this process does the
-    others without waiting for the worker to become free."""
-    with in_background(_sleep_then_square, np.ones(1), 2.0, jobs=2):
-        results = side_by_side(_sleep_then_square, [(np.full(2, float(k)), 0.1) for k in range(8)], 2)
+    """A worker busy with a piece of in_background is sent a task only when it has finished it:
+    this process does the tasks meanwhile, and the worker joins in for the rest."""
+    with in_background(_sleep_then_square, np.ones(1), 0.6, jobs=2):
+        results = side_by_side(_sleep_then_square, [(np.full(2, float(k)), 0.2) for k in range(12)], 2)
         here = [pid == os.getpid() for _squared, pid in results]
-        assert all(here[:-1]) and not here[-1]
-    np.testing.assert_array_equal([squared[0] for squared, _pid in results], np.arange(8.0) ** 2)
+        assert here[:4] == [True] * 4 and not here[-1] and here == sorted(here, reverse=True)
+    with in_background(_sleep_then_square, np.ones(1), 3.0, jobs=2):
+        started = time.perf_counter()
+        results = side_by_side(_sleep_then_square, [(np.full(2, float(k)), 0.1) for k in range(6)], 2)
+        assert {pid for _squared, pid in results} == {os.getpid()} and time.perf_counter() - started < 2.0
+    np.testing.assert_array_equal([squared[0] for squared, _pid in results], np.arange(6.0) ** 2)
 
 
 @pytest.fixture

@@ -159,6 +159,14 @@ def stop_workers() -> None:
         executor.shutdown(wait=True, kill_workers=True)
 
 
+def _busy_pieces() -> list[Any]:
+    """Pieces of :func:`in_background` that a worker has not finished yet."""
+    busy = [f for f in _pool.get("busy", []) if not f.done()]
+    if "busy" in _pool:
+        _pool["busy"] = busy
+    return busy
+
+
 def side_by_side(fn: Callable[..., Any], tasks: Sequence[tuple], jobs: int) -> list[Any]:
     """``[fn(*task) for task in tasks]``, shared between this process and up to ``jobs - 1`` workers.
 
@@ -202,11 +210,12 @@ class _Share:
         self._front, self._back = 0, len(tasks)  # next task here; one past the next task for a worker
         self._futures: dict[int, Any] = {}
         self._stopped = False
+        busy = _busy_pieces()
         first: list[Any] = []
         if ready_workers():  # else the thread below sends them once a worker is ready
             with _interrupts_ignored_by_new_workers():  # a worker that timed out idle is started again here
-                first = [f for f in (self._send() for _ in range(workers)) if f is not None]
-        self._sender = threading.Thread(target=self._send_as_workers_finish, args=(first, workers),
+                first = [f for f in (self._send() for _ in range(workers - len(busy))) if f is not None]
+        self._sender = threading.Thread(target=self._send_as_workers_finish, args=(first, workers, busy),
                                         name="torchcal-side-by-side", daemon=True)
         self._sender.start()
 
@@ -227,29 +236,34 @@ class _Share:
             self._futures[i] = future
             return future
 
-    def _send_as_workers_finish(self, running: list[Any], workers: int) -> None:
+    def _send_as_workers_finish(self, sent: list[Any], workers: int, busy: list[Any]) -> None:
+        """Send a task to every worker that has finished its start, a task, or a piece of
+        :func:`in_background` (``busy``), until none is left to send."""
         from concurrent.futures import FIRST_COMPLETED, wait
 
-        if not running:  # the workers are still starting: their first tasks go once one is ready
+        if not ready_workers():  # still starting: the first tasks go once one is ready
             wait(_pool.get("ready", []), return_when=FIRST_COMPLETED)
             if not ready_workers():
                 return  # their start failed: this process does every task
-            try:
-                running = [f for f in (self._send() for _ in range(workers)) if f is not None]
-            except (RuntimeError, KeyError):  # the pool was shut down meanwhile (an error or Ctrl-C here)
-                return
-        while running:
-            done, pending = wait(running, return_when=FIRST_COMPLETED)
-            running = list(pending)
-            for future in done:
-                if future.cancelled() or future.exception() is not None:
-                    return  # the error is raised when its result is asked for; nothing more is sent
+        free = workers - len(sent) - len(busy)
+        watched = sent + busy
+        while True:
+            for _ in range(max(free, 0)):
                 try:
-                    sent = self._send()
+                    future = self._send()
                 except (RuntimeError, KeyError):  # the pool was shut down (an error or Ctrl-C here)
                     return
-                if sent is not None:
-                    running.append(sent)
+                if future is None:
+                    return  # nothing left to send: this process has claimed the rest
+                watched.append(future)
+            if not watched:
+                return
+            done, pending = wait(watched, return_when=FIRST_COMPLETED)
+            watched = list(pending)
+            ours = set(self.sent().values())
+            if any(f in ours and (f.cancelled() or f.exception() is not None) for f in done):
+                return  # the error is raised here when its result is asked for; nothing more is sent
+            free = len(done)
 
     def sent(self) -> dict[int, Any]:
         """The tasks sent to workers, once no more can be (this process has claimed the rest): the
@@ -297,7 +311,9 @@ def in_background(fn: Callable[..., Any], *args: Any, jobs: int) -> Iterator[Pen
     there = workers_for(jobs) > 0
     if there:
         with _interrupts_ignored_by_new_workers():
-            pending = Pending(fn, args, _pool["executor"].submit(fn, *args))
+            future = _pool["executor"].submit(fn, *args)
+        _pool.setdefault("busy", []).append(future)  # side_by_side sends nothing to its worker meanwhile
+        pending = Pending(fn, args, future)
     else:
         pending = Pending(fn, args)
     try:
