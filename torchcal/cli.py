@@ -213,9 +213,13 @@ def _cmd_motion(args) -> int:
 
 def _cmd_run(args) -> int:
     from torchcal.config import compose_run_config
-    from torchcal.instruments.registry import default
+    from torchcal.config.workers import start_fit_workers
 
     config, _ = compose_run_config(args.overrides)
+    start_fit_workers(config.fit)  # before this process imports torch: their start-up overlaps it
+
+    from torchcal.instruments.registry import default
+
     summary = default().run(config, console=_console(stderr=False))
     final = summary["test"][summary["final_stage"]]
     print(f"{summary['name']}: held-out RMS {final['position_rms_mm']:.4f} mm on {final['n_poses']} new twin poses "

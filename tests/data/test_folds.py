@@ -73,3 +73,28 @@ def test_units_are_groups_for_grouped_folds(robot, generator):
     assert folds.units() is folds.groups
     assert len(np.unique(folds.groups)) <= 20
     assert math.isclose(len(make_folds("random", robot, q).units()), len(q))
+
+
+def _grouped(robot, q):
+    folds = make_folds("grouped", robot, q, k=5, seed=3)
+    return folds.fold, folds.groups
+
+
+def test_grouped_folds_are_the_same_made_in_a_worker(robot, generator):
+    """A fit's folds may be made by a worker process (one OpenMP thread) while the fit goes on: the
+    same folds as here, whatever the threads k-means would otherwise take."""
+    from threadpoolctl import threadpool_limits
+
+    from torchcal.core.workers import side_by_side, stop_workers, warm_up
+
+    q = robot.sample_joints(600, generator)
+    warm_up(2, ["torchcal.data.folds"], wait=True)
+    try:
+        here, there = side_by_side(_grouped, [(robot, q), (robot, q)], 2)
+    finally:
+        stop_workers()
+    with threadpool_limits(2):
+        two_threads = _grouped(robot, q)
+    for a, b, c in zip(here, there, two_threads, strict=True):
+        np.testing.assert_array_equal(a, b)
+        np.testing.assert_array_equal(a, c)

@@ -13,8 +13,8 @@ from dataclasses import dataclass, field
 
 from torchcal.core.errors import TorchcalError
 from torchcal.core.overrides import check_range
-from torchcal.data.folds import SPLITS
-from torchcal.sim.twin import TwinConfig
+from torchcal.data.splits import SPLITS
+from torchcal.sim.twin_config import TwinConfig
 
 
 @dataclass

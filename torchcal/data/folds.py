@@ -28,8 +28,7 @@ import numpy as np
 import torch
 
 from torchcal.core.errors import DataError
-
-SPLITS = ("grouped", "blocks", "random")
+from torchcal.data.splits import SPLITS
 
 
 @dataclass(frozen=True)
@@ -137,11 +136,14 @@ def grouped_folds(robot, q: torch.Tensor, k: int = 5, *, seed: int = 0, groups: 
     """Folds of configuration groups (see the module docstring); at most ``n / 2`` groups."""
     from sklearn.cluster import KMeans
     from sklearn.exceptions import ConvergenceWarning
+    from threadpoolctl import threadpool_limits
 
     n = len(q)
     points = pose_embedding(robot, q)
     n_clusters = int(max(k, min(groups, n // 2)))
-    with warnings.catch_warnings():
+    # one OpenMP thread: k-means sums its clusters thread by thread, so the folds would depend on the
+    # cores of the process that makes them (this one or a worker, this machine or another)
+    with warnings.catch_warnings(), threadpool_limits(1):
         # fewer distinct configurations than clusters: refused below with a message that says so
         warnings.simplefilter("ignore", ConvergenceWarning)
         labels = KMeans(n_clusters=n_clusters, n_init=1, random_state=seed).fit_predict(points)

@@ -20,82 +20,15 @@ The noise floor of a 3-D position RMS is ``sqrt(3 (sigma_tracker^2 + sigma_repea
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, replace
 
 import torch
 
-from torchcal.core.errors import TorchcalError
-from torchcal.core.overrides import check_range
 from torchcal.data.measurements import Measurements
 from torchcal.kinematics.error_model import ErrorModel
 from torchcal.kinematics.joint_jacobian import joint_frames
 from torchcal.kinematics.robot import RobotModel, default_robot_path, load_robot
-
-
-@dataclass
-class TwinConfig:
-    """Settings of a twin case (report units: mm, deg).
-
-    Attributes:
-        robot: robot file (default: the embedded twin-kr6).
-        seed: random seed of errors, poses and noise.
-        n_train / n_test: poses written to train.csv / test.csv.
-        length_error_mm / angle_error_deg: 1-sigma of MDH length and angle errors.
-        tool_error_mm: 1-sigma of the tool offset error per axis.
-        instrument_distance_mm: distance of the tracker from the robot base.
-        tracker_sigma_mm / repeatability_mm: per-axis Gaussian noise.
-        gravity: add gravity-induced joint compliance.
-        gear: add periodic gear errors.
-        gear_amplitude_deg: amplitude of the first gear harmonic.
-        gear_orders: gear harmonics per joint (1 .. this order).
-        compliance_cubic: relative change of the gravity deflection at a joint's largest torque
-            (0: linear compliance).
-        joint_stiffness_nm_per_rad: per-joint stiffness for the gravity compliance (a robot with
-            more joints than values repeats the last value).
-        link_masses_kg: point masses at the middle of links 2 and 3 and at the wrist.
-        margin_deg: distance kept from joint limits when sampling poses.
-    """
-
-    robot: str | None = None
-    seed: int = 0
-    n_train: int = 120
-    n_test: int = 400
-    length_error_mm: float = 0.3
-    angle_error_deg: float = 0.03
-    tool_error_mm: float = 0.5
-    instrument_distance_mm: float = 2500.0
-    tracker_sigma_mm: float = 0.012
-    repeatability_mm: float = 0.008
-    gravity: bool = False
-    gear: bool = False
-    gear_amplitude_deg: float = 0.01
-    gear_orders: int = 2
-    compliance_cubic: float = 0.0
-    joint_stiffness_nm_per_rad: list[float] = field(default_factory=lambda: [4e5, 3e5, 2e5, 5e4, 4e4, 3e4])
-    link_masses_kg: list[float] = field(default_factory=lambda: [25.0, 15.0, 10.0])
-    margin_deg: float = 5.0
-
-    def __post_init__(self) -> None:
-        """Refuse counts below one and non-finite or negative sizes before anything is written."""
-        for name in ("n_train", "n_test"):
-            check_range(self, name, low=1, high=1_000_000)  # 10^6 poses: about 0.5 GB of float64 joints and Jacobians
-        for name in ("length_error_mm", "angle_error_deg", "tool_error_mm", "tracker_sigma_mm", "repeatability_mm",
-                     "gear_amplitude_deg", "margin_deg"):
-            check_range(self, name, low=0.0)
-        check_range(self, "instrument_distance_mm", low=0.0, low_open=True)
-        check_range(self, "gear_orders", low=1, high=20)
-        check_range(self, "compliance_cubic", low=-0.9, high=10.0)
-        # physics that cannot be: a negative mass, a zero or negative stiffness (a division by it writes NaN)
-        if not self.link_masses_kg or any(not math.isfinite(m) or m < 0 for m in self.link_masses_kg):
-            raise TorchcalError(f"link_masses_kg needs finite masses >= 0 (kg), got {list(self.link_masses_kg)}")
-        if not self.joint_stiffness_nm_per_rad or any(not math.isfinite(k) or k <= 0
-                                                      for k in self.joint_stiffness_nm_per_rad):
-            raise TorchcalError(f"joint_stiffness_nm_per_rad needs finite values > 0 (N m/rad), got "
-                                f"{list(self.joint_stiffness_nm_per_rad)}")
-
-    @property
-    def noise_floor_rms_mm(self) -> float:
-        return math.sqrt(3.0 * (self.tracker_sigma_mm**2 + self.repeatability_mm**2))
+from torchcal.sim.twin_config import TwinConfig
 
 
 @dataclass

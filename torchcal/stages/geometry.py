@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 import warnings
+from contextlib import nullcontext
 from dataclasses import replace
 from pathlib import Path
 
@@ -18,7 +19,7 @@ import torch
 
 from torchcal.config.schema import FitConfig
 from torchcal.core.errors import DataError
-from torchcal.core.workers import resolve_jobs
+from torchcal.core.workers import in_background, resolve_jobs
 from torchcal.data.folds import make_folds
 from torchcal.data.measurements import Measurements
 from torchcal.identify import IDENTIFIERS
@@ -138,10 +139,11 @@ def geometry_fitter(robot: RobotModel, config: FitConfig, prior=None, cache: dic
     return geometry
 
 
-def choose_prior(robot: RobotModel, data: Measurements, config: FitConfig, progress=None):
+def choose_prior(robot: RobotModel, data: Measurements, config: FitConfig, progress=None, folds=None):
     """The prior of ``config`` (``None`` without one), its scale chosen by the data when ``auto`` or ``cv``.
 
     Returns ``(spec, selection record or None, per-fold fits of the chosen spec, fit on all poses or None)``:
+    ``folds()``: the fit's folds, where they are being made already (default: made here when needed).
     ``auto`` chooses by the evidence (one fit per candidate on all poses; the chosen one's fit is
     returned as the warm start of every later fit), ``cv`` by the grouped cross-validation (its
     per-fold fits of the chosen spec are returned for the structure CV to reuse).
@@ -156,7 +158,7 @@ def choose_prior(robot: RobotModel, data: Measurements, config: FitConfig, progr
         chosen, record, full = evidence_prior_scales(lambda spec: geometry_fitter(robot, config, spec), base, data,
                                                      progress=progress)
         return chosen, record, {}, full
-    folds = make_config_folds(robot, data, config)
+    folds = folds() if folds is not None else make_config_folds(robot, data, config)
     chosen, comparison, fits = cross_validate_prior_scales(
         data, lambda spec: geometry_fitter(robot, config, spec), base, folds, progress=progress)
     return chosen, selection_record(comparison, chosen), fits, None
@@ -194,13 +196,19 @@ def fit_with_selection(robot: RobotModel, data: Measurements, config: FitConfig,
                                              .default_active().sum()))
     if few is not None:
         warnings.warn(few, stacklevel=2)
-    prior, prior_selection, prior_fits, full = choose_prior(robot, data, config, progress=progress)
+    # the CV also calibrates the prediction uncertainty (stages.prediction_uncertainty)
+    cross_validates = len(options) > 1 or config.residual != "none" or config.uncertainty != "none"
+    # a worker makes the folds while the prior is chosen here (core.workers; the same folds), one still
+    # starting too: its start-up imports what they need (config.workers), which this process would import
+    with (in_background(make_config_folds, robot, data, config, jobs=resolve_jobs(config.jobs), starting=True)
+          if cross_validates else nullcontext(None)) as pending_folds:
+        prior, prior_selection, prior_fits, full = choose_prior(robot, data, config, progress=progress,
+                                                                folds=pending_folds.result if pending_folds else None)
     geometry = geometry_fitter(robot, config, prior, prior_fits, start=full)
     structure = None
     gravity, harmonics = options[0]
-    # the CV also calibrates the prediction uncertainty (stages.prediction_uncertainty)
-    if len(options) > 1 or config.residual != "none" or config.uncertainty != "none":
-        folds = make_config_folds(robot, data, config)
+    if pending_folds is not None:
+        folds = pending_folds.result()
         structure = cross_validate_structures(robot, data, geometry, options, folds, progress=progress,
                                               harmonic_min_range_deg=config.harmonic_min_range_deg,
                                               jobs=resolve_jobs(config.jobs))

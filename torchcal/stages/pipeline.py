@@ -19,14 +19,15 @@ from pathlib import Path
 from typing import Any
 
 from torchcal.config.compose import save_resolved_config
+from torchcal.config.workers import start_fit_workers
 from torchcal.core.threads import fit_threads
-from torchcal.core.workers import import_in_workers, resolve_jobs, warm_up
+from torchcal.core.workers import import_in_workers
 from torchcal.data.measurements import Measurements
 from torchcal.identify.calibrate import CalibrationResult
 from torchcal.kinematics.robot import RobotModel
 from torchcal.model_selection.compare import Comparison
 from torchcal.model_selection.structure import StructureCV
-from torchcal.stages.geometry import fit_with_selection, save_fit, structure_options
+from torchcal.stages.geometry import fit_with_selection, save_fit
 from torchcal.stages.prior_options import prior_metadata
 from torchcal.stages.residual import (
     ResidualOutcome,
@@ -36,7 +37,6 @@ from torchcal.stages.residual import (
 )
 
 #: What the structure cross-validation's fold fits import (a worker imports it when it starts).
-STRUCTURE_MODULES = ("torchcal.model_selection.structure",)
 
 #: The decision recorded in ``model_selection.json`` when no head was asked for.
 NO_HEADS = "residual=none: no head considered"
@@ -86,17 +86,9 @@ class FitRun:
 
 
 def start_workers(config: Any) -> None:
-    """Start the worker processes of a fit with ``config`` in the background (:mod:`torchcal.core.workers`),
-    importing what the structure cross-validation's fold fits need.
-
-    Nothing to do with ``jobs=1``, nor for a fit that cross-validates one structure and no heads
-    (geometry alone: its folds take a fraction of a second, less than a worker's start-up costs
-    beside it: docs/benchmarks.md). A worker runs its queue in order, imports included: each later
-    piece's imports are queued when the fit is about to need them
-    (:func:`~torchcal.core.workers.import_in_workers`), not here, so that they do not hold up the folds."""
-    if config.residual == "none" and len(structure_options(config)) <= 1:
-        return
-    warm_up(min(resolve_jobs(config.jobs), max(config.cv_folds, 2)), STRUCTURE_MODULES)
+    """Start the worker processes of a fit with ``config`` (:func:`torchcal.config.workers.start_fit_workers`;
+    where a command has started them already, they are kept and their imports are done)."""
+    start_fit_workers(config)
 
 
 def fit_model(
