@@ -15,6 +15,7 @@ from cloudpickle import register_pickle_by_value
 from torchcal.core.errors import DataError, TorchcalError
 from torchcal.core.workers import (
     JOBS_ENV,
+    import_while_waiting,
     in_background,
     in_worker,
     ready_workers,
@@ -181,3 +182,17 @@ def _where(_: int) -> bool:
 
 def test_a_worker_knows_it_is_one(one_worker):
     assert side_by_side(_where, [(0,), (1,)], 2) == [False, True]
+
+
+def test_modules_named_for_later_are_imported_while_this_process_waits(one_worker, tmp_path, monkeypatch):
+    (tmp_path / "needed_later_module.py").write_text("import time\nIMPORTED_AT = time.perf_counter()\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    import_while_waiting("needed_later_module")
+    assert "needed_later_module" not in sys.modules
+    with in_background(_sleep_then_square, np.ones(1), 1.0, jobs=2) as pending:
+        pass
+    finished = time.perf_counter()
+    assert pending.result()[1] != os.getpid()
+    imported_at = sys.modules["needed_later_module"].IMPORTED_AT  # here, while the piece (1 s) ran there
+    assert imported_at < finished - 0.5
+    monkeypatch.delitem(sys.modules, "needed_later_module")

@@ -92,6 +92,27 @@ def _interrupts_ignored_by_new_workers() -> Iterator[None]:
 _pool: dict[str, Any] = {}
 
 
+#: Modules this process will need later, imported the next time it waits for a worker (:func:`import_while_waiting`).
+_later: list[str] = []
+
+
+def import_while_waiting(*modules: str) -> None:
+    """Name modules this process will import later (a report's plotting, say): it imports them the
+    next time it waits for a worker (for the last tasks of :func:`side_by_side`, the piece of
+    :func:`in_background`), time it would otherwise spend idle. Each is imported once, in order."""
+    _later.extend(m for m in modules if m not in _later)
+
+
+def _use_the_wait(futures: Sequence[Any]) -> None:
+    """Import what :func:`import_while_waiting` named, if this process is about to wait for ``futures``."""
+    if not _later or all(f.done() for f in futures):
+        return
+    import importlib
+
+    while _later:
+        importlib.import_module(_later.pop(0))
+
+
 def _import(modules: Sequence[str]) -> None:
     import importlib
 
@@ -188,7 +209,9 @@ def side_by_side(fn: Callable[..., Any], tasks: Sequence[tuple], jobs: int) -> l
         results = {}
         while (i := share.claim_first()) is not None:
             results[i] = fn(*tasks[i])
-        for i, future in share.sent().items():
+        sent = share.sent()
+        _use_the_wait(list(sent.values()))
+        for i, future in sent.items():
             results[i] = _result_or_here(future, fn, tasks[i])
         return [results[i] for i in range(len(tasks))]
     except BaseException:
@@ -297,6 +320,7 @@ class Pending:
 
     def result(self) -> Any:
         if self._future is not None:
+            _use_the_wait([self._future])
             self._value, self._future = _result_or_here(self._future, self._fn, self._args), None
         return self._value
 

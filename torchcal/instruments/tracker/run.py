@@ -21,7 +21,12 @@ from torchcal.core.io import atomic_write_json
 from torchcal.core.metrics import position_metrics
 from torchcal.core.outputs import check_name
 from torchcal.core.threads import fit_threads
-from torchcal.core.workers import import_in_workers, in_background, resolve_jobs
+from torchcal.core.workers import (
+    import_in_workers,
+    import_while_waiting,
+    in_background,
+    resolve_jobs,
+)
 from torchcal.data.measurements import Measurements, load_measurements
 from torchcal.identify.calibrate import CalibrationResult
 from torchcal.identify.lm import LevenbergMarquardt
@@ -37,6 +42,7 @@ from torchcal.instruments.tracker.report import (
 )
 from torchcal.instruments.tracker.twin_case import write_twin_case
 from torchcal.kinematics.robot import load_robot
+from torchcal.report import plots
 from torchcal.report.document import write_report
 from torchcal.sim.twin import Twin
 from torchcal.stages.geometry import NOMINAL_PROTOCOL, held_out_errors, nominal_errors
@@ -63,6 +69,9 @@ def projected_truth(twin: Twin, result: CalibrationResult, n: int = 2000) -> tup
 
 #: What the export imports on first use: the worker that exports imports it ahead (core.workers.warm_up).
 EXPORT_MODULES = ("torchcal.compensate.export", "onnx", "onnxruntime", "torch.onnx")
+#: What the report imports here on first use (its figures; the ISO 9283 repeats' k-d tree): imported
+#: while this process waits for its worker during the fit (core.workers.import_while_waiting).
+REPORT_MODULES = (*plots.IMPORTS, "scipy.spatial", "scipy.sparse.csgraph")
 
 
 def run(config: RunConfig, console=None) -> dict:
@@ -93,6 +102,7 @@ def _run_into(folder: Path, destination: Path, config: RunConfig, console) -> di
     started = time.perf_counter()
     save_resolved_config(folder / "config.yaml", config)
     start_workers(config.fit)  # they start while the twin is simulated
+    import_while_waiting(*REPORT_MODULES)
     with console.status("[bold]simulating the twin") as status:
         case = write_twin_case(folder / "case", config.twin)
         robot = load_robot(case["robot.yaml"])
