@@ -360,7 +360,8 @@ class CompensatorGraph(nn.Module):
         A step here takes only the poses not yet converged (the ``Loop`` steps the whole batch and
         keeps the converged poses' commands): a third less work over the joint range, the same
         steps pose by pose. Products over a smaller batch may round differently in the last bit
-        (measured: commands and residuals within 1e-15 relative of the whole-batch iteration).
+        (measured: one pose in 600 or 20000 whose command differs, by 5e-15 rad at most; residuals
+        within 3e-16 m).
         """
         q_in, wrench = self.widen(q_nominal, wrench)
         weights, before, q, jac_t, error = self.start(q_in, wrench)
