@@ -114,19 +114,6 @@ def test_a_starting_worker_joins_in_once_ready(slow_starting_worker):
     assert here[:5] == [True] * 5 and not here[-1] and here == sorted(here, reverse=True)
 
 
-def test_in_background_may_wait_for_a_starting_worker(slow_starting_worker):
-    slow_starting_worker(1.0)
-    with in_background(_square_with_pid, np.full(2, 3.0), jobs=2) as pending:
-        pass
-    assert pending.result()[1] == os.getpid()  # not ready: done here, first
-    slow_starting_worker(1.0)
-    with in_background(_square_with_pid, np.full(2, 3.0), jobs=2, starting=True) as pending:
-        pass
-    squared, pid = pending.result()
-    np.testing.assert_array_equal(squared, [9.0, 9.0])
-    assert pid != os.getpid()
-
-
 def test_pieces_wait_for_no_worker_that_is_starting(slow_starting_worker):
     slow_starting_worker(4.0)
     started = time.perf_counter()

@@ -326,16 +326,13 @@ class Pending:
 
 
 @contextmanager
-def in_background(fn: Callable[..., Any], *args: Any, jobs: int, starting: bool = False) -> Iterator[Pending]:
+def in_background(fn: Callable[..., Any], *args: Any, jobs: int) -> Iterator[Pending]:
     """``fn(*args)`` in a ready worker while the body runs here; with ``jobs == 1`` or no ready worker,
     here and first.
 
-    ``starting``: a worker still starting takes it too, after its imports (for a piece that would
-    cost here about what the rest of a worker's start costs there: one whose own imports the
-    worker is making). Leaving the body by an error or an interrupt stops the worker, the piece
-    under way included.
+    Leaving the body by an error or an interrupt stops the worker, the piece under way included.
     """
-    there = (started_workers(jobs) if starting else workers_for(jobs)) > 0
+    there = workers_for(jobs) > 0
     if there:
         with _interrupts_ignored_by_new_workers():
             future = _pool["executor"].submit(fn, *args)

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import math
 import warnings
-from contextlib import nullcontext
 from dataclasses import replace
 from pathlib import Path
 
@@ -139,11 +138,10 @@ def geometry_fitter(robot: RobotModel, config: FitConfig, prior=None, cache: dic
     return geometry
 
 
-def choose_prior(robot: RobotModel, data: Measurements, config: FitConfig, progress=None, folds=None):
+def choose_prior(robot: RobotModel, data: Measurements, config: FitConfig, progress=None):
     """The prior of ``config`` (``None`` without one), its scale chosen by the data when ``auto`` or ``cv``.
 
     Returns ``(spec, selection record or None, per-fold fits of the chosen spec, fit on all poses or None)``:
-    ``folds()``: the fit's folds, where they are being made already (default: made here when needed).
     ``auto`` chooses by the evidence (one fit per candidate on all poses; the chosen one's fit is
     returned as the warm start of every later fit), ``cv`` by the grouped cross-validation (its
     per-fold fits of the chosen spec are returned for the structure CV to reuse).
@@ -158,7 +156,7 @@ def choose_prior(robot: RobotModel, data: Measurements, config: FitConfig, progr
         chosen, record, full = evidence_prior_scales(lambda spec: geometry_fitter(robot, config, spec), base, data,
                                                      progress=progress)
         return chosen, record, {}, full
-    folds = folds() if folds is not None else make_config_folds(robot, data, config)
+    folds = make_config_folds(robot, data, config)
     chosen, comparison, fits = cross_validate_prior_scales(
         data, lambda spec: geometry_fitter(robot, config, spec), base, folds, progress=progress)
     return chosen, selection_record(comparison, chosen), fits, None
@@ -196,19 +194,17 @@ def fit_with_selection(robot: RobotModel, data: Measurements, config: FitConfig,
                                              .default_active().sum()))
     if few is not None:
         warnings.warn(few, stacklevel=2)
-    # the CV also calibrates the prediction uncertainty (stages.prediction_uncertainty)
-    cross_validates = len(options) > 1 or config.residual != "none" or config.uncertainty != "none"
-    # a worker makes the folds while the prior is chosen here (core.workers; the same folds), one still
-    # starting too: its start-up imports what they need (config.workers), which this process would import
-    with (in_background(make_config_folds, robot, data, config, jobs=resolve_jobs(config.jobs), starting=True)
-          if cross_validates else nullcontext(None)) as pending_folds:
-        prior, prior_selection, prior_fits, full = choose_prior(robot, data, config, progress=progress,
-                                                                folds=pending_folds.result if pending_folds else None)
+    prior, prior_selection, prior_fits, full = choose_prior(robot, data, config, progress=progress)
     geometry = geometry_fitter(robot, config, prior, prior_fits, start=full)
     structure = None
     gravity, harmonics = options[0]
-    if pending_folds is not None:
-        folds = pending_folds.result()
+    # the CV also calibrates the prediction uncertainty (stages.prediction_uncertainty)
+    if len(options) > 1 or config.residual != "none" or config.uncertainty != "none":
+        # a ready worker makes the folds: it imported their k-means at its start (config.workers), and
+        # this process imports meanwhile what it will need later (core.workers.import_while_waiting)
+        with in_background(make_config_folds, robot, data, config, jobs=resolve_jobs(config.jobs)) as pending:
+            pass
+        folds = pending.result()
         structure = cross_validate_structures(robot, data, geometry, options, folds, progress=progress,
                                               harmonic_min_range_deg=config.harmonic_min_range_deg,
                                               jobs=resolve_jobs(config.jobs))

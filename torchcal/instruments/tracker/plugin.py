@@ -44,14 +44,22 @@ class TrackerInstrument(Instrument):
 
     def fit(self, request: FitRequest) -> FitOutcome:
         from torchcal.config.compose import compose_fit_config
+        from torchcal.config.workers import start_fit_workers
+
+        config = compose_fit_config(request.overrides)
+        # before this process imports torch: their start-up overlaps it and the files' reading
+        start_fit_workers(config)
+
+        from torchcal.core.workers import import_while_waiting
+        from torchcal.instruments.tracker.report import REPORT_MODULES
+
+        import_while_waiting(*REPORT_MODULES)  # the report's, in a wait for the workers during the fit
+
         from torchcal.core.metrics import position_metrics
         from torchcal.identify.joint_fit import predicted_positions
         from torchcal.kinematics.robot import load_robot
         from torchcal.stages.geometry import NOMINAL_PROTOCOL, nominal_errors, with_tool
-        from torchcal.stages.pipeline import fit_model, start_workers
-
-        config = compose_fit_config(request.overrides)
-        start_workers(config)  # they start while the files are read and checked
+        from torchcal.stages.pipeline import fit_model
         robot = with_tool(load_robot(request.robot, base_link=request.base_link, end_link=request.end_link), config)
         files = (request.data, *request.more_data)
         series, set_aside = [], {}

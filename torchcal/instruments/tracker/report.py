@@ -546,6 +546,11 @@ def _convergence(stored: StoredModel) -> Section | None:
                       "Sum of squared residuals per accepted iteration of the geometric fit.")])
 
 
+#: What a report imports in this process on first use (its figures; the ISO 9283 repeats' k-d tree):
+#: a fit that will write one imports them while it waits for its worker (core.workers.import_while_waiting).
+REPORT_MODULES = (*plots.IMPORTS, "scipy.spatial", "scipy.sparse.csgraph")
+
+
 def calibration_report(title: str, stored: StoredModel, pose_sets: list[PoseSet], inputs: ReportInputs | None = None,
                        jobs: int = 1) -> Report:
     """The whole report (see the module docstring); ``pose_sets`` in the order shown, held-out last.

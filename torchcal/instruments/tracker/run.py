@@ -34,6 +34,7 @@ from torchcal.identify.problem import CalibrationProblem
 from torchcal.instruments.base import EvaluateRequest
 from torchcal.instruments.registry import default
 from torchcal.instruments.tracker.report import (
+    REPORT_MODULES,
     ReportInputs,
     calibration_report,
     cross_validated_stage,
@@ -42,7 +43,6 @@ from torchcal.instruments.tracker.report import (
 )
 from torchcal.instruments.tracker.twin_case import write_twin_case
 from torchcal.kinematics.robot import load_robot
-from torchcal.report import plots
 from torchcal.report.document import write_report
 from torchcal.sim.twin import Twin
 from torchcal.stages.geometry import NOMINAL_PROTOCOL, held_out_errors, nominal_errors
@@ -69,9 +69,6 @@ def projected_truth(twin: Twin, result: CalibrationResult, n: int = 2000) -> tup
 
 #: What the export imports on first use: the worker that exports imports it ahead (core.workers.warm_up).
 EXPORT_MODULES = ("torchcal.compensate.export", "onnx", "onnxruntime", "torch.onnx")
-#: What the report imports here on first use (its figures; the ISO 9283 repeats' k-d tree): imported
-#: while this process waits for its worker during the fit (core.workers.import_while_waiting).
-REPORT_MODULES = (*plots.IMPORTS, "scipy.spatial", "scipy.sparse.csgraph")
 
 
 def run(config: RunConfig, console=None) -> dict:
