@@ -193,9 +193,9 @@ def side_by_side(fn: Callable[..., Any], tasks: Sequence[tuple], jobs: int) -> l
 
     This process takes the tasks from the first on, the workers from the last back, one at a time
     each (a worker is sent its next task when it has finished one), until they meet: neither side
-    waits while tasks are left, whatever the tasks cost. A worker still starting is sent its first
-    task once it is ready (until then this process goes on alone), and one busy with an earlier
-    piece (:func:`in_background`) takes at most one task after it. Each task is done once, from the
+    waits while tasks are left, whatever the tasks cost. A worker still starting, or busy with a
+    piece of :func:`in_background`, is sent its first task once it is free (until then this
+    process goes on alone). Each task is done once, from the
     same inputs, so the results do not depend on where it ran. ``fn`` and the tasks' arguments
     travel by pickle (cloudpickle: functions, arrays, tensors, fits). With ``jobs == 1``, one task
     or no worker started (:func:`started_workers`), everything runs here, in order. An error in any
