@@ -11,10 +11,11 @@ shared). CPU seconds are user + system of the child process (all its threads) an
 processes it started and ended (:mod:`torchcal.core.workers`). With ``--serial``, this tree also runs
 with ``fit.jobs=1`` (everything in one process) in each repeat.
 
-Same results: ``metrics.json`` (less ``elapsed_s``), ``model/calibration.json``,
+Same results (the same text; for a JSON file, else the largest relative difference of its numbers,
+at most 1e-9 to pass): ``metrics.json`` (less ``elapsed_s``), ``model/calibration.json``,
 ``model/metrics.json``, ``model/model_selection.json``, ``model/uncertainty.json``, ``report.md``
 and the export's ``manifest.json`` (less its hashes and versions, which name the files' bytes and the build),
-the output folders' names replaced; compared as text, exactly.
+the output folders' names replaced.
 
 Writes ``docs/bench_run.json`` and ``docs/bench_run.md``.
 """
@@ -77,17 +78,61 @@ def _normalized(path: Path, folders: list[Path]) -> str:
     return text
 
 
-def same_results(a: tuple[Path, Path], b: tuple[Path, Path]) -> dict[str, bool]:
-    """Which compared files are identical between the runs ``a`` and ``b`` (each ``(out, export)``)."""
-    result = {}
+#: Numbers of a JSON file that differ by at most this (relative) count as the same result.
+SAME_RELATIVE = 1e-9
+
+
+def _largest_difference(a, b) -> float | None:
+    """Largest relative difference between the numbers of two parsed JSON documents of the same shape
+    (``None``: not the same shape, or a text or flag differs)."""
+    if isinstance(a, dict) and isinstance(b, dict):
+        if a.keys() != b.keys():
+            return None
+        parts = [_largest_difference(a[k], b[k]) for k in a]
+    elif isinstance(a, list) and isinstance(b, list):
+        if len(a) != len(b):
+            return None
+        parts = [_largest_difference(x, y) for x, y in zip(a, b)]
+    elif isinstance(a, bool) or isinstance(b, bool) or not isinstance(a, int | float) or not isinstance(b, int | float):
+        return 0.0 if a == b else None
+    elif a == b or (a != a and b != b):  # equal, or both NaN
+        return 0.0
+    else:
+        return abs(a - b) / max(abs(a), abs(b))
+    return None if any(p is None for p in parts) else max(parts, default=0.0)
+
+
+def same_results(a: tuple[Path, Path], b: tuple[Path, Path]) -> dict[str, float | None]:
+    """How far each compared file of the runs ``a`` and ``b`` (each ``(out, export)``) is from the other's:
+    0 for the same text, the largest relative difference of its numbers for a JSON file of the same
+    shape, ``None`` otherwise (a file missing, a text or a shape that differs)."""
+    result: dict[str, float | None] = {}
     pairs = [(name, a[0] / NAME / name, b[0] / NAME / name) for name in COMPARED]
     pairs.append(("export manifest.json", a[1] / NAME / "manifest.json", b[1] / NAME / "manifest.json"))
     for name, pa, pb in pairs:
         if not pa.is_file() and not pb.is_file():
             continue
-        result[name] = (pa.is_file() and pb.is_file()
-                        and _normalized(pa, [a[0], a[1]]) == _normalized(pb, [b[0], b[1]]))
+        if not (pa.is_file() and pb.is_file()):
+            result[name] = None
+            continue
+        ta, tb = _normalized(pa, [a[0], a[1]]), _normalized(pb, [b[0], b[1]])
+        if ta == tb:
+            result[name] = 0.0
+        elif pa.suffix == ".json":
+            result[name] = _largest_difference(json.loads(ta), json.loads(tb))
+        else:
+            result[name] = None
     return result
+
+
+def _combined(x: float | None, y: float | None) -> float | None:
+    return None if x is None or y is None else max(x, y)
+
+
+def _said(difference: float | None) -> str:
+    if difference is None:
+        return "NO"
+    return "yes" if difference == 0 else f"numbers within {difference:.0e} relative"
 
 
 def main() -> int:
@@ -103,7 +148,7 @@ def main() -> int:
         trees["this tree, fit.jobs=1"] = ROOT
     work = Path(tempfile.mkdtemp(prefix="bench_run_"))
     runs: dict[str, list[dict]] = {k: [] for k in trees}
-    same: dict[str, bool] = {}
+    same: dict[str, float | None] = {}
     for r in range(args.repeats):
         for label, tree in trees.items():
             tag = {"baseline": "base", "this tree": "new"}.get(label, "serial")
@@ -114,8 +159,8 @@ def main() -> int:
         checked = same_results((work / "base_out", work / "base_export"), (work / "new_out", work / "new_export"))
         if args.serial:  # the serial run of this tree must write what the baseline wrote too
             serial = same_results((work / "base_out", work / "base_export"), (work / "serial_out", work / "serial_export"))
-            checked = {k: v and serial.get(k, False) for k, v in checked.items()}
-        same = checked if not same else {k: same[k] and v for k, v in checked.items()}
+            checked = {k: _combined(v, serial.get(k)) for k, v in checked.items()}
+        same = checked if not same else {k: _combined(same[k], v) for k, v in checked.items()}
     shutil.rmtree(work, ignore_errors=True)
     summary = {label: {"median_wall_s": statistics.median(x["wall_s"] for x in rs),
                        "median_cpu_s": statistics.median(x["cpu_s"] for x in rs), "runs": rs}
@@ -128,10 +173,10 @@ def main() -> int:
         each = "; ".join(f"{x['wall_s']:.1f} / {x['cpu_s']:.1f} ({x['load_1min_before']:.2f})" for x in s["runs"])
         lines.append(f"| {label} | {s['median_wall_s']:.1f} | {s['median_cpu_s']:.1f} | {each} |")
     lines.append("")
-    lines.append("Same results as the baseline: " + ", ".join(f"{k} {'yes' if v else 'NO'}" for k, v in same.items()) + ".")
+    lines.append("Same results as the baseline: " + ", ".join(f"{k} {_said(v)}" for k, v in same.items()) + ".")
     args.out.with_suffix(".md").write_text("\n".join(lines) + "\n", encoding="utf-8")
     print("\n".join(lines))
-    return 0 if all(same.values()) else 1
+    return 0 if all(v is not None and v <= SAME_RELATIVE for v in same.values()) else 1
 
 
 if __name__ == "__main__":
