@@ -133,15 +133,20 @@ def warm_up(jobs: int, *module_groups: Sequence[str], wait: bool = False) -> Non
 
     # one intra-op thread per worker, like the fit in the main process (core.threads); set before any import
     threads = dict.fromkeys(("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"), "1")
+    groups = [tuple(group) for group in module_groups or [()]]
     with _interrupts_ignored_by_new_workers():
         executor = get_reusable_executor(max_workers=jobs - 1, timeout=IDLE_TIMEOUT_S, initializer=_worker_start,
                                          env=threads)
-        futures = [executor.submit(_import, tuple(group)) for group in module_groups or [()]]
-    earlier = _pool.get("ready", []) if _pool.get("executor") is executor else []
-    _pool.update(executor=executor, workers=jobs - 1, ready=earlier + futures)
+        same = _pool.get("executor") is executor
+        # a group this pool has imported or queued already is not queued again (a command and its fit
+        # both start the workers): fewer pending items, fewer for an interrupt's shutdown to race with
+        queued: dict[tuple, Any] = _pool.get("queued", {}) if same else {}
+        futures = [queued.setdefault(group, executor.submit(_import, group)) for group in groups if group not in queued]
+    earlier = _pool.get("ready", []) if same else []
+    _pool.update(executor=executor, workers=jobs - 1, ready=earlier + futures, queued=queued)
     if wait:
-        for future in futures:
-            future.result()
+        for group in groups:
+            queued[group].result()
 
 
 def import_in_workers(*module_groups: Sequence[str]) -> None:
