@@ -98,7 +98,7 @@ def refuse_implausible(nominal: OrientationErrors, data: Measurements) -> None:
     """Refuse orientation columns that even the nominal robot (probe rotation fitted) misses by degrees (RMS).
 
     Raises:
-        DataError: naming the median angle and the likely cause (the angle convention or unit).
+        DataError: naming the RMS angle and the likely cause (the angle convention or unit).
     """
     rms = math.degrees(float(nominal.angles_rad.pow(2).mean().sqrt()))
     if rms > IMPLAUSIBLE_RMS_DEG:

@@ -85,12 +85,6 @@ class FitRun:
         return lines
 
 
-def start_workers(config: Any) -> None:
-    """Start the worker processes of a fit with ``config`` (:func:`torchcal.config.workers.start_fit_workers`;
-    where a command has started them already, they are kept and their imports are done)."""
-    start_fit_workers(config)
-
-
 def fit_model(
     folder: str | Path,
     robot: RobotModel,
@@ -117,7 +111,7 @@ def fit_model(
 
 def _fit_model(folder: Path, robot: RobotModel, data: Measurements, config: Any, metadata, fitted, progress,
                residual_progress) -> FitRun:
-    start_workers(config)  # their start-up overlaps the fit's serial part (core.workers)
+    start_fit_workers(config)  # their start-up overlaps the fit's serial part (core.workers)
     result, structure = fitted if fitted is not None else fit_with_selection(robot, data, config, progress=progress)
     if config.residual != "none":
         import_in_workers(head_modules(config))  # imported there while the model folder is written

@@ -16,6 +16,7 @@ import torch
 from torchcal.compensate.export import export_and_check
 from torchcal.config import save_resolved_config
 from torchcal.config.schema import RunConfig
+from torchcal.config.workers import start_fit_workers
 from torchcal.core.folder import check_output_folder, staged_folder, write_member_json
 from torchcal.core.io import atomic_write_json
 from torchcal.core.metrics import position_metrics
@@ -46,7 +47,7 @@ from torchcal.kinematics.robot import load_robot
 from torchcal.report.document import write_report
 from torchcal.sim.twin import Twin
 from torchcal.stages.geometry import NOMINAL_PROTOCOL, held_out_errors, nominal_errors
-from torchcal.stages.pipeline import fit_model, start_workers
+from torchcal.stages.pipeline import fit_model
 from torchcal.stages.store import load_model
 
 
@@ -98,7 +99,7 @@ def _run_into(folder: Path, destination: Path, config: RunConfig, console) -> di
     """The run's steps, writing into ``folder`` (staging); recorded paths name ``destination``, where it will be."""
     started = time.perf_counter()
     save_resolved_config(folder / "config.yaml", config)
-    start_workers(config.fit)  # they start while the twin is simulated
+    start_fit_workers(config.fit)  # they start while the twin is simulated (kept where the CLI started them)
     import_while_waiting(*REPORT_MODULES)
     with console.status("[bold]simulating the twin") as status:
         case = write_twin_case(folder / "case", config.twin)
