@@ -12,6 +12,8 @@ in the same run (:data:`VARIANTS`: the portable Gauss-Jordan solve, 1 and 2 Newt
 * single-sample latency (batch 1), median and p99 over many calls, onnxruntime with
   ``intra_op_num_threads=1`` (one core, as on a controller), all graphs round-robin so they share
   the load, beside a one-node graph (the cost of a call itself); torch eager with one thread;
+* the nodes onnxruntime runs for one pose (its profiler) against a chain of as many trivial nodes
+  in warm blocks: what the per-node cost alone allows, and the node count the target leaves;
 * batch throughput (poses/s) at a large batch, onnxruntime on one thread and on all cores,
   torch eager on all cores;
 * convergence of the compensator against its iteration count (worst and 99th-percentile TCP
@@ -158,6 +160,40 @@ def _floor_graph(path: Path, n_joints: int) -> None:
                               [helper.make_tensor_value_info("q_nominal", TensorProto.DOUBLE, ["batch", n_joints])],
                               [helper.make_tensor_value_info("q_corrected", TensorProto.DOUBLE, ["batch", n_joints])])
     onnx.save(helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)]), str(path))
+
+
+def _chain_graph(path: Path, n_nodes: int, n_joints: int) -> None:
+    """A graph of ``n_nodes`` trivial nodes in a row (``Sin`` and ``Neg`` in turn) on the compensator's
+    input: what a graph of that many nodes costs at least, whatever they compute."""
+    import onnx
+    from onnx import TensorProto, helper
+
+    names = ["q_nominal"] + [f"t{i}" for i in range(n_nodes - 1)] + ["q_corrected"]
+    nodes = [helper.make_node("Sin" if i % 2 == 0 else "Neg", [names[i]], [names[i + 1]]) for i in range(n_nodes)]
+    graph = helper.make_graph(nodes, "chain",
+                              [helper.make_tensor_value_info("q_nominal", TensorProto.DOUBLE, ["batch", n_joints])],
+                              [helper.make_tensor_value_info("q_corrected", TensorProto.DOUBLE, ["batch", n_joints])])
+    onnx.save(helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)]), str(path))
+
+
+def executed_nodes(path: Path, input_name: str, x: np.ndarray) -> int:
+    """Nodes onnxruntime runs in one call of the graph at ``path`` on ``x`` (its profiler's kernel
+    events; a ``Loop`` or ``If`` counts by the nodes of its bodies that run, not itself)."""
+    import json
+
+    import onnxruntime as ort
+
+    with tempfile.TemporaryDirectory() as tmp:
+        options = ort.SessionOptions()
+        options.log_severity_level = 3
+        options.intra_op_num_threads = 1
+        options.enable_profiling = True
+        options.profile_file_prefix = str(Path(tmp) / "profile")
+        session = ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
+        session.run(None, {input_name: x})
+        events = json.loads(Path(session.end_profiling()).read_text())
+    return sum(1 for e in events if e.get("cat") == "Node" and e.get("name", "").endswith("_kernel_time")
+               and e.get("args", {}).get("op_name") not in ("Loop", "If"))
 
 
 def _operators(path: Path) -> int:
@@ -314,9 +350,12 @@ def main(argv: list[str] | None = None) -> int:
                     export_model(model_dir, folders[tag], **options)
                     graphs[tag] = build_graphs(stored, **options)
             _floor_graph(tmp / "floor.onnx", stored.robot.dof)
-        rng = np.random.default_rng(0)
-        limits = stored.robot.joint_limits.numpy()
-        q_one = limits[:, 0] + rng.random((1, stored.robot.dof)) * (limits[:, 1] - limits[:, 0])
+            # the nodes the default compensator runs for the benchmark pose, and a chain of as many trivial ones
+            rng = np.random.default_rng(0)
+            limits = stored.robot.joint_limits.numpy()
+            q_one = limits[:, 0] + rng.random((1, stored.robot.dof)) * (limits[:, 1] - limits[:, 0])
+            n_executed = executed_nodes(folders["default"] / GRAPHS["compensator"][0], GRAPHS["compensator"][2], q_one)
+            _chain_graph(tmp / "chain.onnx", n_executed, stored.robot.dof)
         # Latency first, before any multi-threaded work: thread pools that have just run (torch's
         # OpenMP, onnxruntime's intra-op) keep spinning for a while and inflate single calls.
         torch_threads = torch.get_num_threads()
@@ -325,6 +364,9 @@ def main(argv: list[str] | None = None) -> int:
         floor = _session(tmp / "floor.onnx", threads=1)
         single_calls["one-node graph (call floor)"] = lambda: floor.run(None, {"q_nominal": q_one})
         floor_alone = _latency(single_calls["one-node graph (call floor)"], calls)  # before anything else runs
+        chain = _session(tmp / "chain.onnx", threads=1)
+        chain_name = f"chain of {n_executed} trivial nodes"
+        single_calls[chain_name] = lambda: chain.run(None, {"q_nominal": q_one})
         for key, (options, graph_key, _) in VARIANTS.items():
             tag = _export_tag(options)
             name, dtype, input_name, _ = GRAPHS[graph_key]
@@ -361,7 +403,7 @@ def main(argv: list[str] | None = None) -> int:
         latency = _interleaved_latency(single_calls, calls)
         console.log("single-sample latency in warm blocks, one thread")
         blocks = _block_latency({k: single_calls[k] for k in (
-            "one-node graph (call floor)", "compensator", "compensator via CompensatorRuntime.correct",
+            "one-node graph (call floor)", chain_name, "compensator", "compensator via CompensatorRuntime.correct",
             "compensator via CompensatorRuntime.correct_one (bound buffers)", "compensator, 200 uniform poses",
             "compensator, 200 wrist-singular poses (|q_(N-1)| < 1 deg)")}, max(100, calls // 10))
         del single_calls
@@ -414,6 +456,7 @@ def main(argv: list[str] | None = None) -> int:
         "call_floor": latency["one-node graph (call floor)"],
         "call_floor_alone": floor_alone,
         "blocks": blocks,
+        "node_floor": {"executed_nodes": n_executed, "chain": chain_name},
         "call_paths": {k: v for k, v in latency.items() if k.startswith(("compensator via", "compensator, "))},
         "parts": parts,
         "graphs": results,
@@ -454,7 +497,32 @@ def _blocks_lines(report: dict) -> list[str]:
     for name, v in blocks.items():
         lines.append(f"| {name} | {v['median_us']:.1f} / {v['p99_us']:.1f} | {v['median_us'] / floor['median_us']:.1f} / "
                      f"{v['p99_us'] / floor['p99_us']:.1f} |")
-    return lines
+    return lines + _node_floor_lines(report)
+
+
+def node_budget(floor_us: float, chain_us: float, chain_nodes: int, multiple: float) -> tuple[float, float]:
+    """``(us per trivial node, most trivial nodes within multiple x floor_us)`` from a one-node call
+    (``floor_us``) and a chain of ``chain_nodes`` trivial nodes (``chain_us``), latency linear in nodes."""
+    per_node = (chain_us - floor_us) / max(chain_nodes - 1, 1)
+    return per_node, 1.0 + (multiple - 1.0) * floor_us / per_node
+
+
+def _node_floor_lines(report: dict) -> list[str]:
+    """The compensator against a chain of as many trivial nodes, and the node count the target allows."""
+    node_floor, blocks = report.get("node_floor"), report["blocks"]
+    if not node_floor:
+        return []
+    floor, chain, full = (blocks[k]["median_us"] for k in ("one-node graph (call floor)", node_floor["chain"], "compensator"))
+    n = node_floor["executed_nodes"]
+    per_node, budget = node_budget(floor, chain, n, report["targets"]["floor_multiple_median"])
+    return ["", f"For the benchmark pose onnxruntime runs {n} nodes of the compensator (its profiler's kernel events). "
+            f"A chain of {n} trivial nodes (`Sin`, `Neg` on the input) costs {chain:.1f} us: {per_node:.2f} us per node "
+            f"beyond the call. The compensator costs {full / chain:.1f}x that chain (its nodes are matrix products, "
+            f"splits and reductions on larger tensors). The target of {report['targets']['floor_multiple_median']:.0f}x the "
+            f"one-node call ({report['targets']['floor_multiple_median'] * floor:.1f} us) leaves room for at most "
+            f"{budget:.0f} trivial nodes in all; one Newton step of the graph alone is "
+            f"{min(v for k, v in report['parts']['nodes'].items() if k.startswith('steps_'))}-"
+            f"{max(v for k, v in report['parts']['nodes'].items() if k.startswith('steps_'))} nodes."]
 
 
 def _parts_lines(report: dict) -> list[str]:
