@@ -302,7 +302,7 @@ def _export_tag(options: dict) -> str:
     return "-".join(f"{k}{v}" for k, v in sorted(options.items())) or "default"
 
 
-VARIANTS = {
+VARIANTS: dict[str, tuple[dict, str, str]] = {
     # key: (export options, graph key inside that export, description)
     "compensator": ({}, "compensator", "float64, position first, at most 6 steps (3 mixed, 3 position-only), stops at convergence (default)"),
     "compensator_f32": ({}, "compensator_f32", "float32 in/out, float64 inside, as the default"),
@@ -337,8 +337,8 @@ def main(argv: list[str] | None = None) -> int:
     load_before = os.getloadavg()
     calls = 500 if args.quick else 5000
     repeats = 3 if args.quick else 5
-    with tempfile.TemporaryDirectory() as tmp:
-        tmp = Path(tmp)
+    with tempfile.TemporaryDirectory() as tmp_name:
+        tmp = Path(tmp_name)
         with console.status("[bold]preparing model and exports"):
             model_dir = Path(args.model) if args.model else _model_dir(tmp)
             stored = load_model(model_dir)
