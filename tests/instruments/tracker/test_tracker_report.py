@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import re
+from dataclasses import replace
 
 import pytest
 import torch
@@ -15,7 +16,7 @@ from torchcal.model_selection.heads import make_features
 from torchcal.residual import HEADS
 from torchcal.residual.selection import fit_before_gate
 from torchcal.sim.twin import Twin, TwinConfig
-from torchcal.stages.geometry import fit, held_out_errors, model_joints, save_fit
+from torchcal.stages.geometry import fit, held_out_errors, model_joints, nominal_fit, save_fit
 from torchcal.stages.residual import residual_targets_mm
 from torchcal.stages.residual_store import StoredResidual, save_residual
 from torchcal.stages.store import load_model
@@ -60,3 +61,33 @@ def test_report_scores_each_stage_of_the_folder(with_head):
     stages = [row.split(" | ")[1] for row in md.splitlines() if row.startswith("| training file train")]
     assert stages[:3] == ["nominal", "geometry", "geometry + elm residual head"]
     assert "set by the options" in md and "elm residual head" in md
+
+
+def test_evaluate_report_reuses_the_evaluation_instead_of_scoring_again(with_head, monkeypatch):
+    from torchcal.instruments.tracker import evaluate, report
+    from torchcal.kinematics import transforms as tf
+
+    folder, data, _ = with_head
+    stored = load_model(folder)
+    flange = stored.model.instrument_from_base(stored.x) @ stored.model.base_flange_pose(data.q, stored.x)
+    probe = tf.so3_exp(torch.tensor([0.01, -0.02, 0.3], dtype=torch.float64))
+    oriented = replace(data, rotation=flange[..., :3, :3] @ probe)
+    fits = []
+
+    def counted(*args, **kwargs):
+        fits.append(1)
+        return nominal_fit(*args, **kwargs)
+
+    monkeypatch.setattr(evaluate, "nominal_fit", counted)
+    monkeypatch.setattr(report, "nominal_fit", counted)
+    scored = evaluate.score(stored, oriented, register=True, corrections=False)
+    fresh = report.score_pose_set(stored, oriented, held_out=True, register=True)
+    assert len(fits) == 2
+    reused = report.score_pose_set(stored, oriented, held_out=True, register=True, scored=scored)
+    assert len(fits) == 2  # the report took the evaluation's nominal fit
+    assert [s.name for s in reused.stages] == [s.name for s in fresh.stages]
+    for a, b in zip(fresh.stages, reused.stages, strict=True):
+        torch.testing.assert_close(a.errors_m, b.errors_m, rtol=0, atol=1e-15)
+    for (name_a, a), (name_b, b) in zip(fresh.orientation, reused.orientation, strict=True):
+        assert name_a == name_b and a.protocol == b.protocol
+        torch.testing.assert_close(a.angles_rad, b.angles_rad, rtol=0, atol=1e-15)

@@ -20,6 +20,7 @@ from torchcal.identify.joint_errors import JointSpaceErrors
 from torchcal.model_selection.leakage import leakage_report
 from torchcal.stages.geometry import NOMINAL_PROTOCOL, held_out_errors, nominal_fit
 from torchcal.stages.orientation import (
+    OrientationErrors,
     model_orientation_errors,
     nominal_orientation_errors,
     refuse_implausible,
@@ -37,12 +38,20 @@ class Scored:
     """A model folder scored on a file: the metrics of ``evaluate`` and what a report needs besides.
 
     ``errors``: ``measured - predicted`` ``(n, 3)`` of the model as delivered, instrument frame, m.
+    ``nominal_errors``, ``nominal_frame``: the same for the nominal robot with its instrument frame
+    and tool fitted to the file (:func:`~torchcal.stages.geometry.nominal_fit`), and that frame
+    ``T_instrument_base`` ``(4, 4)``. ``orientation``: where the file measures the tool's
+    orientation, the model's and the nominal robot's angles (``None`` otherwise). A report reuses
+    them instead of scoring the file again.
     """
 
     stored: StoredModel
     data: Measurements
     errors: torch.Tensor
     metrics: dict[str, Any]
+    nominal_errors: torch.Tensor
+    nominal_frame: torch.Tensor
+    orientation: tuple[OrientationErrors, OrientationErrors] | None = None
 
 
 def evaluate(model_dir: str | Path, data_path: str | Path, *, register: bool = False, config: FitConfig | None = None) -> dict:
@@ -101,8 +110,10 @@ def score(stored: StoredModel, data: Measurements, *, register: bool = False, le
     before = position_metrics(nominal_errors)
     metrics["nominal"] = {**before, "protocol": NOMINAL_PROTOCOL}
     metrics["nominal_position_rms_mm"] = before["position_rms_mm"]
+    angles = None
     if data.rotation is not None:  # the file measures the tool's orientation too: scored alike
-        orientation, worse = orientation_metrics(stored, data, nominal_frame, register=register)
+        angles = orientation_errors(stored, data, nominal_frame, register=register)
+        orientation, worse = orientation_metrics(*angles, stored)
         metrics["orientation"] = orientation
         metrics["orientation_rms_deg"] = orientation["orientation_rms_deg"]
         metrics["nominal_orientation_rms_deg"] = orientation["nominal"]["orientation_rms_deg"]
@@ -121,13 +132,12 @@ def score(stored: StoredModel, data: Measurements, *, register: bool = False, le
     if leakage and stored.training_q is not None:
         metrics["leakage"] = leakage_report(stored.robot, stored.training_q, data.q).to_dict()
     metrics["compensator"] = compensator_summary(stored, data.q, errors, corrections=corrections)
-    return Scored(stored, data, errors, metrics)
+    return Scored(stored, data, errors, metrics, nominal_errors, nominal_frame, angles)
 
 
-def orientation_metrics(stored: StoredModel, data: Measurements, nominal_frame: torch.Tensor, *,
-                        register: bool) -> tuple[dict, str | None]:
-    """The model's and the nominal robot's orientation errors on ``data`` (``rx, ry, rz``; :mod:`torchcal.stages.orientation`),
-    and a warning when the model's are the larger (``None`` otherwise).
+def orientation_errors(stored: StoredModel, data: Measurements, nominal_frame: torch.Tensor, *,
+                       register: bool) -> tuple[OrientationErrors, OrientationErrors]:
+    """The model's and the nominal robot's orientation errors on ``data`` (``rx, ry, rz``; :mod:`torchcal.stages.orientation`).
 
     ``nominal_frame``: ``T_instrument_base`` of the nominal robot fitted to the file's positions.
 
@@ -136,7 +146,13 @@ def orientation_metrics(stored: StoredModel, data: Measurements, nominal_frame: 
     """
     nominal = nominal_orientation_errors(stored.robot, data, nominal_frame)
     refuse_implausible(nominal, data)
-    orientation = model_orientation_errors(stored, data, register=register).metrics()
+    return model_orientation_errors(stored, data, register=register), nominal
+
+
+def orientation_metrics(model: OrientationErrors, nominal: OrientationErrors, stored: StoredModel) -> tuple[dict, str | None]:
+    """The metrics of :func:`orientation_errors`' angles, and a warning when the model's are the
+    larger (``None`` otherwise)."""
+    orientation = model.metrics()
     orientation["nominal"] = nominal.metrics()
     model_rms, nominal_rms = orientation["orientation_rms_deg"], orientation["nominal"]["orientation_rms_deg"]
     if model_rms <= nominal_rms:

@@ -266,7 +266,7 @@ def _write_evaluate_report(target: Path, scored: Any, register: bool, lines: lis
     if not fitted and leakage.get("warning"):
         protocol = (f"file {Path(data.source).name}, not the fitted file, but its poses sit among the training poses "
                     f"({100 * leakage['twin_share']:.0f} % training twins; see the leakage note): optimistic")
-    pose_set = score_pose_set(stored, data, held_out=not fitted, register=register, protocol=protocol)
+    pose_set = score_pose_set(stored, data, held_out=not fitted, register=register, protocol=protocol, scored=scored)
     report = calibration_report(
         f"Evaluation report: {stored.robot.name}, model {stored.folder.name} on {Path(data.source).name}", stored,
         [pose_set], ReportInputs(selection=_selection(stored.folder), compensator=scored.metrics["compensator"],

@@ -18,6 +18,7 @@ import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -51,6 +52,9 @@ from torchcal.stages.orientation import (
     nominal_orientation_errors,
 )
 from torchcal.stages.store import CALIBRATED_URDF, StoredModel, not_in_geometry
+
+if TYPE_CHECKING:
+    from torchcal.instruments.tracker.evaluate import Scored
 
 #: Poses listed in the worst-poses table of each file.
 WORST = 10
@@ -158,7 +162,8 @@ def _stage_names(stages: Sequence[ModelStage]) -> str:
 
 
 def score_pose_set(stored: StoredModel, data: Measurements, *, held_out: bool, register: bool = False,
-                   extra: Sequence[StageErrors] = (), focus_extra: bool = False, protocol: str | None = None) -> PoseSet:
+                   extra: Sequence[StageErrors] = (), focus_extra: bool = False, protocol: str | None = None,
+                   scored: Scored | None = None) -> PoseSet:
     """Score ``data`` with the nominal robot and each stage of ``stored``.
 
     ``held_out``: the file was not fitted (else its numbers are marked optimistic). ``register``:
@@ -166,6 +171,8 @@ def score_pose_set(stored: StoredModel, data: Measurements, *, held_out: bool, r
     ``extra`` stages (cross-validated errors of the same poses) go between the nominal and the
     model; ``focus_extra`` makes the first of them the one the per-pose figures show. ``protocol``
     replaces the default description of how the model's numbers on this file were obtained.
+    ``scored``: :func:`~torchcal.instruments.tracker.evaluate.score` of the same model, file and
+    ``register`` (``evaluate --report``): its errors are used instead of being computed again.
     """
     name = Path(data.source).name
     if protocol is not None:
@@ -175,24 +182,30 @@ def score_pose_set(stored: StoredModel, data: Measurements, *, held_out: bool, r
             "; instrument frame re-fitted to it first (--register)" if register else "")
     else:
         protocol = f"training poses of {name}, optimistic: the model was fitted to them"
-    nominal_errors, nominal_frame, _ = nominal_fit(stored.robot, data)
+    if scored is not None:
+        nominal_errors, nominal_frame = scored.nominal_errors, scored.nominal_frame
+    else:
+        nominal_errors, nominal_frame, _ = nominal_fit(stored.robot, data)
     stages = [StageErrors("nominal", nominal_errors, f"{NOMINAL_PROTOCOL}; generous to the nominal")]
     stages += list(extra)
     structure = structure_name(stored)
     delivered = model_name(stored)
     if delivered != structure:
         stages.append(StageErrors(structure, held_out_errors(stored, data, register=register, residual=False), protocol))
-    stages.append(StageErrors(delivered, held_out_errors(stored, data, register=register), protocol))
+    delivered_errors = scored.errors if scored is not None else held_out_errors(stored, data, register=register)
+    stages.append(StageErrors(delivered, delivered_errors, protocol))
     with torch.no_grad():
         predicted = predict_positions(stored, data.q, data.temperature, data.wrench)
         transform = stored.model.instrument_from_base(stored.x)
         base = (predicted - transform[:3, 3]) @ transform[:3, :3]
     orientation = []
     if data.rotation is not None:
-        model = model_orientation_errors(stored, data, register=register)
+        known = scored.orientation if scored is not None else None
+        model = known[0] if known is not None else model_orientation_errors(stored, data, register=register)
         if not held_out:  # as for the positions: the model was fitted to these poses
             model = replace(model, protocol=f"{model.protocol}; training poses, optimistic: the model was fitted to them")
-        orientation = [("nominal", nominal_orientation_errors(stored.robot, data, nominal_frame)), (structure, model)]
+        nominal = known[1] if known is not None else nominal_orientation_errors(stored.robot, data, nominal_frame)
+        orientation = [("nominal", nominal), (structure, model)]
     return PoseSet(label=f"{'held-out' if held_out else 'training'} file {name}", data=data, stages=stages,
                    points_base_mm=base.detach().cpu().numpy() * 1e3, focus=1 if (focus_extra and extra) else -1,
                    orientation=orientation)
