@@ -160,3 +160,31 @@ def test_a_fit_without_a_finite_covariance_claims_no_sigma(flange_view):
     assert extent["largest_joint_correction_sigma_deg"] is None
     assert extent["median_joint_correction_sigma_deg"] == [None] * 6
     json.loads(json.dumps(extent, allow_nan=False))  # the manifest stays strict JSON for a controller's parser
+
+
+@pytest.mark.parametrize("joint", [1, 5])
+def test_a_harmonic_known_to_sigma_moves_its_joints_correction_by_its_basis(flange_view, joint):
+    # dq_j = a sin(q_j): the command q_c solves q_c + a sin(q_c) = the geometry's solution, so
+    # d q_c / d a = -sin(q_c) (a = 0) and the correction's sigma on joint j is s |sin q_c|, none elsewhere
+    from torchcal.identify.harmonics import JointHarmonics
+    from torchcal.identify.joint_errors import JointSpaceErrors
+
+    view, q = flange_view
+    s = math.radians(0.2)
+    harmonics = JointSpaceErrors(harmonics=JointHarmonics(torch.zeros(2, 6, dtype=torch.float64)))
+    n = len(view.free)
+    covariance = torch.zeros(n + 1, n + 1, dtype=torch.float64)
+    covariance[n, n] = s * s
+    model = replace(view, metadata={**view.metadata, **harmonics.to_metadata()}, joint_covariance=covariance,
+                    joint_coefficients=torch.tensor([[0, joint - 1]]), covariance=torch.zeros(n, n, dtype=torch.float64))
+    graph = CompensatorGraph.from_stored(model)
+    with torch.no_grad():
+        q_c, _ = graph.solve(q)
+    sigma = correction_sigma(model, graph, q)
+    torch.testing.assert_close(sigma[:, joint - 1], s * q_c[:, joint - 1].sin().abs(), rtol=1e-3, atol=1e-6 * s)
+    others = [j for j in range(6) if j != joint - 1]
+    assert float(sigma[:, others].max()) < 1e-4 * s
+    assert "lower bound" not in correction_extent(graph, q, model)["sigma_from"]
+    # the same terms without their covariance (an update's model): the sigma says it leaves them out
+    without = replace(model, joint_covariance=None, joint_coefficients=None)
+    assert "joint-space terms carry no covariance" in correction_extent(graph, q, without)["sigma_from"]

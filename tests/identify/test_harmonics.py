@@ -106,6 +106,13 @@ def test_model_folder_stores_and_applies_the_harmonics(tmp_path, generator):
     assert torch.allclose(errors, data.position - predicted_positions(result, data.q), atol=1e-12)
     without = data.position - stored.model.tcp_position(data.q, stored.x)
     assert (without - errors).norm(dim=-1).max() > 1e-5  # the stored harmonics matter (>10 um)
+    # the joint covariance travels with them: geometry first (its block is the stored covariance), then the coefficients
+    n = len(stored.free)
+    assert stored.joint_covariance is not None and stored.joint_coefficients is not None
+    torch.testing.assert_close(stored.joint_covariance[:n, :n], stored.covariance, rtol=0, atol=0)
+    sigma = stored.joint_covariance.diagonal()[n:].sqrt()
+    rows, joints = stored.joint_coefficients.unbind(-1)
+    torch.testing.assert_close(sigma, result.harmonics.sigma[rows, joints], rtol=1e-12, atol=0)
 
 
 def test_auto_chooses_harmonics_only_when_the_cv_asks_for_them(generator):
@@ -143,3 +150,20 @@ def test_fit_joint_errors_without_terms_returns_the_geometry(robot, generator):
     data = _twin_with_first_harmonics(0.0).sample(60, generator)
     geometric = calibrate(robot, data)
     assert fit_joint_errors(robot, data, geometric) is geometric
+
+
+def test_a_tampered_joint_covariance_is_refused(tmp_path, generator):
+    from safetensors.torch import load_file, save
+
+    from torchcal.core.errors import ModelError
+    from torchcal.core.folder import write_member
+
+    twin = _twin_with_first_harmonics(0.02)
+    data = twin.sample(120, generator)
+    result = fit(twin.robot, data, FitConfig(residual="none", gravity_compliance="none", joint_harmonics="first", progress=False))
+    folder = save_fit(tmp_path / "model", twin.robot, data, result, {})
+    tensors = load_file(str(folder / "calibration.safetensors"))
+    tensors["joint_covariance"] = tensors["joint_covariance"][1:, 1:].contiguous()
+    write_member(folder, "calibration.safetensors", save(tensors))  # checksums recomputed: only the shape is wrong
+    with pytest.raises(ModelError, match="joint_covariance is"):
+        load_model(folder)

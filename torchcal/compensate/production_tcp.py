@@ -23,6 +23,7 @@ from dataclasses import replace
 import torch
 
 from torchcal.core.errors import TorchcalError
+from torchcal.identify.joint_errors import JointSpaceErrors
 from torchcal.kinematics import transforms as tf
 from torchcal.kinematics.error_model import ErrorModel
 
@@ -102,7 +103,10 @@ def correction_extent(graph, q: torch.Tensor, stored=None) -> dict:
         sigma = correction_sigma(stored, graph, q[sample])
         extent["largest_joint_correction_sigma_deg"] = _degrees_or_none(sigma[0, worst])
         extent["median_joint_correction_sigma_deg"] = [_degrees_or_none(v) for v in sigma.median(0).values]
-        extent["sigma_from"] = SIGMA_FROM if stored.metadata.get("prior") else f"{SIGMA_FROM}; {RANK_CUT_NOTE}"
+        notes = [SIGMA_FROM] + ([] if stored.metadata.get("prior") else [RANK_CUT_NOTE])
+        if stored.joint_covariance is None and not JointSpaceErrors.from_metadata(stored.metadata).empty:
+            notes.append(NO_JOINT_COVARIANCE_NOTE)
+        extent["sigma_from"] = "; ".join(notes)
     return extent
 
 
@@ -114,10 +118,11 @@ def _degrees_or_none(value: torch.Tensor) -> float | None:
 
 #: Poses at which :func:`correction_extent` computes the corrections' sigma (one solve per table parameter).
 SIGMA_POSES = 50
-SIGMA_FROM = ("the posterior covariance of the calibrated MDH table given the robot base frame (the compensator's frame: "
-              "what only moves that frame is not an error of the robot in it; the measuring tool does not enter; the "
-              "joint-space terms' own uncertainty is not included), propagated through the compensator's solve "
-              "(finite differences)")
+SIGMA_FROM = ("the posterior covariance of the calibrated MDH table and of the joint-space terms' coefficients given the "
+              "robot base frame (the compensator's frame: what only moves that frame is not an error of the robot in it; "
+              "the measuring tool does not enter), propagated through the compensator's solve (finite differences)")
+NO_JOINT_COVARIANCE_NOTE = ("the model's joint-space terms carry no covariance (a model written by an update or an older "
+                            "version): their own uncertainty is not included, so this sigma is a lower bound")
 RANK_CUT_NOTE = ("a fit without a prior (prior=none): the parameters its rank cut fixed at nominal count as exact, "
                  "so this sigma is a lower bound")
 
@@ -125,23 +130,29 @@ RANK_CUT_NOTE = ("a fit without a prior (prior=none): the parameters its rank cu
 def correction_sigma(stored, graph, q: torch.Tensor, step: float = 0.01) -> torch.Tensor:
     """1-sigma ``(n, N)`` (rad) of each joint correction of ``graph``'s commands at ``q`` ``(n, N)`` rad.
 
-    The covariance is that of the MDH table's parameters given the robot base frame's (Gaussian
-    conditioning): the compensator works in that frame, so a table parameter that only moves it
-    (``theta1`` with the frame's rotation about z) is no uncertainty of a command, while one the
-    data did not see (``theta6``: the flange's roll) carries its prior's sigma into the corrections
-    it drives. The solved command is differenced (forward, ``step`` sigma: the steps converge to
-    1e-10, far below ``step`` times a correction's sensitivity) along each column of a square root of
-    that covariance (eigen-decomposition ``C = R R^T``), with the graph's own task and steps; the
-    variances of the columns add.
+    The covariance is that of the MDH table's parameters and of the joint-space terms' coefficients
+    (where the fit stored their joint covariance, :attr:`StoredModel.joint_covariance`) given the
+    robot base frame's (Gaussian conditioning): the compensator works in that frame, so a table
+    parameter that only moves it (``theta1`` with the frame's rotation about z) is no uncertainty of
+    a command, while one the data did not see (``theta6``: the flange's roll) carries its prior's
+    sigma into the corrections it drives. The solved command is differenced (forward, ``step``
+    sigma: the steps converge to 1e-10, far below ``step`` times a correction's sensitivity) along
+    each column of a square root of that covariance (eigen-decomposition ``C = R R^T``), with the
+    graph's own task and steps; the variances of the columns add.
     """
     layout = stored.model.layout
     free = stored.free.tolist()
-    rows = [k for k, i in enumerate(free) if layout.table_slice.start <= i < layout.table_slice.stop]
+    table_rows = [k for k, i in enumerate(free) if layout.table_slice.start <= i < layout.table_slice.stop]
+    covariance, coefficients = stored.covariance, torch.zeros(0, 2, dtype=torch.long)
+    if stored.joint_covariance is not None and stored.joint_coefficients is not None:
+        covariance, coefficients = stored.joint_covariance, stored.joint_coefficients
+    rows = table_rows + [len(free) + k for k in range(len(coefficients))]
     if not rows:
         return torch.zeros(q.shape, dtype=torch.float64)
     frame = [k for k, i in enumerate(free) if layout.base_slice.start <= i < layout.base_slice.stop]
-    index = stored.free[rows]
-    covariance = stored.covariance.to(torch.float64)
+    index = stored.free[table_rows]
+    terms = JointSpaceErrors.from_metadata(stored.metadata)
+    covariance = covariance.to(torch.float64)
     if not bool(torch.isfinite(covariance).all()):  # a fit that could not state its uncertainty claims none here
         return torch.full(q.shape, float("nan"), dtype=torch.float64)
     table = covariance[rows][:, rows]
@@ -152,17 +163,23 @@ def correction_sigma(stored, graph, q: torch.Tensor, step: float = 0.01) -> torc
     root = vectors * values.clamp_min(0.0).sqrt()
     variance = torch.zeros(q.shape, dtype=torch.float64)
 
-    def solved(x: torch.Tensor) -> torch.Tensor:
-        return type(graph).from_stored(replace(stored, x=x), task=graph.task, iterations=graph.iterations).solve(q)[0]
+    def solved(shift: torch.Tensor | None) -> torch.Tensor:
+        changed = stored
+        if shift is not None:  # the table's parameters, then the coefficients, moved by ``shift``
+            x = stored.x.clone()
+            x[index] += shift[: len(table_rows)].to(x)
+            metadata = stored.metadata
+            if len(coefficients):
+                metadata = {**metadata, **terms.shifted(coefficients, shift[len(table_rows):]).to_metadata()}
+            changed = replace(stored, x=x, metadata=metadata)
+        return type(graph).from_stored(changed, task=graph.task, iterations=graph.iterations).solve(q)[0]
 
     with torch.no_grad():
-        at_fit = solved(stored.x)
+        at_fit = solved(None)
         for column in root.T:
             if float(column.abs().max()) == 0.0:
                 continue
-            x = stored.x.clone()
-            x[index] += step * column.to(x)
-            variance += ((solved(x) - at_fit) / step) ** 2
+            variance += ((solved(step * column) - at_fit) / step) ** 2
     return variance.sqrt()
 
 

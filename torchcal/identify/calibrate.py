@@ -49,6 +49,11 @@ class CalibrationResult:
         noise_sigma_m: the data's noise sigma per coordinate the MAP fit weighted them with.
         prior_selection: how the prior's scale was chosen (the evidence or cross-validation table), if it was.
         log_evidence: the MAP fit's log marginal likelihood (:func:`~torchcal.identify.prior.log_evidence`).
+        joint_covariance: where joint-space terms were identified with the geometry, the joint fit's
+            covariance of the estimated geometry parameters (``free``, in that order) followed by the
+            terms' coefficients; ``joint_coefficients`` ``(K, 2)`` gives each coefficient's (row,
+            joint) (:meth:`~torchcal.identify.joint_errors.JointSpaceErrors.shifted`). ``covariance``
+            is its geometry block.
     """
 
     model: ErrorModel
@@ -66,6 +71,8 @@ class CalibrationResult:
     noise_sigma_m: float | None = None
     prior_selection: dict | None = None
     log_evidence: float | None = None
+    joint_covariance: torch.Tensor | None = None
+    joint_coefficients: torch.Tensor | None = None
 
     @property
     def free_names(self) -> list[str]:

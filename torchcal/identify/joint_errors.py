@@ -7,7 +7,7 @@ implementation they share.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 
@@ -59,3 +59,20 @@ class JointSpaceErrors:
         if self.harmonics is not None:
             out[METADATA_KEYS["harmonics"]] = self.harmonics.to_json()
         return out
+
+    def shifted(self, index: torch.Tensor, delta: torch.Tensor) -> JointSpaceErrors:
+        """These terms with the coefficients ``index`` ``(K, 2)`` (row, joint) moved by ``delta`` ``(K,)``.
+
+        Rows count as the joint fit stacks them (:func:`~torchcal.identify.joint_fit.fit_joint_errors`):
+        the compliance's points first (rad/m), then the harmonics' rows (rad).
+        """
+        rows = [t.coefficients.clone() for t in (self.compliance, self.harmonics) if t is not None]
+        stacked = torch.cat(rows) if rows else torch.zeros(0, 0, dtype=torch.float64)
+        for (row, joint), d in zip(index.tolist(), delta.tolist(), strict=True):
+            if row >= stacked.shape[0]:
+                raise ValueError(f"coefficient row {row} beyond the terms' {stacked.shape[0]} rows")
+            stacked[row, joint] += d
+        n_points = 0 if self.compliance is None else self.compliance.coefficients.shape[0]
+        return JointSpaceErrors(
+            None if self.compliance is None else replace(self.compliance, coefficients=stacked[:n_points]),
+            None if self.harmonics is None else replace(self.harmonics, coefficients=stacked[n_points:]))

@@ -127,7 +127,8 @@ def fit_joint_errors(robot: RobotModel, data: Measurements, geometric, points: t
     over a short arc ``a sin q + b cos q`` is an offset plus a slope, fitted as such and wild
     outside the arc (fitted on UR10 series C, where joint 2 spans 96 deg, first harmonics score
     1.40 mm on series B against 0.90 for geometry alone). Returns a result of the same type with ``compliance`` / ``harmonics`` set;
-    ``covariance`` is the geometric block of the joint covariance (the marginal of the geometry);
+    ``covariance`` is the geometric block of the joint covariance (the marginal of the geometry),
+    ``joint_covariance`` the whole of it with ``joint_coefficients`` naming the terms' coefficients;
     ``units`` (configuration region of each pose) widens it as in
     :func:`~torchcal.identify.uncertainty.covariance`.
     """
@@ -211,6 +212,7 @@ def fit_joint_errors(robot: RobotModel, data: Measurements, geometric, points: t
     terms = ([f"gravity compliance at {'+'.join(points)}"] if points else []) + ([fitted.label] if fitted else [])
     notes.append(f"{' and '.join(terms)} identified with the geometry ({len(kept)} coefficients)")
     return replace(geometric, model=model, x=x, covariance=cov[:n_geo, :n_geo], sigma_residual_m=sigma,
+                   joint_covariance=cov.clone(), joint_coefficients=torch.tensor([cols[i] for i in kept], dtype=torch.long).reshape(-1, 2),
                    noise_sigma_m=sigma if geometric.prior is not None else geometric.noise_sigma_m,
                    notes=notes, compliance=compliance, harmonics=fitted)
 

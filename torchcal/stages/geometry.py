@@ -373,7 +373,10 @@ def save_fit(folder: Path, robot: RobotModel, data: Measurements, result: Calibr
 
     for stale in ("residual.safetensors", "residual.json", "model_selection.json", "uncertainty.json"):
         remove_member(folder, stale)
-    folder = save_model(folder, robot, result.model, result.x, result.free, result.covariance, meta, training_q=data.q)
+    joint = (None if result.joint_covariance is None or result.joint_coefficients is None
+             else (result.joint_covariance, result.joint_coefficients))
+    folder = save_model(folder, robot, result.model, result.x, result.free, result.covariance, meta, training_q=data.q,
+                        joint_covariance=joint)
     if structure is not None and uncertainty != "none":
         label = structure.comparison.chosen
         joints = JointSpaceErrors.of(result).effective_joints(robot, data.q)

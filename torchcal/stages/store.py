@@ -71,6 +71,10 @@ class StoredModel:
     training_q: torch.Tensor | None = None
     parts: dict[str, object] = field(default_factory=dict)
     """The stages read from files of their own (:data:`OPTIONAL_STAGES`), by stage name."""
+    joint_covariance: torch.Tensor | None = None
+    """Where joint-space terms were identified with the geometry: the covariance of ``free`` and then
+    of their coefficients ``joint_coefficients`` ``(K, 2)`` (row, joint); else ``None``."""
+    joint_coefficients: torch.Tensor | None = None
 
     @property
     def free_names(self) -> list[str]:
@@ -159,12 +163,15 @@ def save_model(
     cov: torch.Tensor,
     metadata: dict,
     training_q: torch.Tensor | None = None,
+    joint_covariance: tuple[torch.Tensor, torch.Tensor] | None = None,
 ) -> Path:
     """Write a model folder; every file is written atomically.
 
     ``training_q`` ``(n, N)`` rad: the commanded joints of the poses fitted, kept so that
     ``evaluate`` can say how close scored poses sit to them
-    (:mod:`torchcal.model_selection.leakage`).
+    (:mod:`torchcal.model_selection.leakage`). ``joint_covariance``: where joint-space terms were
+    identified with the geometry, the joint covariance and the coefficients it covers after ``free``
+    (:attr:`~torchcal.identify.calibrate.CalibrationResult.joint_covariance`).
     """
     from safetensors.torch import save
 
@@ -185,6 +192,9 @@ def save_model(
     }
     if training_q is not None:
         tensors["training_q"] = training_q.detach().to("cpu", torch.float64).contiguous()
+    if joint_covariance is not None:
+        tensors["joint_covariance"] = joint_covariance[0].detach().to("cpu", torch.float64).contiguous()
+        tensors["joint_coefficients"] = joint_covariance[1].detach().to("cpu", torch.long).contiguous()
     write_member(folder, "calibration.safetensors", save(tensors))
     scale = model.layout.unit_scale()
     sigma = torch.zeros(model.layout.size, dtype=torch.float64)
@@ -333,6 +343,26 @@ def _member_path(folder: Path, name: object, key: str) -> Path:
     return folder / name
 
 
+def _joint_covariance(path: Path, tensors: dict[str, torch.Tensor], n_free: int, terms: JointSpaceErrors,
+                      n_joints: int) -> tuple[torch.Tensor | None, torch.Tensor | None]:
+    """The optional joint covariance of a model file and the coefficients it covers, checked against
+    ``free`` and the folder's joint-space terms; ``(None, None)`` where the file has none."""
+    cov, index = tensors.get("joint_covariance"), tensors.get("joint_coefficients")
+    if cov is None and index is None:
+        return None, None
+    if cov is None or index is None:
+        raise ModelError(f"{path}: joint_covariance and joint_coefficients go together; one is missing")
+    rows = sum(0 if t is None else t.coefficients.shape[0] for t in (terms.compliance, terms.harmonics))
+    if (index.dim() != 2 or index.shape[1] != 2 or index.is_floating_point()
+            or (index.numel() and (int(index.min()) < 0 or int(index[:, 0].max()) >= rows or int(index[:, 1].max()) >= n_joints))):
+        raise ModelError(f"{path}: joint_coefficients must be (K, 2) (row, joint) indices of the model's joint-space terms")
+    size = n_free + index.shape[0]
+    if tuple(cov.shape) != (size, size):
+        raise ModelError(f"{path}: joint_covariance is {tuple(cov.shape)}, expected ({size}, {size}): free parameters "
+                         f"and joint-space coefficients")
+    return cov, index
+
+
 def load_model(folder: str | Path, device: str | torch.device = "cpu") -> StoredModel:
     """Read a model folder written by :func:`save_model` (safetensors + JSON only).
 
@@ -380,10 +410,12 @@ def load_model(folder: str | Path, device: str | torch.device = "cpu") -> Stored
     free = tensors["free"]
     if free.numel() and (free.is_floating_point() or int(free.min()) < 0 or int(free.max()) >= model.layout.size):
         raise ModelError(f"{folder / 'calibration.safetensors'}: free holds indices outside the parameter layout")
+    joint_covariance, joint_coefficients = _joint_covariance(folder / "calibration.safetensors", tensors, len(free),
+                                                             JointSpaceErrors.from_metadata(meta), robot.dof)
     stored = StoredModel(
         robot=robot, model=model, x=tensors["x"].to(device), free=free,
         covariance=tensors["covariance"].to(device), metadata=meta, folder=folder,
-        training_q=tensors.get("training_q"),
+        training_q=tensors.get("training_q"), joint_covariance=joint_covariance, joint_coefficients=joint_coefficients,
     )
     for name, optional in OPTIONAL_STAGES.items():
         part = optional.load(folder, device)
