@@ -18,6 +18,20 @@ from torchcal.stages.store import load_model
 ROOT = Path(__file__).resolve().parents[2]
 
 
+def write_manifest(folder: Path, manifest) -> None:
+    """Write ``manifest`` into ``folder`` with its SHA-256 recorded in ``checksums.json``, as an export does:
+    a manifest the runner must judge by its content, not by a checksum mismatch."""
+    import hashlib
+    import json
+
+    data = json.dumps(manifest).encode()
+    (folder / "manifest.json").write_bytes(data)
+    path = folder / "checksums.json"
+    checksums = json.loads(path.read_text()) if path.is_file() else {"format": "torchcal-checksums/1", "files": {}}
+    checksums["files"]["manifest.json"] = hashlib.sha256(data).hexdigest()
+    path.write_text(json.dumps(checksums))
+
+
 @pytest.fixture()
 def folder(exported, tmp_path):
     copy = tmp_path / "exported"
@@ -85,8 +99,8 @@ def test_mismatched_model_is_refused(exported, folder):
     import json
 
     manifest = json.loads((folder / "manifest.json").read_text())
-    manifest["n_joints"] = 7
-    (folder / "manifest.json").write_text(json.dumps(manifest))
+    manifest["n_joints"], manifest["joint_names"], manifest["joint_limits_rad"] = 7, [*manifest["joint_names"], "j7"], None
+    write_manifest(folder, manifest)
     with pytest.raises(CompensatorError, match="7 joints"):
         CompensatorRuntime(folder)
 
@@ -113,14 +127,15 @@ def test_float32_graph_is_finite_and_close_to_float64_at_singular_wrist_poses(ex
     """The float32 graphs solve their 6x6 systems in float64: at |q5| < 1e-3 rad (100 poses exactly
     0) every command is finite and puts the calibrated TCP where the float64 command does."""
     folder, _ = exported
+    stored = load_model(model_dir)
     gen = torch.Generator().manual_seed(5)
-    q = (torch.rand(2000, 6, generator=gen, dtype=torch.float64) - 0.5) * 2.0
+    q = torch.clamp((torch.rand(2000, 6, generator=gen, dtype=torch.float64) - 0.5) * 2.0,
+                    *stored.robot.joint_limits.T)  # within the limits (the runner refuses joints beyond them)
     q[:, 4] = (torch.rand(2000, generator=gen, dtype=torch.float64) - 0.5) * 2e-3
     q[:100, 4] = 0.0
     q = q.float().double()  # both precisions see the same joints
     q32 = CompensatorRuntime(folder, precision="float32").correct(q.numpy())  # refuses non-finite rows
     q64 = CompensatorRuntime(folder).correct(q.numpy())
-    stored = load_model(model_dir)
     tcp = lambda qq: (stored.model.base_flange_pose(qq, stored.x) @ stored.model.flange_from_tool(stored.x))[..., :3, 3]  # noqa: E731
     gap_mm = (tcp(torch.from_numpy(q32).double()) - tcp(torch.from_numpy(q64))).norm(dim=-1) * 1e3
     assert float(gap_mm.max()) <= 1e-3
@@ -154,7 +169,7 @@ def _nan_folder(tmp_path: Path) -> Path:
     manifest = {"format": "torchcal-compensator/1", "robot": "nan-bot", "n_joints": 6, "joint_names": [f"j{i}" for i in range(1, 7)],
                 "files": files, "sha256": digests, "stages": {"stiffness": True},
                 "wrench": {"frame": "tool"}}
-    (folder / "manifest.json").write_text(json.dumps(manifest))
+    write_manifest(folder, manifest)
     return folder
 
 
@@ -168,3 +183,94 @@ def test_runner_refuses_non_finite_output_and_names_the_rows(tmp_path):
     with pytest.raises(CompensatorError, match=r"row\(s\) \[1, 3\]"):
         rt.correct(q, sign)
     np.testing.assert_allclose(rt.correct(q, np.ones(6)), np.zeros((5, 6)))  # finite output passes through
+
+
+def test_correct_one_from_several_threads_returns_each_callers_command(exported, model_dir):
+    import threading
+
+    rt = CompensatorRuntime(exported[0])
+    q = load_model(model_dir).robot.sample_joints(200, torch.Generator().manual_seed(12)).numpy()
+    serial = np.stack([rt.correct_one(row)[0] for row in q])
+    wrong: list[int] = []
+
+    def caller(seed: int) -> None:
+        rng = np.random.default_rng(seed)
+        for i in rng.integers(0, len(q), 1500):
+            if not np.array_equal(rt.correct_one(q[i])[0], serial[i]):
+                wrong.append(int(i))
+
+    threads = [threading.Thread(target=caller, args=(seed,)) for seed in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert wrong == []  # the bound buffers are shared: without the lock one caller reads another's command
+
+
+def _edit_manifest(folder: Path, edit) -> None:
+    import json
+
+    manifest = json.loads((folder / "manifest.json").read_text())
+    edited = edit(manifest)
+    write_manifest(folder, manifest if edited is None else edited)
+
+
+def test_a_changed_manifest_or_a_missing_checksum_file_is_refused(folder):
+    path = folder / "manifest.json"
+    path.write_text(path.read_text().replace('"robot": "', '"robot": "x', 1))  # a robot renamed by hand
+    with pytest.raises(CompensatorError, match="manifest was changed after export"):
+        CompensatorRuntime(folder)
+    (folder / "checksums.json").unlink()
+    with pytest.raises(CompensatorError, match="checksums.json: missing"):
+        CompensatorRuntime(folder)
+
+
+@pytest.mark.parametrize("edit, message", [
+    (lambda m: [], "not a JSON object"),
+    (lambda m: m.pop("robot") and None, "robot must be a name"),
+    (lambda m: m.update(n_joints="6"), "n_joints must be a whole number"),
+    (lambda m: m.update(joint_names=["a", "b"]), "joint_names must list"),
+    (lambda m: m["joint_limits_rad"].__setitem__(2, [1.0, -1.0]), r"joint_limits_rad\[2\]"),
+    (lambda m: m["files"].update(compensator="../elsewhere/compensator.onnx"), "must name a file inside the folder"),
+])
+def test_a_malformed_manifest_is_a_compensator_error(folder, edit, message):
+    _edit_manifest(folder, edit)
+    with pytest.raises(CompensatorError, match=message):
+        CompensatorRuntime(folder)
+
+
+@pytest.mark.parametrize("other, message", [("monitor", "not the manifest's compensator outputs"),
+                                            ("compensator_f32", "not the manifest's tensor\\(double\\)")])
+def test_a_manifest_pointing_at_another_graph_is_refused(folder, other, message):
+    def point(manifest):
+        manifest["files"]["compensator"] = manifest["files"][other]
+        manifest["sha256"]["compensator"] = manifest["sha256"][other]
+
+    _edit_manifest(folder, point)
+    with pytest.raises(CompensatorError, match=message):
+        CompensatorRuntime(folder)
+
+
+def test_joints_outside_the_limits_or_not_numbers_are_refused(exported):
+    rt = CompensatorRuntime(exported[0])
+    low, high = np.array(rt.manifest["joint_limits_rad"]).T
+    inside = (low + high) / 2
+    at_limit = inside.copy()
+    at_limit[1] = high[1] + 1e-9  # rounding at a limit passes
+    assert rt.correct(at_limit).shape == (6,)
+    beyond = np.stack([inside, inside])
+    beyond[1, 0] = 1e6  # degrees, or millidegrees, given as radians
+    for call in (rt.correct, rt.predict_error, lambda q: rt.correct_one(q[1])):
+        with pytest.raises(CompensatorError, match="outside its limits"):
+            call(beyond)
+    for bad in (["a"] * 6, np.ones(6, dtype=bool), inside + 0.5j, [[0.0] * 6, [0.0] * 5]):
+        with pytest.raises(CompensatorError, match="real numbers|not an array of numbers"):
+            rt.correct(bad)
+    with pytest.raises(CompensatorError, match="real numbers"):
+        rt.correct_one(np.array(["x"] * 6, dtype=object))
+
+
+@pytest.mark.parametrize("threads", [0, -1, 1.5, True])
+def test_a_thread_count_below_one_is_refused(exported, threads):
+    with pytest.raises(CompensatorError, match="threads must be"):
+        CompensatorRuntime(exported[0], threads=threads)
