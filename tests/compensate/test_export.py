@@ -61,7 +61,12 @@ def test_manifest_describes_the_files(exported, model_dir, stored):
         loops = [n for n in model.graph.node if n.op_type in ("Loop", "Scan", "If")]
         # the compensator's two phases of steps (mixed, then position-only) are Loops; the monitor has none
         assert [n.op_type for n in loops] == (["Loop", "Loop"] if key.startswith("compensator") else [])
-    assert (folder / "README.md").read_text().count("rad") >= 2
+    readme = (folder / "README.md").read_text()
+    assert readme.count("rad") >= 2
+    # the corrections the integrator should expect, and which figure the limits judge (the manifest's keys say it too)
+    largest = manifest["corrections"]["extent"]["training poses"]["largest_joint_correction_deg"]
+    assert f"largest {largest:.3g} deg" in readme and "judged on the median over the training poses" in readme
+    assert set(manifest["corrections"]["limits"]) >= {"median_joint_correction_deg", "median_tool_rotation_deg", "judged"}
     for v in ("torchcal", "torch", "onnx", "onnxruntime"):
         assert manifest["versions"][v]
     assert manifest["float32_error_budget"]["monitor_mm"]["max"] < 1e-3

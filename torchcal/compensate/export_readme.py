@@ -37,6 +37,24 @@ def _convergence_text(manifest: dict) -> str:
     return "\n".join(lines)
 
 
+def _corrections_text(manifest: dict) -> str:
+    """The README's paragraph on how far the compensator turns the joints and the tool, and the limits judged."""
+    corrections = manifest.get("corrections") or {}
+    limits, extent = corrections.get("limits") or {}, corrections.get("extent") or {}
+    lines = ["## Joint corrections", ""]
+    for where, e in extent.items():
+        lines.append(f"- {where} ({e['n_poses']}): joint correction median {e['median_joint_correction_deg']:.3g} deg, "
+                     f"largest {e['largest_joint_correction_deg']:.3g} deg (joint {e['joint']}); tool turned from the nominal "
+                     f"orientation median {e['median_tool_rotation_deg']:.3g} deg, largest {e['largest_tool_rotation_deg']:.3g} deg")
+    if limits:
+        lines += ["", (f"Limits: {limits['median_joint_correction_deg']:g} deg of joint correction and "
+                       f"{limits['median_tool_rotation_deg']:g} deg of tool rotation, judged on {limits['judged']}.")]
+    if corrections.get("exceeded_but_allowed"):
+        lines += ["", "Exceeded and exported anyway (`--allow-large-corrections`): "
+                  + "; ".join(corrections["exceeded_but_allowed"]) + "."]
+    return "\n".join(lines) if extent or limits else ""
+
+
 def _expected_line(manifest: dict) -> str:
     expected = manifest.get("expected_accuracy_95")
     if not expected:
@@ -84,6 +102,8 @@ The monitor graph predicts, for any joint vector, where the real TCP lies relati
 one (`real - nominal`, m, base frame).
 
 {_convergence_text(manifest)}
+
+{_corrections_text(manifest)}
 Runtime: {manifest['runtime']}.
 
 Check `sha256` in `manifest.json` before loading (`torchcal.compensate.runtime.CompensatorRuntime`
