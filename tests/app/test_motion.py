@@ -90,11 +90,13 @@ def test_bad_path_file_is_one_line(tmp_path, capsys, body, expected):
     ([_start_arg(), "speed=-5"], "speed must be a finite number in (0, inf], got -5.0"),
     ([_start_arg(), "joint_speed=[1,1,1,1,1,0]"], "joint_speed limits must be positive"),
     ([_start_arg(), "dampng=1"], "invalid override"),
+    (["start=[0,-60,90,0,300,0]"], "start: q5 = 300 deg is outside joint 5's limits"),
 ])
 def test_bad_options_are_one_line(tmp_path, line_file, capsys, option, expected):
     code = main(["motion", "--robot", ROBOT, "--path", str(line_file[0]), "--out", str(tmp_path / "t.csv"), *option])
     err = capsys.readouterr().err
     assert code == 2 and expected in err and err.count("\n") == 1
+    assert not (tmp_path / "t_report").exists()  # refused before any work: no report either
 
 
 def test_out_of_reach_writes_the_report_but_no_trajectory(tmp_path, capsys):

@@ -105,6 +105,9 @@ def test_never_overwrites_a_file_torchcal_did_not_write(program, model_dir, tmp_
     assert theirs.read_text() == "q1\n1\n"
     with pytest.raises(TorchcalError, match="is the targets file"):
         compensate_program(model_dir, folder / "targets.csv", folder / "targets.csv")
+    with pytest.raises(TorchcalError, match="lies inside"):  # its record there would break the model's checksums
+        compensate_program(model_dir, folder / "targets.csv", model_dir / "corrected.csv")
+    assert not (model_dir / "corrected.csv").exists()
     # its own output, unchanged, may be rewritten; once edited, not any more
     out = tmp_path / "mine.csv"
     _program(folder / "few.csv", q[:3])

@@ -54,6 +54,7 @@ from torchcal.compensate.production_tcp import (
 from torchcal.core.errors import DataError, TorchcalError
 from torchcal.core.hashing import sha256_bytes
 from torchcal.core.io import atomic_write_json, atomic_write_text
+from torchcal.core.outputs import refuse_inside_output
 from torchcal.data.csv_table import check_joint_limits, joint_columns, read_csv_table
 from torchcal.kinematics import transforms as tf
 from torchcal.kinematics.error_model import ErrorModel
@@ -106,6 +107,7 @@ def check_program_output(out: Path, targets: Path) -> None:
         raise TorchcalError(f"{out}: --out is the targets file; give another file name")
     if out.is_dir():
         raise TorchcalError(f"{out}: --out names an existing folder; give a file name (CORRECTED.csv)")
+    refuse_inside_output(out, "--out")  # the file and its record would break that folder's checksums
     if not out.exists():
         return
     side = sidecar_path(out)

@@ -104,6 +104,16 @@ def _check_parent(path: Path, what: str) -> None:
         raise OutputClaimError(f"{parent}: not writable")
 
 
+def refuse_inside_output(path: str | Path, what: str) -> None:
+    """Refuse an output path inside a torchcal output folder (a model, an export, a run), whose
+    files that folder's checksums own.
+
+    Raises:
+        OutputClaimError: one line naming the path and the folder.
+    """
+    _refuse_inside(Path(path), what)
+
+
 def _refuse_inside(path: Path, what: str, within: tuple[str, ...] = ()) -> None:
     enclosing = _enclosing_output(path)
     if enclosing is not None and enclosing[1] not in within:

@@ -106,6 +106,11 @@ class PlanOptions:
         for name in ("joint_speed", "joint_accel"):
             if any(v <= 0 for v in getattr(self, name)):
                 raise ModelError(f"{name} limits must be positive, got {getattr(self, name)}")
+        limits = torch.rad2deg(robot.joint_limits.to(torch.float64)).tolist()
+        for j, (value, (low, high)) in enumerate(zip(self.start, limits, strict=True)):
+            if not low - 1e-9 <= value <= high + 1e-9:  # a continuous joint's limits are infinite
+                raise ModelError(f"start: q{j + 1} = {value:g} deg is outside joint {j + 1}'s limits [{low:g}, {high:g}] deg "
+                                 "(start is in degrees)")
 
     def priority(self) -> PrioritySettings:
         """The damping and feedback in SI units."""
