@@ -126,7 +126,7 @@ def _cmd_export(args) -> int:
 
     manifest = export_model(args.model, args.out, iterations=args.iterations, portable=args.portable, task=args.task,
                             tcp_mm=args.tcp_mm, tcp_rpy_deg=args.tcp_rpy_deg,
-                            allow_large_corrections=args.allow_large_corrections)
+                            allow_large_corrections=args.allow_large_corrections, tool_length_mm=args.tool_length_mm)
     conv = manifest["convergence"]
     wrist = conv["strata"]["wrist_singular"]
     wrist_text = "" if not wrist.get("n_poses") else (
@@ -147,7 +147,29 @@ def _cmd_export(args) -> int:
               + f"), the tool orientation deviation up to {e['largest_tool_rotation_deg']:.3g} deg")
     for line in manifest["corrections"]["exceeded_but_allowed"]:
         print(f"warning: {line} (allowed by --allow-large-corrections)")
+    turned = _turned_tool_warning(manifest)
+    if turned:
+        print(turned)
     return 0
+
+
+def _turned_tool_warning(manifest: dict) -> str | None:
+    """A warning where the position-first commands turn the tool by degrees beyond the nominal command's
+    (the convergence report's uniform poses), unless ``--tool-length-mm`` already guards against it."""
+    strata = manifest["convergence"]["strata"]
+    uniform = strata["uniform"]
+    if manifest["solver"].get("tool_length_m", 0.0) > 0 or not uniform.get("share_tool_turn_added_above_1_deg"):
+        return None
+    import math
+
+    wrist = strata["wrist_singular"]
+    near = (f", {100 * wrist['share_tool_turn_added_above_1_deg']:.1f} % near the wrist singularity"
+            if wrist.get("share_tool_turn_added_above_1_deg") else "")
+    return (f"warning: to hold the TCP position the commands turn the tool more than 1 deg beyond the nominal command on "
+            f"{100 * uniform['share_tool_turn_added_above_1_deg']:.1f} % of random poses{near} (up to "
+            f"{math.degrees(uniform['tool_turn_added_rad']['max']):.2g} deg, near the elbow, shoulder or wrist singularity); "
+            "a tool beyond the exported TCP then misses by its length times that turn: export for the tool's point "
+            "(--tcp-mm) or give --tool-length-mm (docs/export.md)")
 
 
 def _cmd_compensate(args) -> int:
@@ -155,7 +177,8 @@ def _cmd_compensate(args) -> int:
 
     outcome = compensate_program(args.model, args.targets, args.out, task=args.task, iterations=args.iterations,
                                  tcp_mm=args.tcp_mm, tcp_rpy_deg=args.tcp_rpy_deg,
-                                 allow_large_corrections=args.allow_large_corrections, start_deg=args.start)
+                                 allow_large_corrections=args.allow_large_corrections, start_deg=args.start,
+                                 tool_length_mm=args.tool_length_mm)
     for line in outcome.lines():
         print(line)
     return 0
@@ -386,6 +409,9 @@ def build_parser(with_options: bool | str = False) -> argparse.ArgumentParser:
                    help="orientation of the production TCP in the flange frame, fixed-axis XYZ deg (default: 0 0 0)")
     p.add_argument("--allow-large-corrections", action="store_true",
                    help="export even when a joint correction or the tool's orientation deviation exceeds the limits")
+    p.add_argument("--tool-length-mm", type=float, default=0.0, metavar="L",
+                   help="keep the nominal command wherever the corrected one would leave a point L mm beyond the TCP "
+                        "further off (position error + L * tool turn; default 0: the TCP alone)")
     p.set_defaults(func=_cmd_export)
 
     p = add("check", help="test a model against a few new poses: valid, or which parameter group changed")
@@ -419,6 +445,7 @@ def build_parser(with_options: bool | str = False) -> argparse.ArgumentParser:
                    help="orientation of the production TCP in the flange frame, fixed-axis XYZ deg")
     p.add_argument("--allow-large-corrections", action="store_true",
                    help="as for export: compensate even when the model's corrections exceed the export's limits")
+    p.add_argument("--tool-length-mm", type=float, default=0.0, metavar="L", help="as for export (default 0)")
     p.set_defaults(func=_cmd_compensate)
 
     p = add("motion", help="joint trajectory of a TCP path through singularities (position first, within joint limits)")

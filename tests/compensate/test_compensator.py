@@ -189,3 +189,52 @@ def test_each_pose_steps_until_it_converges_whatever_its_batch(stored):
     assert int(steps[-1]) == graph.iterations
     # and they have converged where they stopped
     assert residual[:30, 0].max() < CONVERGED_POSITION_M and residual[:30, 1].max() < 10 * CONVERGED_ORIENTATION_RAD
+
+
+@pytest.fixture(scope="module")
+def flange_served(stored):
+    """The model as an export serves it by default (the flange as TCP), and poses over the joint range and near the wrist singularity."""
+    from torchcal.compensate.production_tcp import production_view, tcp_transform
+
+    gen = torch.Generator().manual_seed(21)
+    q = torch.cat([stored.robot.sample_joints(1500, gen), wrist_singular_samples(stored.robot, 1500, gen)])
+    return production_view(stored, tcp_transform(None, None)), q
+
+
+def test_tool_length_keeps_the_nominal_command_where_the_corrected_one_turns_a_tool_further_off(flange_served):
+    view, q = flange_served
+    length = 0.1
+    held, guarded = CompensatorGraph.from_stored(view), CompensatorGraph.from_stored(view, tool_length=length)
+    with torch.no_grad():
+        q_held, after = held.solve(q)
+        q_guarded, residual = guarded.solve(q)
+        before = held.nominal_residual(q)
+    # by the model's bound |e_p| + L theta: the corrected command where it is no worse than the nominal one
+    kept = after[:, 0] + length * after[:, 1] > before[:, 0] + length * before[:, 1]
+    assert 0 < int(kept.sum()) < 0.2 * len(q)  # some poses, near singularities; most keep their correction
+    torch.testing.assert_close(q_guarded, torch.where(kept.unsqueeze(-1), q, q_held), rtol=0, atol=0)
+    torch.testing.assert_close(residual, torch.where(kept.unsqueeze(-1), before, after), rtol=0, atol=0)
+    # the default judges the TCP alone: the held commands are the position-first solution wherever it helps the TCP
+    assert float(after[:, 0].median()) < 1e-9
+
+
+def test_tool_length_bounds_where_a_tool_beyond_the_flange_lands_on_the_true_robot(flange_served, twin):
+    """On the twin's true robot, a point 100 mm beyond the flange: the position-first command can
+    swing it by millimetres near singular poses to hold the flange; with tool_length 100 mm the
+    worst case falls, at a small cost to the flange itself."""
+    view, q = flange_served
+    T_cal = view.model.instrument_from_base(view.x)
+    tip = torch.eye(4, dtype=torch.float64)
+    tip[2, 3] = 0.1
+
+    def errors(q_c):
+        true = twin.T_instrument_base() @ twin.model.base_flange_pose(q_c, twin.x_true)
+        target = T_cal @ view.robot.flange_pose(q)
+        return ((true @ tip)[:, :3, 3] - (target @ tip)[:, :3, 3]).norm(dim=-1), (true - target)[:, :3, 3].norm(dim=-1)
+
+    with torch.no_grad():
+        tip_held, flange_held = errors(CompensatorGraph.from_stored(view).solve(q)[0])
+        tip_guarded, flange_guarded = errors(CompensatorGraph.from_stored(view, tool_length=0.1).solve(q)[0])
+    assert float(tip_guarded.max()) < 0.5 * float(tip_held.max())
+    assert float(tip_guarded.pow(2).mean()) < float(tip_held.pow(2).mean())
+    assert float(flange_guarded.pow(2).mean().sqrt()) < 1.5 * float(flange_held.pow(2).mean().sqrt())

@@ -180,3 +180,23 @@ def test_exported_loops_give_a_pose_the_same_command_alone_and_in_a_batch(export
     assert (together - alone).abs().max() < 1e-12  # rad
     with torch.no_grad():
         assert (together - graphs["compensator"](q)).abs().max() < 1e-9
+
+
+def test_export_with_a_tool_length_states_it_and_the_default_warns_of_turned_tools(model_dir, exported, tmp_path, capsys):
+    from torchcal.cli import main
+
+    # the default export (position first, the TCP alone judged): its convergence report counts the turned tools
+    folder, manifest = exported
+    uniform = manifest["convergence"]["strata"]["uniform"]
+    assert uniform["share_tool_turn_added_above_1_deg"] > 0 and manifest["solver"]["tool_length_m"] == 0.0
+    assert main(["export", "--model", str(model_dir), "--out", str(tmp_path / "held")]) == 0
+    assert "turn the tool more than 1 deg beyond the nominal command" in capsys.readouterr().out
+    assert main(["export", "--model", str(model_dir), "--out", str(tmp_path / "guarded"), "--tool-length-mm", "100"]) == 0
+    assert "turn the tool" not in capsys.readouterr().out
+    guarded = json.loads((tmp_path / "guarded" / "manifest.json").read_text())
+    assert guarded["solver"]["tool_length_m"] == pytest.approx(0.1)
+    assert "Exported with a tool length of 100 mm" in (tmp_path / "guarded" / "README.md").read_text()
+    added = guarded["convergence"]["strata"]["uniform"]["tool_turn_added_rad"]["max"]
+    assert added < uniform["tool_turn_added_rad"]["max"]  # kept nominal where the turn would cost a tool its position
+    assert main(["export", "--model", str(model_dir), "--out", str(tmp_path / "bad"), "--tool-length-mm", "-5"]) == 2
+    assert "--tool-length-mm must be a finite length >= 0 mm" in capsys.readouterr().err

@@ -71,6 +71,7 @@ and the step's solves sharing one Gram matrix (:func:`~torchcal.compensate.steps
 from __future__ import annotations
 
 import copy
+import math
 from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any, ClassVar, Self
 
@@ -248,6 +249,12 @@ class CompensatorGraph(nn.Module):
             ``pose`` task, the closed-form adjugate for the 3x3 solves of the ``position`` task).
         joint_errors: the model's joint-space errors (gravity compliance, harmonics), if any: the
             calibrated chain then turns by ``q + dq(q)`` (:mod:`torchcal.compensate.joint_error_graph`).
+        tool_length: m; ``L > 0`` keeps the nominal command wherever the corrected one would leave a
+            point up to ``L`` beyond the TCP further off than it, by the bound ``|e_p| + L theta``
+            (position error plus lever times the tool's orientation deviation): where the position
+            can be held only by turning the wrist (near the elbow, shoulder or wrist singularity)
+            a tool would otherwise miss by its length times the turn. ``0`` (default): the TCP's
+            position alone is judged.
         device: where the constants live (CPU by default).
     """
 
@@ -287,6 +294,7 @@ class CompensatorGraph(nn.Module):
         position_only_steps: int = POSITION_ONLY_STEPS,
         solver: str = "inverse",
         joint_errors: JointSpaceErrors | None = None,
+        tool_length: float = 0.0,
         device: str | torch.device = "cpu",
     ) -> None:
         super().__init__()
@@ -299,6 +307,9 @@ class CompensatorGraph(nn.Module):
             raise ValueError(f"solver must be one of {sorted(SOLVERS)}, got {solver!r}")
         if not (max_step > 0 and max_orientation_step > 0):
             raise ValueError(f"max_step and max_orientation_step must be > 0 rad, got {max_step}, {max_orientation_step}")
+        if not (math.isfinite(tool_length) and tool_length >= 0):
+            raise ValueError(f"tool_length must be a finite length >= 0 m, got {tool_length}")
+        self.tool_length = float(tool_length)
         # float64 inside whatever the interface (see ``dtype`` above)
         self.models = _TwoModels(model, x, residual, torch.float64, device, joint_errors)
         self.task = task
@@ -377,6 +388,12 @@ class CompensatorGraph(nn.Module):
                 error, score = error.index_copy(0, rows, error_r), score.index_copy(0, rows, score_r)
         return self.narrow(*self.finish(q_in, before, q, error))
 
+    def nominal_residual(self, q_nominal: torch.Tensor, wrench: torch.Tensor | None = None) -> torch.Tensor:
+        """``(B, 2)``: what the nominal command leaves, by the model (position error, m; orientation
+        deviation from the nominal target, rad): :meth:`solve`'s ``residual`` had nothing been corrected."""
+        q_in, wrench = self.widen(q_nominal, wrench)
+        return self.remaining(self.start(q_in, wrench)[1])[..., 0]
+
     def narrow(self, q_c: torch.Tensor, residual: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """The outputs in the graph's dtype (a float32 graph's two Cast nodes)."""
         if self.dtype == torch.float64:
@@ -427,7 +444,11 @@ class CompensatorGraph(nn.Module):
         # the error at q came through the kinematics after the last step: where the iteration did
         # not converge (near a singularity) a prediction from the last step would say it did
         both = self.remaining(torch.cat([before, error], -1))  # (B, 2, 2): [position, turn] x [before, after]
-        better = both[:, :1, 1] <= both[:, :1, 0]
+        if self.tool_length > 0:  # structural: the default graph judges the position alone
+            bound = both[:, :1] + self.tool_length * both[:, 1:]  # (B, 1, 2): |e_p| + L theta, before and after
+            better = bound[..., 1] <= bound[..., 0]
+        else:
+            better = both[:, :1, 1] <= both[:, :1, 0]
         return torch.where(better, q, q_nominal), torch.where(better, both[..., 1], both[..., 0])
 
     def step(self, jac_t: torch.Tensor, error: torch.Tensor, orientation: bool = True) -> torch.Tensor:

@@ -47,6 +47,7 @@ from torchcal.compensate.graphs import (
     OPSET,
     WRENCH_INPUT,
     build_graphs,
+    check_tool_length,
     compensator_of,
     float32_compensator_bytes,
     has_wrench_input,
@@ -144,6 +145,7 @@ def export_model(
     tcp_mm: list[float] | None = None,
     tcp_rpy_deg: list[float] | None = None,
     allow_large_corrections: bool = False,
+    tool_length_mm: float = 0.0,
 ) -> dict:
     """Export the compensator of a model folder; returns the manifest (also written to disk).
 
@@ -151,7 +153,9 @@ def export_model(
     default: the flange), the point the compensator serves (:mod:`torchcal.compensate.production_tcp`),
     stated in the manifest's ``tcp``; the calibration's measured point (the reflector) is not its target.
     ``allow_large_corrections``: export even when a joint correction or the tool orientation
-    deviation exceeds the stated limits (otherwise refused).
+    deviation exceeds the stated limits (otherwise refused). ``tool_length_mm``: keep the nominal
+    command wherever the corrected one would leave a point that far beyond the TCP further off
+    (position error plus length times the tool's turn; 0: the TCP's position alone is judged).
 
     ``wrench_frame`` (``tool`` | ``base``) sets the axes of the ``wrench`` input of a model
     folder with a stiffness stage; it is recorded in the manifest. ``task``: ``position``
@@ -165,6 +169,7 @@ def export_model(
                             f"got {iterations}")
     if task not in TASKS:
         raise TorchcalError(f"task must be one of {list(TASKS)}, got {task!r}")
+    check_tool_length(tool_length_mm)
     model_dir, out_dir = Path(model_dir), Path(out_dir)
     if out_dir.resolve() == model_dir.resolve():
         raise TorchcalError(f"{out_dir}: the export folder must lie outside the model folder {model_dir}")
@@ -175,13 +180,16 @@ def export_model(
     stored = production_view(stored, T_tcp)
     with staged_folder(out_dir, purpose="export") as staging:
         return _export_into(staging, model_dir, stored, wrench_frame=wrench_frame, iterations=iterations,
-                            portable=portable, task=task, tcp=tcp, allow_large_corrections=allow_large_corrections)
+                            portable=portable, task=task, tcp=tcp, allow_large_corrections=allow_large_corrections,
+                            tool_length=tool_length_mm * 1e-3)
 
 
 def _export_into(out_dir: Path, model_dir: Path, stored, *, wrench_frame: str, iterations: int | None,
-                 portable: bool, task: str, tcp: dict | None = None, allow_large_corrections: bool = True) -> dict:
+                 portable: bool, task: str, tcp: dict | None = None, allow_large_corrections: bool = True,
+                 tool_length: float = 0.0) -> dict:
     """Write the export files of ``stored`` into ``out_dir`` (a staging folder); returns the manifest."""
-    graphs = build_graphs(stored, wrench_frame=wrench_frame, iterations=iterations, portable=portable, task=task)
+    graphs = build_graphs(stored, wrench_frame=wrench_frame, iterations=iterations, portable=portable, task=task,
+                          tool_length=tool_length)
     extent = {}
     if not has_wrench_input(graphs):
         if stored.training_q is not None and len(regular_poses(stored.robot, stored.training_q)):
@@ -277,6 +285,12 @@ def _solver_description(compensator: CompensatorGraph, portable: bool) -> dict:
         "damping_floor": math.sqrt(float(compensator.damping_floor_sq)),
         "max_step_rad": float(compensator.max_step),
         "joint_limits": "every iterate is clipped to joint_limits_rad (null: a continuous joint, not clipped)",
+        "kept_nominal": (
+            f"the nominal command is sent wherever the corrected one would leave a point {compensator.tool_length * 1e3:g} mm "
+            "beyond the TCP further off (bound: position error + that length * orientation deviation, by the model)"
+            if compensator.tool_length > 0 else
+            "the nominal command is sent wherever the corrected one would leave the TCP position further off (by the model)"),
+        "tool_length_m": compensator.tool_length,
     }
     if compensator.task == "pose":
         return {

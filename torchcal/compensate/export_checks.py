@@ -106,8 +106,11 @@ def wrist_singular_samples(robot, n: int, generator: torch.Generator, degrees: f
     return q
 
 
-def _stratum(miss_mm: torch.Tensor, turn: torch.Tensor, joint: torch.Tensor, solvable: torch.Tensor, out_err_mm: torch.Tensor) -> dict:
-    """Summary of one stratum: unsolved position (mm), orientation deviation (rad), joint moves (rad)."""
+def _stratum(miss_mm: torch.Tensor, turn: torch.Tensor, joint: torch.Tensor, solvable: torch.Tensor, out_err_mm: torch.Tensor,
+             added: torch.Tensor) -> dict:
+    """Summary of one stratum: unsolved position (mm), orientation deviation (rad), joint moves (rad),
+    and ``added``: how much further (rad) the command turns the tool from the nominal orientation
+    than the nominal command does (the price of holding the position where only the wrist can)."""
     n = int(miss_mm.numel())
     if n == 0:
         return {"n_poses": 0}
@@ -119,6 +122,8 @@ def _stratum(miss_mm: torch.Tensor, turn: torch.Tensor, joint: torch.Tensor, sol
         "solvable_share_within_1um": float((miss_mm[solvable] <= 1e-3).double().mean()) if bool(solvable.any()) else None,
         "orientation_deviation_rad": {"median": float(turn.median()), "p99": float(turn.quantile(0.99)), "max": float(turn.max())},
         "largest_joint_correction_rad": float(joint.max()),
+        "tool_turn_added_rad": {"median": float(added.median()), "p99": float(added.quantile(0.99)), "max": float(added.max())},
+        "share_tool_turn_added_above_1_deg": float((added > math.radians(1.0)).double().mean()),
         "residual_output_error": {"position_mm_max": float(out_err_mm.max())},
     }
 
@@ -132,7 +137,10 @@ def convergence_report(graphs: dict[str, torch.nn.Module], stored, n_poses: int 
     unsolved, ``|p_nom(q_c) + monitor(q_c) - p_nom(q_t)|`` (mm, through the monitor
     graph, and compared with the compensator's own ``residual`` output), and the orientation
     deviation of the calibrated tool from the nominal target (rad, the ``residual`` output: the
-    compensator computes it through the kinematics at ``q_c``). Strata: all uniform poses; wrist
+    compensator computes it through the kinematics at ``q_c``), and how much further than the
+    nominal command's that deviation is (where the position can be held only by turning the wrist:
+    near the wrist singularity, and near the arm's elbow or shoulder singularity, where the TCP
+    Jacobian stays regular through the wrist's lever). Strata: all uniform poses; wrist
     singular (:data:`WRIST_SINGULAR_BELOW`); position singular (:data:`POSITION_SINGULAR_BELOW_M`).
     A pose counts as solvable where the position Jacobian's smallest singular value exceeds
     :data:`SOLVABLE_ABOVE_M`.
@@ -147,6 +155,8 @@ def convergence_report(graphs: dict[str, torch.nn.Module], stored, n_poses: int 
         q_c, residual = graph.solve(q, wrench)
     miss = unsolved_distance_m(graphs, robot, q, q_c, wrench) * 1e3
     turn = residual[:, 1]
+    with torch.no_grad():
+        added = turn - graph.nominal_residual(q, wrench)[:, 1]
     out_err = (residual[:, 0] * 1e3 - miss).abs()
     joint = (q_c - q).abs().amax(-1)
     sigma_p, sigma_w = singular_values(robot, q)
@@ -156,7 +166,7 @@ def convergence_report(graphs: dict[str, torch.nn.Module], stored, n_poses: int 
         "wrist_singular": sigma_w < WRIST_SINGULAR_BELOW,
         "position_singular": sigma_p < POSITION_SINGULAR_BELOW_M,
     }
-    strata = {name: _stratum(miss[m], turn[m], joint[m], solvable[m], out_err[m]) for name, m in parts.items()}
+    strata = {name: _stratum(miss[m], turn[m], joint[m], solvable[m], out_err[m], added[m]) for name, m in parts.items()}
     return {
         "n_poses": n_poses,
         "sampling": (f"uniform within joint limits (seed {seed}), and {n_poses} more with joint {robot.dof - 1} "

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 
 from torchcal.identify.joint_errors import METADATA_KEYS
@@ -13,23 +14,36 @@ def _convergence_text(manifest: dict) -> str:
     strata = conv["strata"]
     if conv["task"] == "position":
         what = ("It puts the TCP **position** on the target first and turns the tool toward the nominal orientation only as "
-                "far as the position leaves room: near a wrist singularity the orientation may stay off by the deviation "
-                "in the `residual` output.")
+                "far as the position leaves room. Where the position can be held only by turning the wrist (near the wrist "
+                "singularity, and near the elbow or shoulder singularity of the arm, where the wrist's lever still moves the "
+                "TCP), the tool ends turned from the nominal orientation, at times further than the nominal command turns "
+                "it (the last column below); the `residual` output gives the deviation per command. A tool mounted beyond "
+                "the TCP then misses by about its length times that angle: export for the production TCP (`--tcp-mm`, "
+                "`--tcp-rpy-deg`) so that the point held exactly is the tool's.")
     else:
         what = ("It solves the full 6-D pose; near singular poses the damping keeps the correction small instead of exact, "
                 "for the position too.")
     lines = [(f"The compensator runs at most {conv['iterations']} Newton steps, each pose until it has converged (task "
               f"`{conv['task']}`). {what} Every step moves a joint by at most "
               f"{manifest['solver']['max_step_rad']:.2f} rad and every iterate stays within the joint limits."), "",
-             "| poses | n | within 1 um | within 1 um where solvable | unsolved p99 / max (mm) | orientation deviation p99 / max (rad) |",
-             "| --- | --- | --- | --- | --- | --- |"]
+             ("| poses | n | within 1 um | within 1 um where solvable | unsolved p99 / max (mm) | orientation deviation p99 / max (rad) "
+              "| turned beyond the nominal command's: > 1 deg, max (deg) |"),
+             "| --- | --- | --- | --- | --- | --- | --- |"]
     for name, s in strata.items():
         if not s.get("n_poses"):
             continue
         solvable = "n/a" if s["solvable_share_within_1um"] is None else f"{100 * s['solvable_share_within_1um']:.1f} % of {s['n_solvable']}"
         lines.append(f"| {name.replace('_', ' ')} | {s['n_poses']} | {100 * s['share_within_1um']:.1f} % | {solvable} | "
                      f"{s['unsolved_tcp_mm']['p99']:.1e} / {s['unsolved_tcp_mm']['max']:.1e} | "
-                     f"{s['orientation_deviation_rad']['p99']:.1e} / {s['orientation_deviation_rad']['max']:.1e} |")
+                     f"{s['orientation_deviation_rad']['p99']:.1e} / {s['orientation_deviation_rad']['max']:.1e} | "
+                     + (f"{100 * s['share_tool_turn_added_above_1_deg']:.2f} % of poses, "
+                        f"{math.degrees(s['tool_turn_added_rad']['max']):.2g} |" if "tool_turn_added_rad" in s else "n/a |"))
+    kept = manifest["solver"].get("tool_length_m", 0.0)
+    if kept > 0:
+        lines += ["", (f"Exported with a tool length of {kept * 1e3:g} mm: the nominal command is sent wherever the corrected "
+                       f"one would leave a point {kept * 1e3:g} mm beyond the TCP further off (position error plus that length "
+                       "times the tool's orientation deviation, by the model); the `residual` output then gives the nominal "
+                       "command's errors.")]
     t = conv["thresholds"]
     lines += ["", (f"Solvable: the position Jacobian's smallest singular value above {t['solvable_above_m_per_rad'] * 1e3:.0f} mm/rad; "
                    f"wrist singular: the last three joints' angular Jacobian below {t['wrist_singular_below']}; position singular: "

@@ -8,6 +8,7 @@ single-file ONNX model (opset :data:`OPSET`). The files and their units: :mod:`t
 from __future__ import annotations
 
 import io
+import math
 import warnings
 from typing import Any
 
@@ -22,7 +23,7 @@ from torchcal.compensate.compensator import (
     graph_parts,
 )
 from torchcal.compensate.linalg import CONTRIB_DOMAIN
-from torchcal.core.errors import ModelError
+from torchcal.core.errors import ModelError, TorchcalError
 
 OPSET = 17
 GRAPHS = {
@@ -107,6 +108,12 @@ def uses_contrib_inverse(module: torch.nn.Module) -> bool:
     return getattr(getattr(module, "graph", module), "solver", None) == SOLVER_DEFAULT
 
 
+def check_tool_length(tool_length_mm: float) -> None:
+    """Refuse a tool length (``--tool-length-mm``, mm) that is not a finite number >= 0."""
+    if not (math.isfinite(tool_length_mm) and tool_length_mm >= 0):
+        raise TorchcalError(f"--tool-length-mm must be a finite length >= 0 mm, got {tool_length_mm:g}")
+
+
 def build_graphs(
     stored,
     residual: torch.nn.Module | None = None,
@@ -116,6 +123,7 @@ def build_graphs(
     iterations: int | None = None,
     portable: bool = False,
     task: str = DEFAULT_TASK,
+    tool_length: float = 0.0,
 ) -> dict[str, torch.nn.Module]:
     """The four torch modules of :data:`GRAPHS` for a :class:`StoredModel`.
 
@@ -126,9 +134,11 @@ def build_graphs(
     (``use_stored_residual=False`` without one: no head). ``task``: ``position`` (position first,
     orientation secondary) or ``pose`` (full 6-D); ``iterations``: Newton steps of the
     compensators (``None``: the task's default); ``portable``: standard ONNX operators only
-    (see :data:`SOLVER_PORTABLE`).
+    (see :data:`SOLVER_PORTABLE`); ``tool_length``: m, the compensators keep the nominal command
+    where the corrected one leaves a point that far beyond the TCP further off
+    (:class:`~torchcal.compensate.compensator.CompensatorGraph`).
     """
-    solve: dict[str, Any] = {"iterations": iterations, "task": task,
+    solve: dict[str, Any] = {"iterations": iterations, "task": task, "tool_length": tool_length,
                              "solver": SOLVER_PORTABLE if portable else SOLVER_DEFAULT}
     stages = stored.stages()
     inputs = graph_inputs(stages)

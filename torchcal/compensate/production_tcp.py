@@ -172,7 +172,8 @@ def correction_sigma(stored, graph, q: torch.Tensor, step: float = 0.01) -> torc
             if len(coefficients):
                 metadata = {**metadata, **terms.shifted(coefficients, shift[len(table_rows):]).to_metadata()}
             changed = replace(stored, x=x, metadata=metadata)
-        return type(graph).from_stored(changed, task=graph.task, iterations=graph.iterations).solve(q)[0]
+        return type(graph).from_stored(changed, task=graph.task, iterations=graph.iterations,
+                                       tool_length=graph.tool_length).solve(q)[0]
 
     with torch.no_grad():
         at_fit = solved(None)

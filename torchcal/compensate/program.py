@@ -44,7 +44,12 @@ import torch
 
 from torchcal.compensate.compensator import DEFAULT_TASK, TASKS
 from torchcal.compensate.export_checks import regular_poses
-from torchcal.compensate.graphs import build_graphs, compensator_of, has_wrench_input
+from torchcal.compensate.graphs import (
+    build_graphs,
+    check_tool_length,
+    compensator_of,
+    has_wrench_input,
+)
 from torchcal.compensate.production_tcp import (
     check_corrections,
     correction_extent,
@@ -205,10 +210,11 @@ def compensate_program(
     tcp_rpy_deg: list[float] | None = None,
     allow_large_corrections: bool = False,
     start_deg: list[float] | None = None,
+    tool_length_mm: float = 0.0,
 ) -> ProgramOutcome:
     """Correct the joint targets of ``targets`` with the compensator of ``model_dir`` into ``out``.
 
-    ``task``, ``iterations``, ``tcp_mm``, ``tcp_rpy_deg``: as ``torchcal export`` (the same
+    ``task``, ``iterations``, ``tcp_mm``, ``tcp_rpy_deg``, ``tool_length_mm``: as ``torchcal export`` (the same
     compensator; without a TCP, the flange, stated in the summary). ``start_deg``: the start
     configuration of a file of TCP poses (module docstring); refused with joint targets.
     """
@@ -217,6 +223,7 @@ def compensate_program(
         raise TorchcalError(f"task must be one of {list(TASKS)}, got {task!r}")
     if iterations is not None and iterations < 1:
         raise TorchcalError(f"iterations must be >= 1, got {iterations}")
+    check_tool_length(tool_length_mm)
     check_program_output(out, targets)
     stored = load_model(model_dir)
     stored = production_view(stored, tcp_transform(tcp_mm, tcp_rpy_deg))  # as export: the flange by default
@@ -230,7 +237,7 @@ def compensate_program(
         if start_deg is not None:
             raise DataError("--start is for a file of TCP poses (x, y, z); this one holds joint targets", path=str(targets))
         q, lines = read_targets(targets, stored.robot)
-    graphs = build_graphs(stored, task=task, iterations=iterations)
+    graphs = build_graphs(stored, task=task, iterations=iterations, tool_length=tool_length_mm * 1e-3)
     if has_wrench_input(graphs):
         raise TorchcalError(f"{model_dir}: the model has a stiffness stage, whose compensator needs each target's "
                             "expected wrench; compensate a program with the geometric model, or use the exported graphs")
