@@ -188,3 +188,15 @@ def test_a_harmonic_known_to_sigma_moves_its_joints_correction_by_its_basis(flan
     # the same terms without their covariance (an update's model): the sigma says it leaves them out
     without = replace(model, joint_covariance=None, joint_coefficients=None)
     assert "joint-space terms carry no covariance" in correction_extent(graph, q, without)["sigma_from"]
+
+
+def test_a_model_without_training_poses_is_judged_over_the_joint_range():
+    # a tracer fit keeps no training poses: its corrections over the joint range are what the limits judge
+    large = {"median_joint_correction_deg": 5.0, "largest_joint_correction_deg": 37.0, "joint": 3,
+             "median_tool_rotation_deg": 0.1, "largest_tool_rotation_deg": 90.0}
+    with pytest.raises(TorchcalError, match="over the joint range"):
+        check_corrections({"joint range": large}, allow=False)
+    assert check_corrections({"joint range": large}, allow=True)
+    # with training poses those are judged, and the joint range only reported
+    small = {**large, "median_joint_correction_deg": 0.5}
+    assert check_corrections({"training poses": small, "joint range": large}, allow=False) == []

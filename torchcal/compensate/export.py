@@ -270,9 +270,9 @@ def _export_into(out_dir: Path, model_dir: Path, stored, *, wrench_frame: str, i
 
 def _correction_limits() -> dict:
     return {"median_joint_correction_deg": MAX_JOINT_CORRECTION_DEG, "median_tool_rotation_deg": MAX_TOOL_ROTATION_DEG,
-            "judged": ("the median over the training poses (the largest and the joint range are reported, not judged: "
-                       "near, not at, a singularity any orientation step is large); beyond it export refuses unless "
-                       "--allow-large-corrections is given"),
+            "judged": ("the median over the training poses (over the joint range for a model that keeps none; the "
+                       "largest and the other set are reported, not judged: near, not at, a singularity any orientation "
+                       "step is large); beyond it export refuses unless --allow-large-corrections is given"),
             "sampling": ("the model's training poses and 2000 poses uniform within the joint limits (seed 2), both less "
                          "those in the convergence report's singular strata")}
 

@@ -187,9 +187,12 @@ def correction_sigma(stored, graph, q: torch.Tensor, step: float = 0.01) -> torc
 def check_corrections(extent: dict[str, dict], allow: bool) -> list[str]:
     """Lines naming the limits an export exceeds; raises :class:`TorchcalError` unless ``allow``."""
     found = []
+    # the training poses are judged; a model without them (a tracer fit keeps none) by the joint range.
+    # The other sets are reported, not judged: near (not at) singular poses any orientation step is large
+    judged = "training poses" if "training poses" in extent else "joint range"
     for where, e in extent.items():
-        if where != "training poses":
-            continue  # reported, not judged: near (not at) singular poses any orientation step is large
+        if where != judged:
+            continue
         if e["median_joint_correction_deg"] > MAX_JOINT_CORRECTION_DEG:
             found.append(f"joint corrections of {e['median_joint_correction_deg']:.3g} deg (median; up to "
                          f"{e['largest_joint_correction_deg']:.3g}, joint {e['joint']}) over the {where} "
