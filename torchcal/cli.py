@@ -195,7 +195,7 @@ def _cmd_check(args) -> int:
         claim_file(args.json, "check", "--json", json_of("check"))
     if args.report:
         check_output_folder(args.report, "--report", purpose="report")
-    result = check_model(args.model, args.data)
+    result = check_model(args.model, args.data, _unit_options(args.overrides, "check"))
     if args.json:
         atomic_write_json(args.json, {JSON_KEY: "check", **result.to_dict()})
     if args.report:
@@ -206,17 +206,34 @@ def _cmd_check(args) -> int:
     return 0
 
 
+def _unit_options(overrides: list[str], command: str):
+    """The units of a command's measurement file from its ``joint_unit=`` / ``length_unit=`` overrides."""
+    from torchcal.config.compose import compose_options
+    from torchcal.config.schema import UnitOptions
+    from torchcal.core.errors import TorchcalError
+
+    for item in overrides:
+        if item.partition("=")[0].strip() not in ("joint_unit", "length_unit"):
+            raise TorchcalError(f"{command}: unknown option '{item}'; the options are joint_unit=deg|rad and length_unit=mm|m")
+    return compose_options(UnitOptions(), list(overrides))
+
+
 def _cmd_update(args) -> int:
     from torchcal.app.update import update_model
     from torchcal.core.errors import TorchcalError
 
     free = "auto"
+    units = []
     for item in args.overrides:
         key, _, value = item.partition("=")
+        if key.strip() in ("joint_unit", "length_unit"):
+            units.append(item)
+            continue
         if key.strip() != "free":
-            raise TorchcalError(f"update: unknown option '{item}'; the one option is free=auto|frame|tool|offsets|all|<names>")
+            raise TorchcalError(f"update: unknown option '{item}'; the options are free=auto|frame|tool|offsets|all|<names>, "
+                                "joint_unit=deg|rad and length_unit=mm|m")
         free = value
-    result = update_model(args.model, args.data, args.out, free=free)
+    result = update_model(args.model, args.data, args.out, free=free, units=_unit_options(units, "update"))
     for line in result.lines():
         print(line)
     print(f"model: {args.out}")
@@ -419,6 +436,7 @@ def build_parser(with_options: bool | str = False) -> argparse.ArgumentParser:
     p.add_argument("--data", required=True, help="a few new measured poses (x,y,z,q1..qN; any tracker set-up)")
     p.add_argument("--json", default=None, help="write verdict, changed and the evidence to this JSON file")
     p.add_argument("--report", default=None, metavar="DIR", help="write report.md and report.html into DIR")
+    p.add_argument("overrides", nargs="*", help="joint_unit=deg|rad, length_unit=mm|m of the file (default deg, mm)")
     p.set_defaults(func=_cmd_check)
 
     p = add("update", help="a new model folder from an old one and a few new poses (frame re-registered, changed group refitted)")
@@ -426,7 +444,8 @@ def build_parser(with_options: bool | str = False) -> argparse.ArgumentParser:
     p.add_argument("--data", required=True, help="a few new measured poses (x,y,z,q1..qN; any tracker set-up)")
     p.add_argument("--out", required=True, help="the new model folder to write (never the old one)")
     p.add_argument("overrides", nargs="*", help="free=auto (default: what check names) | frame | tool | offsets | all | "
-                                                "names, e.g. free=tool,theta3")
+                                                "names, e.g. free=tool,theta3; joint_unit=deg|rad, length_unit=mm|m of "
+                                                "the file (default deg, mm)")
     p.set_defaults(func=_cmd_update)
 
     p = add("compensate", help="correct the joint targets of a robot program offline with a model's compensator")

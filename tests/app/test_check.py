@@ -50,3 +50,33 @@ def test_check_cli_writes_verdict_and_changed(calibrated, tmp_path, capsys):
     assert code == 0 and doc["verdict"] == "changed" and doc["changed"] == ["theta3"]
     assert len(doc["poses"]) == 12 and (tmp_path / "report" / "report.html").is_file()
     assert "verdict: changed; changed: theta3" in capsys.readouterr().out
+
+
+def test_check_and_update_refuse_a_file_of_another_robot_and_take_its_units(calibrated, tmp_path, capsys):
+    twin, stored = calibrated
+    data = twin.sample(12, torch.Generator().manual_seed(9))
+    swapped = data.position[:, [1, 0, 2]]  # x and y columns exchanged: a mirrored robot, no frame maps it on this one
+    write_measurements_csv(tmp_path / "swapped.csv", data.q, swapped)
+    for command in (["check"], ["update", "--out", str(tmp_path / "new")]):
+        code = main([*command, "--model", str(stored.folder), "--data", str(tmp_path / "swapped.csv")])
+        err = capsys.readouterr().err
+        assert code == 2 and "misses these poses by" in err and "even with the instrument frame re-fitted" in err
+        assert err.count("\n") == 1
+    assert not (tmp_path / "new").exists()
+    # the points in metres: the refusal names length_unit=m, and both commands take it
+    metres = tmp_path / "metres.csv"
+    metres.write_text("".join(line if i == 0 else ",".join(
+        f"{float(v) / 1000:.9g}" if j >= data.q.shape[1] else v for j, v in enumerate(line.rstrip("\n").split(","))) + "\n"
+        for i, line in enumerate(_csv_lines(tmp_path, data))))
+    assert main(["check", "--model", str(stored.folder), "--data", str(metres)]) == 2
+    assert "length_unit=m" in capsys.readouterr().err
+    assert main(["check", "--model", str(stored.folder), "--data", str(metres), "length_unit=m"]) == 0
+    assert "verdict: valid" in capsys.readouterr().out
+    assert main(["update", "--model", str(stored.folder), "--data", str(metres), "--out", str(tmp_path / "new"),
+                 "length_unit=m"]) == 0
+    assert (tmp_path / "new" / "calibration.json").is_file()
+
+
+def _csv_lines(tmp_path, data) -> list[str]:
+    write_measurements_csv(tmp_path / "plain.csv", data.q, data.position)
+    return (tmp_path / "plain.csv").read_text().splitlines(keepends=True)

@@ -34,6 +34,7 @@ import numpy as np
 import torch
 from scipy import stats
 
+from torchcal.config.schema import UnitOptions
 from torchcal.core.errors import ModelError
 from torchcal.data.measurements import Measurements, load_measurements
 from torchcal.identify.calibrate import register_instrument
@@ -43,7 +44,8 @@ from torchcal.identify.problem import CalibrationProblem
 from torchcal.identify.term_scale import TermScaleProblem
 from torchcal.kinematics.error_model import ErrorModel
 from torchcal.report.document import Paragraph, Preformatted, Report, Section, Table
-from torchcal.stages.geometry import model_joints
+from torchcal.stages.foreign_data import refuse_foreign_file
+from torchcal.stages.geometry import held_out_errors, model_joints
 from torchcal.stages.prediction_uncertainty import PosePrediction, stored_prediction
 from torchcal.stages.store import StoredModel, load_model
 
@@ -199,8 +201,16 @@ def refit_whitening(stored: StoredModel, data: Measurements) -> tuple[PosePredic
     return prediction, prediction.sigma_mm.detach().cpu().to(torch.float64) * 1e-3
 
 
+def refuse_other_robots(stored: StoredModel, data: Measurements, refused: str) -> None:
+    """Refuse ``data`` the model misses by centimetres even with the instrument frame re-fitted
+    (another robot, tool or set-up, or swapped columns): a check or an update of it would only
+    name some group as changed (:func:`~torchcal.stages.foreign_data.refuse_foreign_file`)."""
+    refuse_foreign_file(held_out_errors(stored, data, register=True), stored, data, True, refused)
+
+
 def check_data(stored: StoredModel, data: Measurements) -> CheckResult:
     """The check of ``stored`` against ``data`` (see the module docstring)."""
+    refuse_other_robots(stored, data, "nothing was checked")
     prediction, sigma_m = refit_whitening(stored, data)
     n = len(data)
     if n < 4:
@@ -233,10 +243,11 @@ def check_data(stored: StoredModel, data: Measurements) -> CheckResult:
                        exceedance_p=tail, chi2_null=chi2_null, groups=groups, source=data.source)
 
 
-def check_model(model_dir: str | Path, data_file: str | Path) -> CheckResult:
-    """Load the model folder and the position file and check one against the other."""
+def check_model(model_dir: str | Path, data_file: str | Path, units: UnitOptions | None = None) -> CheckResult:
+    """Load the model folder and the position file (in ``units``: deg and mm by default) and check one against the other."""
+    units = units or UnitOptions()
     stored = load_model(model_dir)
-    data = load_measurements(data_file, stored.robot)
+    data = load_measurements(data_file, stored.robot, joint_unit=units.joint_unit, length_unit=units.length_unit)
     return check_data(stored, data)
 
 

@@ -66,8 +66,10 @@ from torchcal.app.check import (
     groups_of,
     refit,
     refit_whitening,
+    refuse_other_robots,
     term_deflections,
 )
+from torchcal.config.schema import UnitOptions
 from torchcal.core.errors import DataError, IdentifiabilityWarning, ModelError
 from torchcal.core.folder import CHECKSUMS, write_member
 from torchcal.core.hashing import sha256_file
@@ -483,6 +485,7 @@ def update_data(stored: StoredModel, data: Measurements, free: str = "auto") -> 
     spec = str(free).strip()
     if not spec:
         raise DataError("free= is empty; give auto, frame, tool, offsets, all or names")
+    refuse_other_robots(stored, data, "no model was written")
     check = check_data(stored, data) if spec == "auto" or load_has_uncertainty(stored) else None
     names, how = resolve_free(spec, stored, check)
     if 3 * (n - 1) <= 6:
@@ -589,16 +592,20 @@ def update_report(result: UpdateResult) -> Report:
     return Report(f"Update of {Path(result.stored.folder).name} from {Path(result.data.source).name}", sections)
 
 
-def update_model(model_dir: str | Path, data_file: str | Path, out: str | Path, free: str = "auto") -> UpdateResult:
-    """Load, update and write ``out`` whole (staged: an interrupted update leaves what was there)."""
+def update_model(model_dir: str | Path, data_file: str | Path, out: str | Path, free: str = "auto",
+                 units: UnitOptions | None = None) -> UpdateResult:
+    """Load, update and write ``out`` whole (staged: an interrupted update leaves what was there).
+
+    ``units``: of the new poses' file (deg and mm by default)."""
     from torchcal.core.folder import check_output_folder, staged_folder
 
     out = Path(out)
     if out.resolve() == Path(model_dir).resolve():
         raise DataError(f"{out}: --out names the parent model; an update writes a new folder")
     check_output_folder(out, "--out", purpose="model")
+    units = units or UnitOptions()
     stored = load_model(model_dir)
-    data = load_measurements(data_file, stored.robot)
+    data = load_measurements(data_file, stored.robot, joint_unit=units.joint_unit, length_unit=units.length_unit)
     result = update_data(stored, data, free)
     with staged_folder(out, "--out", purpose="model") as staging:
         write_update(staging, result)

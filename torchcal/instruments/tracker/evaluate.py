@@ -18,6 +18,7 @@ from torchcal.core.metrics import iso9283_repeated, position_metrics
 from torchcal.data.measurements import Measurements, load_measurements
 from torchcal.identify.joint_errors import JointSpaceErrors
 from torchcal.model_selection.leakage import leakage_report
+from torchcal.stages.foreign_data import refuse_foreign_file
 from torchcal.stages.geometry import NOMINAL_PROTOCOL, held_out_errors, nominal_fit
 from torchcal.stages.orientation import (
     OrientationErrors,
@@ -60,27 +61,6 @@ def evaluate(model_dir: str | Path, data_path: str | Path, *, register: bool = F
     stored = load_model(model_dir)
     data = load_measurements(data_path, stored.robot, joint_unit=config.joint_unit, length_unit=config.length_unit)
     return score(stored, data, register=register).metrics
-
-
-#: A median error beyond this (mm) on a file means the file is not of this model's robot and set-up.
-FOREIGN_FILE_MEDIAN_MM = 25.0
-
-
-def refuse_foreign_file(errors: torch.Tensor, stored: StoredModel, data: Measurements, register: bool) -> None:
-    """Refuse to score a file the model misses by centimetres: it belongs to another robot, tool or set-up.
-
-    Raises:
-        DataError: naming the median error and the likely cause (``--register`` when the frame was not re-fitted).
-    """
-    median_mm = float(errors.norm(dim=-1).median()) * 1e3
-    if median_mm <= FOREIGN_FILE_MEDIAN_MM:
-        return
-    cause = ("even with the instrument frame re-fitted (--register): the file is of another robot, tool or set-up"
-             if register else
-             "the instrument was moved since the fit (then add --register to re-fit its frame), or the file is of "
-             "another robot, tool or set-up")
-    raise DataError(f"the model {stored.folder} ({stored.robot.name}) misses these poses by {median_mm:.1f} mm "
-                    f"(median; a calibrated arm: well under 1 mm): {cause}; nothing was scored", path=data.source)
 
 
 def score(stored: StoredModel, data: Measurements, *, register: bool = False, leakage: bool = True,
