@@ -13,7 +13,6 @@ Frames and units: joints in rad; TCP offsets in the ``instrument`` frame of the 
 
 from __future__ import annotations
 
-import math
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, ClassVar
@@ -39,6 +38,17 @@ class StageTable:
     title: str
     columns: list[str]
     rows: list[list[str]]
+
+
+def _number(value: Any, spec: str) -> str:
+    """``value`` formatted with ``spec`` for a report table; ``n/a`` for anything not a number.
+
+    Stored metadata writes a non-finite estimate (an unobservable entry, a degenerate fit) as JSON
+    ``null``, which must not crash the report.
+    """
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return "n/a"
+    return format(value, spec)
 
 
 class ModelStage(ABC):
@@ -200,7 +210,7 @@ class StiffnessStage(ModelStage):
 
     def report_table(self) -> StageTable | None:
         parameters = self.stiffness.metadata.get("parameters") or {}
-        rows = [[name, f"{p.get('value', math.nan):.6g}", str(p.get("unit", "")), f"{p.get('sigma', math.nan):.3g}",
+        rows = [[name, _number(p.get("value"), ".6g"), str(p.get("unit", "")), _number(p.get("sigma"), ".3g"),
                  str(p.get("status", ""))] for name, p in parameters.items()]
         return StageTable("Joint stiffness", ["parameter", "value", "unit", "1-sigma", "status"], rows)
 

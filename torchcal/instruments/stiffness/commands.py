@@ -94,6 +94,9 @@ class StiffnessFitConfig(ValidationOptions, UnitOptions):
         rank_tol: normalized singular value below which a direction is unobservable.
         poor_relative_std: relative std above which an entry is reported poorly determined.
         device: ``cpu`` or a torch device string.
+        check_plausible: refuse a file whose loads or deflections are outside what an industrial
+            arm shows (a unit mistake, see :func:`~torchcal.instruments.stiffness.data.check_plausible_units`);
+            ``false`` for a rig outside those ranges.
     """
 
     model_dir: str | None = None
@@ -106,6 +109,7 @@ class StiffnessFitConfig(ValidationOptions, UnitOptions):
     rank_tol: float = 1e-7
     poor_relative_std: float = 0.25
     device: str = "cpu"
+    check_plausible: bool = True
 
 
 def stiffness_config(overrides: list[str]) -> StiffnessFitConfig:
@@ -123,8 +127,10 @@ def stiffness_config(overrides: list[str]) -> StiffnessFitConfig:
 
 
 def load_stiffness_file(path, n_joints: int, config: StiffnessFitConfig) -> StiffnessData:
+    """:func:`load_stiffness` with the units and the plausibility check of ``config``."""
     return load_stiffness(
-        path, n_joints=n_joints, joint_unit=config.joint_unit, length_unit=config.length_unit, device=config.device
+        path, n_joints=n_joints, joint_unit=config.joint_unit, length_unit=config.length_unit, device=config.device,
+        check_plausible=config.check_plausible,
     )
 
 

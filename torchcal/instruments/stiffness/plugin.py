@@ -55,7 +55,7 @@ class StiffnessInstrument(Instrument):
         return StiffnessFitConfig
 
     def evaluate_options(self) -> tuple[str, ...]:
-        return ("joint_unit", "length_unit", "device")
+        return ("joint_unit", "length_unit", "device", "check_plausible")
 
     def twin(self) -> TwinSpec:
         from torchcal.instruments.stiffness.twin_case import (
