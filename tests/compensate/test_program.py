@@ -182,3 +182,31 @@ def test_tcp_poses_need_a_start_and_name_an_unreachable_row(model_dir, tmp_path,
                  "--out", str(tmp_path / "o.csv"), "--start", "0", "-60", "90", "0", "30", "0"]) == 2
     err = capsys.readouterr().err
     assert "row 3" in err and "not reachable" in err and len(err.strip().splitlines()) == 1
+
+
+def test_a_programs_other_columns_reach_the_corrected_file_as_written(program):
+    _, folder, _ = program
+    lines = (folder / "corrected.csv").read_text().splitlines()
+    assert lines[0].split(",")[-1] == "speed" and all(line.split(",")[-1] == "250" for line in lines[1:])
+
+
+def test_a_program_in_the_wrong_units_or_a_tool_out_of_reach_is_refused(program, model_dir, tmp_path, capsys):
+    q, folder, _ = program
+
+    def refused(targets, *extra) -> str:
+        code = main(["compensate", "--model", str(model_dir), "--targets", str(targets), "--out", str(tmp_path / "o.csv"),
+                     *extra])
+        err = capsys.readouterr().err
+        assert code == 2 and err.count("\n") == 1 and not (tmp_path / "o.csv").exists()
+        return err
+
+    radians = tmp_path / "rad.csv"
+    radians.write_text("q1,q2,q3,q4,q5,q6\n" + "".join(",".join(repr(v) for v in row) + "\n" for row in q[:20].tolist()))
+    assert "the joints look like radians; a program file's joints are in degrees" in refused(radians)
+    metres = tmp_path / "m.csv"
+    metres.write_text("x,y,z\n0.8,0,0.9\n0.81,0,0.9\n")
+    assert "the targets look like metres" in refused(metres, "--start", "0", "-60", "90", "0", "30", "0")
+    assert "tools reach at most" in refused(folder / "targets.csv", "--tcp-mm", "0", "0", "1e6")
+    clash = tmp_path / "clash.csv"
+    clash.write_text("q1,q2,q3,q4,q5,q6,corrected\n0,-60,90,0,30,0,1\n")
+    assert "column 'corrected'" in refused(clash)

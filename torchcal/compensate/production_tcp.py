@@ -35,6 +35,10 @@ MAX_JOINT_CORRECTION_DEG = 2.0
 MAX_TOOL_ROTATION_DEG = 2.0
 
 
+#: A production TCP farther than this from the flange (mm) is refused: no tool is that long (a unit mistake).
+MAX_TCP_OFFSET_MM = 3000.0
+
+
 def tcp_transform(position_mm: list[float] | None, rpy_deg: list[float] | None) -> torch.Tensor:
     """``T_flange_tcp`` ``(4, 4)`` (m) from a position (mm) and fixed-axis XYZ angles (deg)."""
     position = [0.0, 0.0, 0.0] if position_mm is None else [float(v) for v in position_mm]
@@ -42,6 +46,10 @@ def tcp_transform(position_mm: list[float] | None, rpy_deg: list[float] | None) 
     if len(position) != 3 or len(angles) != 3 or not all(math.isfinite(v) for v in position + angles):
         raise TorchcalError(f"the production TCP needs 3 finite position values (mm) and 3 angles (deg), "
                             f"got {position} and {angles}")
+    offset = math.hypot(*position)
+    if offset > MAX_TCP_OFFSET_MM:
+        raise TorchcalError(f"the production TCP lies {offset:.6g} mm from the flange (--tcp-mm {position}); tools reach at "
+                            f"most {MAX_TCP_OFFSET_MM:g} mm: give it in mm, in the flange frame")
     rotation = tf.euler_xyz_to_matrix(torch.tensor([math.radians(a) for a in angles], dtype=torch.float64))
     return tf.homogeneous(rotation, torch.tensor(position, dtype=torch.float64) * 1e-3)
 

@@ -17,7 +17,7 @@ program's targets, with the same safety limits:
   is not corrected keeps its nominal command in the output and gets one line saying why.
 
 Targets: ``q1..qN`` (deg), one row per target, the data contract's joint columns; other columns
-are ignored. Or **TCP poses** with a start configuration: ``x, y, z`` (mm, the robot's base frame,
+(speed, zone...) are carried to the output as written, after its own. Or **TCP poses** with a start configuration: ``x, y, z`` (mm, the robot's base frame,
 the production TCP) and optionally ``rx, ry, rz`` (deg, fixed-axis XYZ, the file convention), no
 joint columns, and ``start_deg`` (``--start``): each pose's nominal joint target is found by the
 project's inverse kinematics (:func:`torchcal.kinematics.ik.solve_ik`, on the nominal robot ending
@@ -26,7 +26,7 @@ program keeps one arm configuration; those joint targets then go through the sam
 pose the nominal robot cannot reach from there, or only outside its joint limits, is one line
 naming its row (exit status 2). Output: ``q1..qN`` (deg, the corrected command or, where not corrected, the nominal
 one), ``corrected`` (1/0), ``correction_deg`` (the largest joint move), ``remaining_mm`` (the
-model's remaining TCP error at the written command). It is written atomically with a sidecar
+model's remaining TCP error at the written command), then the program's other columns. It is written atomically with a sidecar
 ``<out>.torchcal.json`` (model, targets and output SHA-256, the settings, the summary); an
 existing output is overwritten only when its sidecar says torchcal wrote it for this purpose and
 its content is unchanged since.
@@ -34,6 +34,8 @@ its content is unchanged since.
 
 from __future__ import annotations
 
+import csv
+import io
 import math
 import time
 from dataclasses import dataclass, field
@@ -61,6 +63,7 @@ from torchcal.core.hashing import sha256_bytes
 from torchcal.core.io import atomic_write_json, atomic_write_text
 from torchcal.core.outputs import refuse_inside_output
 from torchcal.data.csv_table import check_joint_limits, joint_columns, read_csv_table
+from torchcal.data.plausibility import check_joint_unit
 from torchcal.kinematics import transforms as tf
 from torchcal.kinematics.error_model import ErrorModel
 from torchcal.kinematics.ik import solve_ik
@@ -128,22 +131,52 @@ def check_program_output(out: Path, targets: Path) -> None:
                             "give another --out or remove it")
 
 
-def read_targets(path: Path, robot) -> tuple[torch.Tensor, list[int]]:
-    """Joint targets ``(B, N)`` rad and their file lines; bad input is one :class:`DataError` naming file, row, column."""
+def read_targets(path: Path, robot) -> tuple[torch.Tensor, list[int], dict[str, list[str]]]:
+    """Joint targets ``(B, N)`` rad, their file lines and the file's other columns (carried to the
+    corrected file as written); bad input is one :class:`DataError` naming file, row, column."""
     table = read_csv_table(path)
     if not table.rows:
         raise DataError("no targets (only a header)", path=str(path))
     columns = joint_columns(table.header, path, robot.dof, robot.name)
+    other = other_columns(table, columns, robot.dof)
     q_deg = np.stack([table.column(c) for c in columns], axis=1)
+    check_joint_unit(q_deg, "deg", robot.joint_limits.numpy(), path=str(path), lines=table.line_numbers,
+                     advice="a program file's joints are in degrees: convert them")
     check_joint_limits(q_deg, "deg", robot.joint_limits.numpy(), path=path, lines=table.line_numbers, columns=columns,
                        robot_name=robot.name)
-    return torch.from_numpy(np.radians(q_deg)), list(table.line_numbers)
+    return torch.from_numpy(np.radians(q_deg)), list(table.line_numbers), other
 
 
 #: A TCP pose counts as reached by the nominal inverse kinematics within this (m, rad).
 IK_WITHIN = 1e-9
 #: TCP pose columns of a program file (position required, orientation optional).
 POSITION_COLUMNS, ROTATION_COLUMNS = ("x", "y", "z"), ("rx", "ry", "rz")
+
+
+#: The corrected file's own columns after the joints (a program's other columns follow them).
+OUTPUT_COLUMNS = ("corrected", "correction_deg", "remaining_mm")
+
+
+def other_columns(table, used, n_joints: int) -> dict[str, list[str]]:
+    """The program's columns beyond ``used`` (speed, zone, tool number...), their cells as written:
+    the corrected file carries them after its own, so nothing of the program is lost. A name the
+    corrected file uses itself is refused."""
+    taken = {f"q{j}" for j in range(1, n_joints + 1)} | set(OUTPUT_COLUMNS)
+    other = {}
+    for k, name in enumerate(table.header):
+        if name in used:
+            continue
+        if not name:
+            raise DataError(f"column {k + 1} has no name: name it (the corrected file carries it by name)", path=str(table.path))
+        if name in taken or name in other:
+            raise DataError(f"the column name is the corrected file's own (q1..q{n_joints}, {', '.join(OUTPUT_COLUMNS)}) "
+                            "or appears twice: rename it", path=str(table.path), column=name)
+        other[name] = [row[k] for row in table.rows]
+    return other
+
+
+#: A program's TCP targets all closer to the robot's base than this share of its reach: metres written as mm.
+METRES_AS_MM_REACH_SHARE = 0.01
 
 
 def is_tcp_program(path: Path) -> bool:
@@ -153,8 +186,9 @@ def is_tcp_program(path: Path) -> bool:
                                                                    for h in header)
 
 
-def read_tcp_targets(path: Path, robot, start_deg: list[float]) -> tuple[torch.Tensor, list[int]]:
-    """Nominal joint targets ``(B, N)`` rad of a file of TCP poses, solved in order from ``start_deg``.
+def read_tcp_targets(path: Path, robot, start_deg: list[float]) -> tuple[torch.Tensor, list[int], dict[str, list[str]]]:
+    """Nominal joint targets ``(B, N)`` rad of a file of TCP poses, solved in order from ``start_deg``,
+    their file lines and the file's other columns (:func:`other_columns`).
 
     ``robot``: the nominal robot ending in the production TCP (:func:`production_view`'s).
     """
@@ -167,7 +201,14 @@ def read_tcp_targets(path: Path, robot, start_deg: list[float]) -> tuple[torch.T
     start = np.asarray(start_deg, dtype=np.float64)[None]
     check_joint_limits(start, "deg", robot.joint_limits.numpy(), path="--start", lines=[1], robot_name=robot.name)
     oriented = all(c in table.header for c in ROTATION_COLUMNS)
+    other = other_columns(table, POSITION_COLUMNS + (ROTATION_COLUMNS if oriented else ()), robot.dof)
     position = torch.from_numpy(np.stack([table.column(c) for c in POSITION_COLUMNS], 1)) * 1e-3
+    with torch.no_grad():  # the reach: the nominal TCP's distance from the base at the start and over the joint range
+        reach = float(robot.tcp_position(robot.sample_joints(200, torch.Generator().manual_seed(0))).norm(dim=-1).max())
+    if float(position.norm(dim=-1).max()) < METRES_AS_MM_REACH_SHARE * reach:
+        raise DataError(f"every TCP target lies within {float(position.norm(dim=-1).max()) * 1e3:.3g} mm of the base origin, "
+                        f"the robot reaches {reach * 1e3:.0f} mm: the targets look like metres; a program file's x, y, z "
+                        "are in mm", path=str(path), column="x")
     if oriented:
         angles = torch.from_numpy(np.radians(np.stack([table.column(c) for c in ROTATION_COLUMNS], 1)))
         targets = tf.homogeneous(tf.euler_xyz_to_matrix(angles), position)
@@ -188,15 +229,21 @@ def read_tcp_targets(path: Path, robot, start_deg: list[float]) -> tuple[torch.T
     q_all = torch.stack(solved)
     check_joint_limits(np.degrees(q_all.numpy()), "deg", robot.joint_limits.numpy(), path=path,
                        lines=table.line_numbers, robot_name=robot.name)
-    return q_all, list(table.line_numbers)
+    return q_all, list(table.line_numbers), other
 
 
-def _csv(q_deg: np.ndarray, corrected: np.ndarray, correction_deg: np.ndarray, remaining_mm: np.ndarray) -> str:
+def _csv(q_deg: np.ndarray, corrected: np.ndarray, correction_deg: np.ndarray, remaining_mm: np.ndarray,
+         other: dict[str, list[str]] | None = None) -> str:
+    """The corrected program: ``q1..qN`` (deg), :data:`OUTPUT_COLUMNS`, then the program's other columns as written."""
+    other = other or {}
     n = q_deg.shape[1]
-    lines = [",".join([f"q{j}" for j in range(1, n + 1)] + ["corrected", "correction_deg", "remaining_mm"])]
-    for row, ok, move, rest in zip(q_deg, corrected, correction_deg, remaining_mm):
-        lines.append(",".join([repr(float(v)) for v in row] + [str(int(ok)), f"{move:.6g}", f"{rest:.6g}"]))
-    return "\n".join(lines) + "\n"
+    buffer = io.StringIO()
+    writer = csv.writer(buffer, lineterminator="\n")
+    writer.writerow([f"q{j}" for j in range(1, n + 1)] + list(OUTPUT_COLUMNS) + list(other))
+    for k, (row, ok, move, rest) in enumerate(zip(q_deg, corrected, correction_deg, remaining_mm)):
+        writer.writerow([repr(float(v)) for v in row] + [str(int(ok)), f"{move:.6g}", f"{rest:.6g}"]
+                        + [cells[k] for cells in other.values()])
+    return buffer.getvalue()
 
 
 def compensate_program(
@@ -232,11 +279,11 @@ def compensate_program(
     if is_tcp_program(targets):
         if start_deg is None:
             raise DataError("TCP poses (x, y, z) need a start configuration: give --start q1 .. qN (deg)", path=str(targets))
-        q, lines = read_tcp_targets(targets, stored.robot, start_deg)
+        q, lines, other = read_tcp_targets(targets, stored.robot, start_deg)
     else:
         if start_deg is not None:
             raise DataError("--start is for a file of TCP poses (x, y, z); this one holds joint targets", path=str(targets))
-        q, lines = read_targets(targets, stored.robot)
+        q, lines, other = read_targets(targets, stored.robot)
     graphs = build_graphs(stored, task=task, iterations=iterations, tool_length=tool_length_mm * 1e-3)
     if has_wrench_input(graphs):
         raise TorchcalError(f"{model_dir}: the model has a stiffness stage, whose compensator needs each target's "
@@ -268,7 +315,7 @@ def compensate_program(
     applied = (written - q).abs()
     worst = int(applied.amax(0).argmax()) if len(q) else 0
     text = _csv(np.degrees(written.numpy()), corrected.numpy(), np.degrees(applied.amax(-1).numpy()),
-                remaining_mm.numpy())
+                remaining_mm.numpy(), other)
     outcome = ProgramOutcome(out=out, n_targets=len(q), n_corrected=int(corrected.sum()), seconds=seconds,
                              largest_correction_deg=math.degrees(float(applied.max())) if len(q) else 0.0,
                              largest_correction_joint=worst + 1, not_corrected=failures, tcp_note=tcp_note,

@@ -34,12 +34,13 @@ def _mm(distance_m: float) -> str:
 
 
 def check_joint_unit(q_file: np.ndarray, joint_unit: str, limits_rad: np.ndarray, *, path: str,
-                     lines: tuple[int, ...] | list[int]) -> None:
+                     lines: tuple[int, ...] | list[int], advice: str = "set joint_unit=rad") -> None:
     """Refuse joints that look like radians read as degrees.
 
     Args:
         q_file: ``(B, N)`` joints as written in the file, in ``joint_unit``.
         limits_rad: ``(N, 2)`` joint limits, rad (infinite for a continuous joint).
+        advice: what the message tells the user to do (a command without ``joint_unit`` says otherwise).
     """
     if joint_unit != "deg" or len(q_file) < 5:
         return
@@ -52,7 +53,7 @@ def check_joint_unit(q_file: np.ndarray, joint_unit: str, limits_rad: np.ndarray
         row = int(np.abs(q_file[:, col]).argmax())
         raise DataError(
             f"every joint value lies within +-6.2832 (largest {largest:.4g}) although the robot's joints span up to "
-            f"{widest_limit_deg:.0f} deg: the joints look like radians; set joint_unit=rad",
+            f"{widest_limit_deg:.0f} deg: the joints look like radians; {advice}",
             path=path, row=lines[row], column=f"q{col + 1}")
 
 
