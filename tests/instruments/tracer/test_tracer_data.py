@@ -96,10 +96,11 @@ def test_count_rule_is_the_unknowns_less_the_frame(tmp_path, case):
         load_tracer_data(_write(tmp_path / "few.csv", q[:10], lengths[:10]), case.twin.robot)
 
 
-def test_wrong_length_unit_is_caught_by_the_triangle_inequality(tmp_path, case):
+def test_millimetres_read_as_metres_name_the_unit(tmp_path, case):
+    # refused by the readings' spread before the triangle inequality, so the message names the unit
     path = tmp_path / "lengths.csv"
     write_lengths_csv(path, case.q_train, case.lengths)
-    with pytest.raises(DataError, match=r"triangle inequality.*wrong length unit"):
+    with pytest.raises(DataError, match=r"column 'l\d': .*ratio .*: the lengths look like millimetres; set length_unit=mm"):
         load_tracer_data(path, case.twin.robot, length_unit="m")
 
 

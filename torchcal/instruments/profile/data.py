@@ -37,6 +37,9 @@ from torchcal.data.csv_table import (
 
 REQUIRED = ("scan", "u", "w")
 OPTIONAL = ("plane",)
+#: A profile sensor's line covers tens to hundreds of mm: when no scan of a file spans this much
+#: (m), its ``u, w`` were written in metres and read as mm.
+MIN_WIDEST_SCAN_M = 1e-3
 
 
 @dataclass(frozen=True)
@@ -132,6 +135,31 @@ def _label(cell: str, table: CsvTable, line: int, column: str) -> str:
     return str(int(value))
 
 
+def _check_scan_size(uw: np.ndarray, point_scan: np.ndarray, n_scans: int, length_unit: str, *, path: str,
+                     line: list[int], label: list[str]) -> None:
+    """Refuse ``u, w`` read as mm whose widest scan spans under :data:`MIN_WIDEST_SCAN_M`.
+
+    Args:
+        uw: ``(K, 2)`` points as read, m; ``point_scan`` ``(K,)`` their scan index.
+        line / label: first file line and label of each scan (for the message).
+    """
+    if length_unit != "mm":
+        return
+    low = np.full((n_scans, 2), np.inf)
+    high = np.full((n_scans, 2), -np.inf)
+    np.minimum.at(low, point_scan, uw)
+    np.maximum.at(high, point_scan, uw)
+    extent = np.linalg.norm(high - low, axis=1)  # bounding-box diagonal of each scan, m
+    s = int(extent.argmax())
+    if float(extent[s]) >= MIN_WIDEST_SCAN_M:
+        return
+    raise DataError(
+        f"the widest scan ('{label[s]}') spans only {extent[s] * 1e3:.3g} mm in (u, w), while a profile sensor "
+        "measures over tens to hundreds of mm: u, w look like metres; set length_unit=m",
+        path=path, row=line[s], column="u",
+    )
+
+
 def load_profile(
     path: str | Path,
     *,
@@ -157,7 +185,8 @@ def load_profile(
         DataError: file, line and column of the first problem found: missing or unknown
             columns, empty / non-numeric / non-finite cells, non-integer labels, a joint count
             that does not match the robot, joints outside the limits, rows of one scan with
-            different joints, or a scan with fewer than two distinct points.
+            different joints, a scan with fewer than two distinct points, or ``u, w`` in mm
+            whose widest scan spans less than 1 mm (metres read as mm).
     """
     check_units(joint_unit, length_unit, path)
     table = read_csv_table(path)
@@ -231,6 +260,8 @@ def load_profile(
         label = scan_of_row[first[s]]
         what = "one point" if count == 1 else f"{count} rows but a single distinct point"
         raise DataError(f"scan '{label}' has {what}; a scan needs at least two distinct (u, w) points", path=p, row=lines[first[s]], column="u")
+    _check_scan_size(uw, point_scan, n_scans, length_unit, path=p, line=[lines[k] for k in first_row],
+                     label=[scan_of_row[k] for k in first_row])
 
     plane = np.array([plane_index[plane_of_row[k]] for k in first_row], dtype=np.int64)
     return ProfileData(

@@ -25,6 +25,9 @@ from torchcal.instruments.profile.model import base_points, orthogonal_basis, pl
 from torchcal.kinematics import transforms as tf
 
 RANK_RATIO = 1e-8
+#: A sensor rotation known no better than this (1 sigma, deg, about any flange axis) is no pose
+#: to write: the data (wrong units, scans from other poses) do not determine it.
+MAX_SIGMA_ROTATION_DEG = 10.0
 
 
 @dataclass
@@ -139,6 +142,20 @@ def _check_rank(problem: ProfileProblem, jac: torch.Tensor) -> None:
     )
 
 
+def _check_sigma(problem: ProfileProblem, result: RefineResult) -> None:
+    """Refuse a solution whose rotation sigmas exceed :data:`MAX_SIGMA_ROTATION_DEG`, naming them."""
+    sigma = result.sigma_rotation_deg
+    loose = [f"{problem.names[i]} +-{v:.3g} deg" for i, v in enumerate(sigma) if not v <= MAX_SIGMA_ROTATION_DEG]
+    if not loose:
+        return
+    raise DataError(
+        f"the scans determine the sensor rotation only to {', '.join(loose)} (1 sigma, more than "
+        f"{MAX_SIGMA_ROTATION_DEG:g} deg) with a point-to-plane RMS of {result.sigma_residual * 1e3:.3g} mm: "
+        "check the u, w unit (length_unit) and that every scan's joints are the pose it was taken at",
+        path=problem.data.path,
+    )
+
+
 def refine(
     data: ProfileData,
     T_base_flange: torch.Tensor,
@@ -152,7 +169,8 @@ def refine(
     """Levenberg-Marquardt on all points, from a start (closed form or search), with covariance.
 
     Raises:
-        DataError: the Jacobian at the solution is rank deficient (names the parameters).
+        DataError: the Jacobian at the solution is rank deficient, or a rotation sigma exceeds
+            :data:`MAX_SIGMA_ROTATION_DEG` (names the parameters).
     """
     problem = ProfileProblem(data, T_base_flange.to(data.uw), R0.to(data.uw), normals0.to(data.uw))
     x0 = problem.initial(t0.to(data.uw), offsets0.to(data.uw))
@@ -165,7 +183,9 @@ def refine(
     s2 = float(r @ r) / dof
     covariance = s2 * torch.linalg.inv(jac.T @ jac)
     R, t, normals, offsets = problem.unpack(x)
-    return RefineResult(
+    result = RefineResult(
         R=R, t=t, normals=normals, offsets=offsets, covariance=covariance, sigma_residual=math.sqrt(s2),
         residuals=r, iterations=sol.iterations, converged=sol.converged, message=sol.message, history=sol.history,
     )
+    _check_sigma(problem, result)
+    return result

@@ -14,8 +14,9 @@ column: the strict CSV rules of :mod:`torchcal.data.csv_table`, the joint count 
 joint limits, station columns ``l1..lM`` without gaps, at least four stations, every station seeing
 enough poses, enough lengths for the unknowns (``K >= 3n + 4m - 6 + 1`` over the poses seen by at
 least three stations: points, stations and dead paths less the six of a rigid motion, plus one
-for the residual variance), and the triangle inequality against the nominal robot: between two
-poses a station's reading can change by no more than the reflector moved.
+for the residual variance), the size of the readings against the nominal robot (lengths in the
+wrong unit), and the triangle inequality against the nominal robot: between two poses a
+station's reading can change by no more than the reflector moved.
 """
 
 from __future__ import annotations
@@ -36,6 +37,9 @@ from torchcal.kinematics.robot import RobotModel
 
 MIN_STATIONS = 4
 MIN_POSES_PER_STATION = 5  # position and dead path (4 unknowns) plus one to check them
+#: Widest spread of one station's readings / the nominal TCP's spread outside this range is refused
+#: as a unit mistake (metres read as mm give about 1e-3, mm read as metres about 1e3).
+LENGTH_SPREAD_RATIO_RANGE = (0.01, 100.0)
 
 
 @dataclass(frozen=True)
@@ -79,11 +83,26 @@ class TracerData:
         return TracerData(self.q.to(device), self.lengths.to(device), self.source, self.line_numbers, self.sha256)
 
 
-def _station_columns(header: tuple[str, ...], path: str) -> list[str]:
+def station_columns(header: tuple[str, ...], path: str) -> list[str]:
+    """The station columns ``l1..lM`` of ``header`` in station order.
+
+    Raises:
+        DataError: a station number is missing (``l1, l3``) or repeated (``l1, l01``); names the
+            first column past the gap.
+    """
     names = [h for h in header if len(h) > 1 and h[0] == "l" and h[1:].isdigit()]
     numbers = sorted(int(h[1:]) for h in names)
     if numbers != list(range(1, len(numbers) + 1)):
-        raise DataError(f"station columns must be l1..lM without gaps, found {names}", path=path, row=1)
+        missing = next(k for k in range(1, len(numbers) + 2) if k not in numbers)
+        past = [h for h in names if int(h[1:]) > missing]
+        if past:  # a gap: name the first column after it
+            column = min(past, key=lambda h: int(h[1:]))
+            why = f"'{column}' without 'l{missing}'"
+        else:  # no gap, so a number is written twice ('l1' and 'l01')
+            column = next(h for h in names if numbers.count(int(h[1:])) > 1)
+            why = f"station {int(column[1:])} appears twice"
+        raise DataError(f"station columns must be l1..lM without gaps, found {names}: {why}",
+                        path=path, row=1, column=column)
     return [f"l{i}" for i in numbers]
 
 
@@ -130,7 +149,7 @@ def load_tracer_data(
     header = table.header
     n_j = robot.dof
     expected_q = joint_columns(header, p, n_j, robot.name)
-    stations = _station_columns(header, p)
+    stations = station_columns(header, p)
     extra = [h for h in header if h not in set(expected_q) | set(stations)]
     if extra:
         hint = ""
@@ -172,8 +191,61 @@ def load_tracer_data(
         sha256=sha256_file(p),
     )
     check_solvable(data)
+    # before the triangle inequality: a whole file in the wrong unit deserves the unit's name
+    check_length_spread(data, robot, length_unit)
     check_triangle_inequality(data, robot, tolerance_m=triangle_tolerance_mm * 1e-3)
     return data
+
+
+def check_length_spread(data: TracerData, robot: RobotModel, length_unit: str) -> None:
+    """Refuse readings whose size does not match the nominal TCP's motion at the file's joints.
+
+    A station's reading changes between two poses by at most the reflector's displacement and,
+    seen from a station beside the workspace, by a good part of it; so the spread of a station's
+    readings is comparable with the nominal TCP's. Lengths written in metres but read as mm (or the
+    reverse) miss it by about 1000, which the fit would absorb into a robot 1000 times too small
+    (or large). Dead paths make the readings' absolute values arbitrary, hence spreads (median
+    distance from the median, as for tracker points: a single wrong reading is left to the
+    triangle inequality, which names its row), not values.
+
+    Args:
+        data: readings ``(n, m)`` in m as read (NaN where not seen) and joints, rad.
+        robot: the nominal robot.
+        length_unit: the unit the file was read in (``mm`` or ``m``), for the message.
+
+    Raises:
+        DataError: naming the file, the station column of the widest spread and the likely unit.
+    """
+    if len(data) < MIN_POSES_PER_STATION:
+        return
+    with torch.no_grad():
+        tcp = robot.tcp_position(data.q.to(torch.float64)).cpu().numpy()
+    reference = float(np.median(np.linalg.norm(tcp - np.median(tcp, 0), axis=1)))
+    if reference <= 1e-4:  # the robot hardly moved: nothing to compare with
+        return
+    lengths = data.lengths.cpu().numpy()
+    spread = np.zeros(lengths.shape[1])
+    for j in range(lengths.shape[1]):
+        col = lengths[np.isfinite(lengths[:, j]), j]
+        if col.size:
+            spread[j] = float(np.median(np.abs(col - np.median(col))))
+    j = int(spread.argmax())
+    ratio = float(spread[j]) / reference
+    low, high = LENGTH_SPREAD_RATIO_RANGE
+    if low <= ratio <= high:
+        return
+    if ratio < low and length_unit == "mm":
+        hint = "the lengths look like metres; set length_unit=m"
+    elif ratio > high and length_unit == "m":
+        hint = "the lengths look like millimetres; set length_unit=mm"
+    else:
+        hint = f"check the robot file ({robot.name}) and the units of the file (length_unit={length_unit})"
+    widest = "" if data.n_stations == 1 else " (the widest of any station)"
+    raise DataError(
+        f"the readings of l{j + 1} spread {spread[j] * 1e3:.4g} mm around their median{widest}, the nominal robot's "
+        f"TCP at the same joints {reference * 1e3:.4g} mm (ratio {ratio:.3g}): {hint}",
+        path=data.source, column=f"l{j + 1}",
+    )
 
 
 def check_solvable(data: TracerData) -> None:

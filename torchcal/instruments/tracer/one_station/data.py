@@ -11,7 +11,7 @@ import torch
 
 from torchcal.core.errors import DataError
 from torchcal.data.csv_table import check_units, joint_columns, read_csv_table
-from torchcal.instruments.tracer.data import TracerData
+from torchcal.instruments.tracer.data import TracerData, check_length_spread, station_columns
 from torchcal.kinematics.robot import RobotModel
 
 
@@ -25,7 +25,9 @@ def load_length_data(path: str | Path, robot: RobotModel, *, joint_unit: str = "
     """Read ``q1..qN, l1`` into a one-station :class:`~torchcal.instruments.tracer.data.TracerData` (SI).
 
     Every problem is a :class:`DataError` naming the file, row and column; rows stay in file
-    order (the order the blocked cross-validation relies on).
+    order (the order the blocked cross-validation relies on). Refused besides the cells: another
+    station column without ``l2`` (``l1, l3``: a gap, not one station), and readings whose range
+    does not fit the nominal TCP's motion (lengths in the wrong unit).
     """
     path = Path(path)
     check_units(joint_unit, length_unit, path)
@@ -34,6 +36,8 @@ def load_length_data(path: str | Path, robot: RobotModel, *, joint_unit: str = "
     table = type(table)(path=table.path, header=header, rows=table.rows, line_numbers=table.line_numbers)
     if "l1" not in header:
         raise DataError("missing column 'l1' (a length-station file has q1..qN, l1)", path=str(path), row=1)
+    # 'l1, l3' is recognised here (no l2) but is a tracer file with a gap, not one station
+    station_columns(header, str(path))
     joints = joint_columns(header, path, robot.dof, robot.name)
     scale = math.pi / 180.0 if joint_unit == "deg" else 1.0
     q = torch.tensor(np.stack([table.column(j) for j in joints], -1) * scale, dtype=torch.float64)
@@ -49,4 +53,6 @@ def load_length_data(path: str | Path, robot: RobotModel, *, joint_unit: str = "
         raise DataError(f"{len(q)} rows are too few for a length station (anchor, attachment, offset: 7 unknowns "
                         "and cross-validation)", path=str(path))
     digest = hashlib.sha256(path.read_bytes()).hexdigest()
-    return TracerData(q, lengths.unsqueeze(-1), str(path), tuple(table.line_numbers), digest)
+    data = TracerData(q, lengths.unsqueeze(-1), str(path), tuple(table.line_numbers), digest)
+    check_length_spread(data, robot, length_unit)
+    return data
