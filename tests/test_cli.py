@@ -118,6 +118,9 @@ def test_tracer_simulate_fit_evaluate_register(tmp_path):
         assert metrics["n_poses"] == 150
         assert metrics["position_rms_mm"] < 1.25 * truth["noise_floor_rms_mm"], (method, metrics["position_rms_mm"])
     assert main(["export", "--model", str(tmp_path / "joint"), "--out", str(tmp_path / "onnx")]) == 0
+    # the tracer fit keeps its poses' joints: the export judges its corrections over them
+    manifest = json.loads((tmp_path / "onnx" / "manifest.json").read_text())
+    assert manifest["corrections"]["extent"]["training poses"]["n_poses"] > 0
 
 
 @pytest.mark.slow

@@ -146,7 +146,7 @@ def fit_tracer(robot_path, data_path, out_dir, overrides, *, base_link=None, end
         "notes": notes,
         "tracer": tracer,
     }
-    folder = save_model(Path(out_dir), robot, model, x, free, cov, meta)
+    folder = save_model(Path(out_dir), robot, model, x, free, cov, meta, training_q=data.q)
     return FitOutcome(folder, [
         ident.summary(),
         (f"{config.tracer_method}: length RMS {tracer['length_rms_um']:.3f} um, variance factor {tracer['variance_factor']:.3g}, "
