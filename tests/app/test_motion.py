@@ -160,3 +160,21 @@ def test_model_plans_the_real_robot(tmp_path, line_file, calibrated):
         errors[name] = np.linalg.norm(tcp - (start + lam[:, None] * u), axis=-1).max() * 1e3
     assert errors["model"] < 0.1
     assert errors["nominal"] > 5 * errors["model"]
+
+
+def test_a_failed_run_keeps_the_earlier_trajectory_and_its_report(tmp_path, line_file, capsys):
+    path, _ = line_file
+    out = tmp_path / "TRAJ.csv"
+    assert main(["motion", "--robot", ROBOT, "--path", str(path), "--out", str(out), _start_arg()]) == 0
+    trajectory, report = out.read_text(), (tmp_path / "TRAJ_report" / "report.md").read_text()
+    capsys.readouterr()
+    # a path that leaves the arm's reach into the same --out: the run fails
+    far = tmp_path / "far.csv"
+    poses = line_file[1].clone()
+    poses[1, :3, 3] = torch.tensor([1.8, 0.0, 0.7], dtype=torch.float64)  # 1.8 m: beyond the arm's reach
+    far.write_text(waypoints_csv(poses))
+    assert main(["motion", "--robot", ROBOT, "--path", str(far), "--out", str(out), _start_arg()]) == 2
+    err = capsys.readouterr().err
+    assert "kept from the earlier run" in err and "TRAJ_report_failed" in err
+    assert out.read_text() == trajectory and (tmp_path / "TRAJ_report" / "report.md").read_text() == report
+    assert "NOT written" in (tmp_path / "TRAJ_report_failed" / "report.md").read_text()

@@ -51,6 +51,11 @@ def default_report_folder(out: Path) -> Path:
     return out.with_name(f"{out.stem}_report")
 
 
+def failed_report_folder(report_dir: Path) -> Path:
+    """Where a failed run's report goes when an earlier trajectory (and its report) must stay: ``<report>_failed``."""
+    return report_dir.with_name(f"{report_dir.name}_failed")
+
+
 def kinematics_of(robot: RobotModel, model_dir: Path | None) -> tuple[TcpKinematics, str]:
     """TCP kinematics of the nominal robot or of a calibrated model folder, and a line saying which."""
     if model_dir is None:
@@ -169,11 +174,16 @@ def run_motion(robot_file: Path, path_file: Path, out: Path, overrides: list[str
     report = motion_report(f"Motion along {waypoints.path.name}", summary, metrics, series,
                            {"tolerance": options.tolerance, "orientation_eps": options.orientation_eps,
                             "position_eps": options.position_eps})
+    if failures and out.exists():
+        # an earlier run's trajectory stays, and so does the report that describes it
+        report_dir = failed_report_folder(report_dir)
+        claim_folder(report_dir, "report", "the failed run's report")
     write_report(report_dir, report)
     atomic_write_json(report_dir / "motion.json", metrics)
     stamp_folder(report_dir, "report")
     if failures:
-        raise TorchcalError(f"{'; '.join(failures)}; report in {report_dir / 'report.md'}; {out} not written")
+        kept = f"; {out} not written" if not out.exists() else f"; {out} and its report kept from the earlier run"
+        raise TorchcalError(f"{'; '.join(failures)}; report in {report_dir / 'report.md'}{kept}")
     atomic_write_text(out, trajectory_csv(planned))
     return MotionOutcome(trajectory=out, report=report_dir, metrics=metrics, lines=summary_lines(metrics, out, report_dir))
 
