@@ -81,6 +81,10 @@ class Measurements:
         )
 
 
+#: ``temp`` (deg C) outside this range is refused: no robot cell is measured there; a value in K or F is likely.
+TEMPERATURE_RANGE_C = (-40.0, 90.0)
+
+
 def load_measurements(
     path: str | Path,
     robot: RobotModel,
@@ -146,7 +150,16 @@ def load_measurements(
         ang = np.stack([table.column(c) for c in ORIENTATION], 1) * (math.pi / 180.0)
         rotation = euler_xyz_to_matrix(torch.from_numpy(ang))
     wrench = torch.from_numpy(np.stack([table.column(c) for c in WRENCH], 1)) if present_w else None
-    temperature = torch.from_numpy(table.column("temp")) if "temp" in header else None
+    temperature = None
+    if "temp" in header:
+        temp = table.column("temp")
+        outside = np.flatnonzero((temp < TEMPERATURE_RANGE_C[0]) | (temp > TEMPERATURE_RANGE_C[1]))
+        if len(outside):
+            k = int(outside[0])
+            raise DataError(f"temperature {temp[k]:g} deg C is outside {TEMPERATURE_RANGE_C[0]:g} to "
+                            f"{TEMPERATURE_RANGE_C[1]:g} deg C, where robots are measured (temp is in deg C, not K or F)",
+                            path=p, row=table.line_numbers[k], column="temp")
+        temperature = torch.from_numpy(temp)
 
     # Exactly repeated rows are a copy-paste accident; the same joints measured again with a
     # different result are legitimate repeatability data and are kept.

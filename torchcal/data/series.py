@@ -28,6 +28,7 @@ def pool_series(series: list[Measurements]) -> Measurements:
     """
     if not series:
         raise DataError("no measurement series given")
+    refuse_repeated_series(series)
     first = series[0]
     for other in series[1:]:
         if other.q.shape[1] != first.q.shape[1]:
@@ -49,6 +50,33 @@ def pool_series(series: list[Measurements]) -> Measurements:
         source=" + ".join(s.source for s in series),
         line_numbers=tuple(line for s in series for line in s.line_numbers), sha256=digest, series=index,
     )
+
+
+def refuse_repeated_series(series: list[Measurements]) -> None:
+    """Refuse a file given twice (the same content), or a row copied from one series into another.
+
+    Pooled copies would count the same measurements twice: the fit's uncertainty and its few-poses
+    warnings would claim twice the evidence there is.
+
+    Raises:
+        DataError: naming the file, the row and where its copy lies.
+    """
+    seen_files: dict[str, str] = {}
+    seen_rows: dict[bytes, tuple[str, int]] = {}
+    for s in series:
+        if s.sha256 and s.sha256 in seen_files:  # an empty digest: a set made in memory, not read from a file
+            raise DataError(f"has the same content as {seen_files[s.sha256]}: one series given twice", path=s.source)
+        seen_files[s.sha256] = s.source
+        rows = torch.cat([s.q, s.position], 1).to(torch.float64).numpy()
+        own: dict[bytes, tuple[str, int]] = {}
+        for row, line in zip(rows, s.line_numbers or range(2, len(rows) + 2)):
+            key = row.tobytes()
+            if key in seen_rows:
+                source, first_line = seen_rows[key]
+                raise DataError(f"copies row {first_line} of {source} exactly (same joints and same measurement): a row "
+                                "of one series pasted into another", path=s.source, row=line)
+            own[key] = (s.source, line)
+        seen_rows.update(own)
 
 
 def split_series(data: Measurements) -> list[Measurements]:
