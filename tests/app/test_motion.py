@@ -178,3 +178,19 @@ def test_a_failed_run_keeps_the_earlier_trajectory_and_its_report(tmp_path, line
     assert "kept from the earlier run" in err and "TRAJ_report_failed" in err
     assert out.read_text() == trajectory and (tmp_path / "TRAJ_report" / "report.md").read_text() == report
     assert "NOT written" in (tmp_path / "TRAJ_report_failed" / "report.md").read_text()
+
+
+@pytest.mark.parametrize("columns, factor, expected", [
+    ((0, 1, 2), 1e-3, "x, y, z look like metres"),
+    ((3, 4, 5), DEG, "rx, ry, rz look like radians"),
+])
+def test_a_path_in_the_wrong_units_is_refused_naming_them(tmp_path, line_file, capsys, columns, factor, expected):
+    lines = line_file[0].read_text().splitlines()
+    rows = [[float(v) for v in line.split(",")] for line in lines[1:]]
+    edited = [",".join(f"{v * factor:.9g}" if k in columns else f"{v:.9g}" for k, v in enumerate(row)) for row in rows]
+    path = tmp_path / "wrong.csv"
+    path.write_text("\n".join([lines[0], *edited]) + "\n")
+    code = main(["motion", "--robot", ROBOT, "--path", str(path), "--out", str(tmp_path / "t.csv"), _start_arg()])
+    err = capsys.readouterr().err
+    assert code == 2 and expected in err and "wrong.csv" in err and err.count("\n") == 1
+    assert not (tmp_path / "t_report").exists()

@@ -17,14 +17,15 @@ import numpy as np
 import torch
 
 from torchcal.config.compose import compose_options
-from torchcal.core.errors import ModelError, TorchcalError
+from torchcal.core.errors import DataError, ModelError, TorchcalError
 from torchcal.core.io import atomic_write_json, atomic_write_text
 from torchcal.core.outputs import claim_file, claim_folder, csv_with_header, stamp_folder
+from torchcal.kinematics import transforms as tf
 from torchcal.kinematics.error_model import ErrorModel
 from torchcal.kinematics.robot import RobotModel, load_robot
 from torchcal.motion.planner import PlannedMotion, PlanOptions, measure, plan_motion
 from torchcal.motion.priority import TcpKinematics
-from torchcal.motion.waypoints import load_waypoints
+from torchcal.motion.waypoints import Waypoints, load_waypoints
 
 DEG = math.pi / 180.0
 
@@ -49,6 +50,44 @@ class MotionOutcome:
 def default_report_folder(out: Path) -> Path:
     """``TRAJ_report/`` next to ``TRAJ.csv``."""
     return out.with_name(f"{out.stem}_report")
+
+
+#: Waypoints all closer to the base than this share of the arm's reach: metres written as mm.
+METRES_AS_MM_REACH_SHARE = 0.01
+#: The first waypoint's orientation read as radians this close to the start pose (deg) while read as
+#: degrees (the contract) it is further than :data:`DEGREES_FAR_DEG` off: the angles are in radians.
+RADIANS_NEAR_DEG, DEGREES_FAR_DEG = 5.0, 20.0
+
+
+def refuse_implausible_path(robot: RobotModel, waypoints: Waypoints, start_deg: list[float]) -> None:
+    """Refuse a path file in the wrong units: ``x, y, z`` in metres, ``rx, ry, rz`` in radians.
+
+    Judged against the nominal robot: its reach over the joint range, and its TCP orientation at
+    the start joints (the first waypoint is solved from there, so it is usually near it).
+
+    Raises:
+        DataError: naming the file, the column and the likely unit.
+    """
+    model = ErrorModel(robot)
+    x = model.nominal_vector()
+    with torch.no_grad():
+        reach = float(model.tcp_position(robot.sample_joints(200, torch.Generator().manual_seed(0)), x).norm(dim=-1).max())
+        start = model.tcp_pose(torch.tensor(start_deg, dtype=torch.float64).unsqueeze(0) * DEG, x)[0]
+    farthest = float(waypoints.poses[:, :3, 3].norm(dim=-1).max())
+    if farthest < METRES_AS_MM_REACH_SHARE * reach:
+        raise DataError(f"every waypoint lies within {farthest * 1e3:.3g} mm of the base origin, the robot reaches "
+                        f"{reach * 1e3:.0f} mm: x, y, z look like metres; a path file gives mm", path=str(waypoints.path),
+                        row=waypoints.lines[0], column="x")
+    first = waypoints.poses[0, :3, :3]
+    written = tf.matrix_to_euler_xyz(first) * (180.0 / math.pi)  # the first row's rx, ry, rz as written
+    if float(written.abs().max()) > 2 * math.pi:
+        return  # beyond one turn: not radians
+    as_degrees = math.degrees(float(tf.rotation_angle(first @ start[:3, :3].T)))
+    as_radians = math.degrees(float(tf.rotation_angle(tf.euler_xyz_to_matrix(written) @ start[:3, :3].T)))
+    if as_radians < RADIANS_NEAR_DEG and as_degrees > DEGREES_FAR_DEG:
+        raise DataError(f"read in degrees the first waypoint's orientation is {as_degrees:.1f} deg from the start pose's, "
+                        f"read in radians {as_radians:.1f} deg: rx, ry, rz look like radians; a path file gives deg",
+                        path=str(waypoints.path), row=waypoints.lines[0], column="rx")
 
 
 def failed_report_folder(report_dir: Path) -> Path:
@@ -117,6 +156,7 @@ def run_motion(robot_file: Path, path_file: Path, out: Path, overrides: list[str
     robot = load_robot(robot_file)
     options.check(robot)
     waypoints = load_waypoints(path_file)
+    refuse_implausible_path(robot, waypoints, options.start)
     kin, source = kinematics_of(robot, Path(model_dir) if model_dir is not None else None)
     planned = plan_motion(kin, robot, waypoints.poses, options)
     settings = options.priority()
