@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -194,3 +195,14 @@ def test_a_path_in_the_wrong_units_is_refused_naming_them(tmp_path, line_file, c
     err = capsys.readouterr().err
     assert code == 2 and expected in err and "wrong.csv" in err and err.count("\n") == 1
     assert not (tmp_path / "t_report").exists()
+
+
+def test_a_model_with_another_robot_file_is_refused(tmp_path, line_file, calibrated, capsys):
+    _, model_dir = calibrated
+    other = tmp_path / "wide.yaml"
+    other.write_text(Path(ROBOT).read_text().replace("min: -170", "min: -175", 1))  # same name, other limits
+    assert "min: -175" in other.read_text()
+    code = main(["motion", "--robot", str(other), "--path", str(line_file[0]), "--out", str(tmp_path / "t.csv"),
+                 _start_arg(), "--model", str(model_dir)])
+    err = capsys.readouterr().err
+    assert code == 2 and "differ in their joint limits" in err

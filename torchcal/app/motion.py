@@ -109,6 +109,15 @@ def kinematics_of(robot: RobotModel, model_dir: Path | None) -> tuple[TcpKinemat
     if stored.robot.dof != robot.dof or stored.robot.name != robot.name:
         raise ModelError(f"{model_dir}: the model is of robot '{stored.robot.name}' ({stored.robot.dof} joints), "
                          f"--robot is '{robot.name}' ({robot.dof} joints)")
+    differs = [what for what, a, b in (("kinematic table", stored.robot.table, robot.table),
+                                       ("joint limits", stored.robot.joint_limits, robot.joint_limits),
+                                       ("base frame", stored.robot.T_base_0, robot.T_base_0),
+                                       ("flange", stored.robot.T_n_flange, robot.T_n_flange))
+               if a.shape != b.shape or not torch.allclose(a.to(torch.float64), b.to(torch.float64), rtol=0, atol=1e-9,
+                                                           equal_nan=True)]
+    if differs:  # the plan takes its limits from --robot and its kinematics from the model: both must be one robot
+        raise ModelError(f"{model_dir}: the model's robot file and --robot differ in their {', '.join(differs)}; give the "
+                         f"robot file the model was fitted with ({model_dir / 'robot.yaml'} or robot.urdf)")
     model, x = stored.model, stored.x.to(torch.float64).cpu()
     errors = JointSpaceErrors.from_metadata(stored.metadata)
     joint_map = None if errors.empty else (lambda q: errors.effective_joints(stored.robot, q))
