@@ -186,7 +186,7 @@ def test_export_with_a_tool_length_states_it_and_the_default_warns_of_turned_too
     from torchcal.cli import main
 
     # the default export (position first, the TCP alone judged): its convergence report counts the turned tools
-    folder, manifest = exported
+    _, manifest = exported
     uniform = manifest["convergence"]["strata"]["uniform"]
     assert uniform["share_tool_turn_added_above_1_deg"] > 0 and manifest["solver"]["tool_length_m"] == 0.0
     assert main(["export", "--model", str(model_dir), "--out", str(tmp_path / "held")]) == 0

@@ -65,7 +65,7 @@ def test_blocks_cut_each_series_in_its_own_order(robot):
 def test_a_series_given_twice_or_a_row_pasted_across_series_is_refused(robot):
     a, b = _series(robot, 30, 1, "a.csv"), _series(robot, 20, 2, "b.csv")
     copy = Measurements(q=a.q, position=a.position, source="copy.csv", line_numbers=a.line_numbers, sha256=a.sha256)
-    with pytest.raises(DataError, match="same content as a.csv"):
+    with pytest.raises(DataError, match=r"same content as a\.csv"):
         pool_series([a, copy])
     pasted = Measurements(q=torch.cat([b.q, a.q[7:8]]), position=torch.cat([b.position, a.position[7:8]]),
                           source="b2.csv", line_numbers=tuple(range(2, 23)), sha256="b2" * 32)
