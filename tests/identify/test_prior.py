@@ -106,6 +106,8 @@ def test_robot_file_and_options_override_the_defaults(tmp_path):
     tol = resolve_tolerances(str(path), {"joint_offset_deg": 0.5, "tool_mm": None})
     assert (tol.length_mm, tol.joint_offset_deg, tol.angle_deg, tol.tool_mm) == (2.0, 0.5, Tolerances().angle_deg,
                                                                                Tolerances().tool_mm)
+    path.write_text("name: r\ncalibration_prior: {length_mm: 2e0}\nkinematics: {}\n")  # YAML 1.1 reads 2e0 as text
+    assert resolve_tolerances(str(path)).length_mm == 2.0
     path.write_text("name: r\ncalibration_prior: {lenght_mm: 2.0}\nkinematics: {}\n")
     with pytest.raises(ModelError, match="lenght_mm"):
         resolve_tolerances(str(path))

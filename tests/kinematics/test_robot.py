@@ -187,3 +187,143 @@ def test_urdf_parser_notes_name_a_misspelt_attribute(tmp_path, capfd):
     with pytest.warns(UserWarning, match='Unknown attribute "rpi"'):
         load_robot(path)
     assert "Unknown" not in capfd.readouterr().err  # nothing printed by the parser itself
+
+
+# ------------------------------------------------------------- typos, duplicates and wrong units
+
+TWIN = Path(__file__).parents[2] / "torchcal" / "resources" / "robots" / "twin-kr6.yaml"
+REAL = Path("/work/shared/data/real")
+
+
+def _twin_with(tmp_path: Path, old: str, new: str) -> Path:
+    """The embedded twin's YAML with ``old`` replaced by ``new`` (the edit must apply)."""
+    text = TWIN.read_text()
+    assert old in text
+    path = tmp_path / "robot.yaml"
+    path.write_text(text.replace(old, new, 1))
+    return path
+
+
+@pytest.mark.parametrize("old, new, match", [
+    ("length_unit: mm", "lenght_unit: mm",
+     r"kinematics has unknown key 'lenght_unit' \(did you mean 'length_unit'\?\); allowed: convention, length_unit"),
+    ("name: twin-kr6", "name: twin-kr6\nkinematic: {}",
+     r"the top level has unknown key 'kinematic' \(did you mean 'kinematics'\?\); allowed: name, kinematics"),
+    ("theta: -90,", "thetaa: -90, theta: -90,", r"joint 2 has unknown key 'thetaa' \(did you mean 'theta'\?\)"),
+])
+def test_unknown_key_at_every_level_is_refused_with_the_closest_match(tmp_path, old, new, match):
+    path = _twin_with(tmp_path, old, new)
+    with pytest.raises(ModelError, match=match) as info:
+        load_robot(path)
+    assert str(path) in str(info.value)
+
+
+@pytest.mark.parametrize("old, new, match", [
+    ("d: 400,", "d: 400, d: 500,", r"line 8: key 'd' is given twice in one mapping"),
+    ("angle_unit: deg", "angle_unit: deg\n  length_unit: m", r"line 7: key 'length_unit' is given twice in one "
+                                                              r"mapping \(first on line 5\)"),
+])
+def test_duplicate_yaml_key_is_refused_naming_key_and_line(tmp_path, old, new, match):
+    path = _twin_with(tmp_path, old, new)
+    with pytest.raises(ModelError, match=match) as info:
+        load_robot(path)
+    assert str(info.value).startswith(str(path))
+
+
+def test_yaml_merge_key_may_be_overridden(tmp_path):
+    """``<<: *base`` then the same key is YAML's way to override, not a duplicate."""
+    path = _twin_with(tmp_path, "    - {alpha: 0,   a: 0,   d: 400, theta: 0,   min: -170, max: 170}",
+                      "    - &j1 {alpha: 0,   a: 0,   d: 300, theta: 0,   min: -170, max: 170}\n"
+                      "    - {<<: *j1, alpha: -90, a: 25, d: 0, theta: -90, min: -190, max: 45}")
+    path.write_text(path.read_text().replace("    - {alpha: -90, a: 25,  d: 0,   theta: -90, min: -190, max: 45}\n", ""))
+    robot = load_robot(path)
+    assert robot.dof == 6 and robot.table[1, 4] == 0.0 and robot.table[0, 4] == pytest.approx(0.3)
+
+
+def test_exponent_notation_without_a_dot_is_a_number(robot, tmp_path):
+    path = _twin_with(tmp_path, "a: 455,", "a: 455e0,")
+    text = path.read_text().replace("d: 420,", "d: 4.2e2,").replace("tool: [0.0, 0.0, 100.0]", "tool: [0, 0, 1E+2]")
+    path.write_text(text)
+    loaded = load_robot(path)
+    assert torch.equal(loaded.table, robot.table) and torch.equal(loaded.tool, robot.tool)
+    # a quoted value stays text: refused, naming the key
+    path.write_text(text.replace("a: 455e0,", "a: '455e0',"))
+    with pytest.raises(ModelError, match="joint 3 'a' must be a number, got '455e0'"):
+        load_robot(path)
+
+
+@pytest.mark.parametrize("old, new, match", [
+    ("min: -170, max: 170", "min: -100000, max: 100000",
+     r"joint 1 'min'/'max' -100000..100000 deg: more than 2 turns \(720 deg\): not a joint range"),
+    ("angle_unit: deg", "angle_unit: rad", r"joint 1 'min'/'max' -170..170 rad: .*look like degrees: set "
+                                           r"kinematics.angle_unit: deg"),
+    ("min: -350, max: 350", "min: 700, max: 800", r"joint 6 'min'/'max' 700..800 deg: more than 2 turns"),
+])
+def test_yaml_joint_limits_wider_than_two_turns_are_refused(tmp_path, old, new, match):
+    with pytest.raises(ModelError, match=match):
+        load_robot(_twin_with(tmp_path, old, new))
+
+
+def test_two_turn_joint_range_is_accepted(tmp_path):
+    robot = load_robot(_twin_with(tmp_path, "min: -350, max: 350", "min: -360, max: 360"))  # as a UR's joints
+    assert float(robot.joint_limits[5, 1]) == pytest.approx(2 * math.pi)
+
+
+def _offset_urdf_with(tmp_path: Path, edit) -> Path:
+    path = tmp_path / "arm.urdf"
+    path.write_text(edit(OFFSET.read_text()) + f"<!-- {tmp_path.name} -->")  # unique text: the cache is by content
+    return path
+
+
+def test_urdf_limits_in_degrees_are_refused(tmp_path):
+    path = _offset_urdf_with(tmp_path, lambda t: t.replace('lower="-3.0" upper="3.0"', 'lower="-170" upper="170"', 1))
+    with pytest.raises(ModelError, match=r"joint 'j1': <limit lower/upper> -170, 170 rad: more than 2 turns "
+                                         r"\(720 deg\): they look like degrees where URDF expects radians"):
+        load_robot(path)
+
+
+def test_urdf_in_millimetres_is_refused(tmp_path):
+    import re
+
+    def to_mm(text: str) -> str:
+        scale = lambda m: 'xyz="' + " ".join(f"{float(v) * 1000:g}" for v in m.group(1).split()) + '"'  # noqa: E731
+        return re.sub(r'(?<=<origin )xyz="([^"]*)"', scale, text)
+
+    path = _offset_urdf_with(tmp_path, to_mm)
+    assert load_robot(OFFSET).table[:, 1].abs().max() > 0.1  # the edit scaled real lengths
+    with pytest.raises(ModelError, match=r"arm.urdf: the nominal TCP reaches [0-9.e+]+ m from the base, beyond what "
+                                         r"an arm reaches \(0.05 to 20 m\): the lengths look like millimetres"):
+        load_robot(path)
+
+
+@pytest.mark.parametrize("unit, scale, expected", [("m", 1.0, "mm"), ("mm", 1e-3, "m")])
+def test_yaml_length_unit_that_does_not_match_its_values_is_refused(tmp_path, unit, scale, expected):
+    """The twin (mm) declared in metres, and the twin written in metres declared in mm."""
+    import re
+
+    path = _twin_with(tmp_path, "length_unit: mm", f"length_unit: {unit}")
+    text = re.sub(r"\b(a|d): +(-?[0-9.]+)", lambda m: f"{m.group(1)}: {float(m.group(2)) * scale:g}", path.read_text())
+    path.write_text(text.replace("tool: [0.0, 0.0, 100.0]", f"tool: [0, 0, {100 * scale:g}]"))
+    assert scale == 1.0 or "d: 0.4," in path.read_text()
+    with pytest.raises(ModelError, match=rf"robot.yaml: the nominal TCP reaches .* kinematics.length_unit is '{unit}' "
+                                         rf"but the values \(a, d, tool\) look like {expected}: set length_unit: "
+                                         rf"{expected}"):
+        load_robot(path)
+
+
+def test_negative_d1_is_legal_geometry(tmp_path):
+    loaded = load_robot(_twin_with(tmp_path, "d: 400,", "d: -400,"))
+    assert float(loaded.table[0, 4]) == pytest.approx(-0.4)
+
+
+@pytest.mark.parametrize("path", sorted((Path(__file__).parents[2] / "torchcal" / "resources" / "robots").glob("*.yaml"))
+                         + sorted(REAL.glob("*/robot.yaml")), ids=lambda p: f"{p.parent.name}/{p.name}")
+def test_embedded_and_real_robot_files_load(path):
+    robot = load_robot(path)
+    assert robot.dof >= 6
+
+
+def test_real_robot_folder_has_robot_files():
+    if not REAL.is_dir():
+        pytest.skip(f"{REAL} is not here")
+    assert list(REAL.glob("*/robot.yaml"))

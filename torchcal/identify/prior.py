@@ -45,6 +45,7 @@ from torchcal.identify.lm import LevenbergMarquardt
 from torchcal.identify.problem import LeastSquaresProblem
 from torchcal.identify.uncertainty import _widened
 from torchcal.kinematics.robot import read_robot_text
+from torchcal.kinematics.robot_checks import StrictSafeLoader
 
 #: Parameter kinds of the error layout and how a name maps to one.
 KINDS = ("length_mm", "angle_deg", "joint_offset_deg", "tool_mm", "tool_deg")
@@ -110,7 +111,7 @@ def robot_file_tolerances(source: str | None) -> dict[str, float]:
     """The ``calibration_prior`` mapping of a YAML robot file (empty when it has none)."""
     if not source or Path(source).suffix.lower() not in (".yaml", ".yml") or not Path(source).is_file():
         return {}
-    doc = yaml.safe_load(read_robot_text(Path(source)))
+    doc = yaml.load(read_robot_text(Path(source)), Loader=StrictSafeLoader)  # as the robot loader reads it: 1e-2 a number
     section = doc.get("calibration_prior") if isinstance(doc, dict) else None
     if section is None:
         return {}

@@ -26,11 +26,22 @@ from torchcal.core.errors import ModelError
 from torchcal.kinematics import transforms as tf
 from torchcal.kinematics.axes import mdh_from_axes
 from torchcal.kinematics.mdh import chain_transforms
+from torchcal.kinematics.robot_checks import (
+    DuplicateKeyError,
+    StrictSafeLoader,
+    check_keys,
+    check_reach,
+    joint_span_problem,
+    span_cause,
+)
 
 _LENGTH_UNITS = {"m": 1.0, "mm": 1e-3, "cm": 1e-2}
 _ANGLE_UNITS = {"rad": 1.0, "deg": math.pi / 180.0}
 _ROW_KEYS = ("alpha", "a", "d", "theta")
 _OPTIONAL_ROW_KEYS = ("beta", "min", "max", "continuous", "velocity", "acceleration")
+#: Keys the YAML may have (``calibration_prior`` is read by :mod:`torchcal.identify.prior`).
+_TOP_KEYS = ("name", "kinematics", "calibration_prior")
+_KINEMATICS_KEYS = ("convention", "length_unit", "angle_unit", "joints", "tool")
 
 
 @dataclass(frozen=True)
@@ -149,8 +160,9 @@ def read_robot_text(path: Path) -> str:
         raise ModelError(f"{path}: line {line}: not UTF-8 text (byte 0x{data[exc.start]:02x})") from None
 
 
-class _LimitedLoader(yaml.SafeLoader):
-    """``yaml.SafeLoader`` that refuses more than :data:`MAX_YAML_ALIASES` aliases."""
+class _LimitedLoader(StrictSafeLoader):
+    """A :class:`StrictSafeLoader` (no duplicate keys, ``455e0`` a number) that refuses more than
+    :data:`MAX_YAML_ALIASES` aliases."""
 
     aliases = 0
 
@@ -176,6 +188,8 @@ def robot_from_yaml(path: str | Path) -> RobotModel:
     text = read_robot_text(path)
     try:
         doc = yaml.load(text, Loader=_LimitedLoader)  # a SafeLoader with an alias limit
+    except DuplicateKeyError as exc:
+        raise ModelError(f"{path}: {exc}") from None
     except yaml.YAMLError as exc:
         detail = str(exc).splitlines()[0] if "aliases" in str(exc) else exc.__class__.__name__
         raise ModelError(f"{path}: not valid YAML ({detail})") from None
@@ -183,7 +197,9 @@ def robot_from_yaml(path: str | Path) -> RobotModel:
         raise ModelError(f"{path}: not a robot file (YAML nested too deeply to read)") from None
     if not isinstance(doc, dict) or not isinstance(doc.get("kinematics"), dict):
         raise ModelError(f"{path}: expected a mapping with a 'kinematics' section")
+    check_keys(doc, _TOP_KEYS, path, "the top level")
     kin = doc["kinematics"]
+    check_keys(kin, _KINEMATICS_KEYS, path, "kinematics")
     convention = str(kin.get("convention", "")).lower()
     if convention != "mdh":
         raise ModelError(
@@ -204,9 +220,7 @@ def robot_from_yaml(path: str | Path) -> RobotModel:
     for i, row in enumerate(joints, start=1):
         if not isinstance(row, dict):
             raise ModelError(f"{path}: joint {i} must be a mapping with keys {_ROW_KEYS}")
-        unknown = set(row) - set(_ROW_KEYS) - set(_OPTIONAL_ROW_KEYS)
-        if unknown:
-            raise ModelError(f"{path}: joint {i} has unknown key(s) {sorted(unknown)}")
+        check_keys(row, _ROW_KEYS + _OPTIONAL_ROW_KEYS, path, f"joint {i}")
         missing = [k for k in _ROW_KEYS if k not in row]
         if missing:
             raise ModelError(f"{path}: joint {i} lacks {missing}")
@@ -224,6 +238,8 @@ def robot_from_yaml(path: str | Path) -> RobotModel:
             hi = _number(row.get("max", 180.0 if angle_unit == "deg" else math.pi), path, f"joint {i} 'max'")
         if lo >= hi:
             raise ModelError(f"{path}: joint {i} has min {lo} >= max {hi}")
+        if not continuous and joint_span_problem(lo * as_, hi * as_):
+            raise ModelError(f"{path}: joint {i} 'min'/'max' {lo:g}..{hi:g} {angle_unit}: {span_cause(lo, hi, angle_unit)}")
         rows.append([alpha * as_, a * ls, beta * as_, theta * as_, d * ls])
         limits.append([lo * as_, hi * as_])
         if "velocity" in row:
@@ -235,7 +251,7 @@ def robot_from_yaml(path: str | Path) -> RobotModel:
         raise ModelError(f"{path}: kinematics.tool must be a list of 3 numbers [x, y, z]")
     tool_m = [_number(v, path, "kinematics.tool") * ls for v in tool]
     n = len(rows)
-    return RobotModel(
+    robot = RobotModel(
         name=_robot_name(doc.get("name", path.stem), path),
         joint_names=tuple(f"joint{i}" for i in range(1, n + 1)),
         table=torch.tensor(rows, dtype=torch.float64),
@@ -245,6 +261,8 @@ def robot_from_yaml(path: str | Path) -> RobotModel:
         velocity_limits=torch.tensor(velocities, dtype=torch.float64) if len(velocities) == n else None,
         acceleration_limits=torch.tensor(accelerations, dtype=torch.float64) if len(accelerations) == n else None,
     )
+    check_reach(robot, path, length_unit, _LENGTH_UNITS)  # values in mm under length_unit: m, or the reverse
+    return robot
 
 
 def robot_to_yaml(robot: RobotModel, table: torch.Tensor | None = None, tool: torch.Tensor | None = None) -> str:
@@ -432,7 +450,7 @@ def robot_from_urdf(
             _URDF_CACHE[k] = parsed
         if parsed.notes:  # once per text: its copy in a model folder says nothing new
             warnings.warn(_notes_warning(path, parsed.notes), stacklevel=2)
-    return RobotModel(
+    robot = RobotModel(
         name=path.stem,
         joint_names=parsed.joint_names,
         table=parsed.table.clone(),
@@ -445,6 +463,8 @@ def robot_from_urdf(
         base_link=parsed.base_link,
         end_link=parsed.end_link,
     )
+    check_reach(robot, path, None, {})  # origins in mm where URDF expects m
+    return robot
 
 
 def _parse_urdf(path: Path, text: str, base_link: str | None, end_link: str | None) -> _ParsedUrdf:
@@ -511,6 +531,10 @@ def _parse_urdf(path: Path, text: str, base_link: str | None, end_link: str | No
             # a NaN limit would switch every range check off without a word
             raise ModelError(f"{path}: joint '{joint.name}': <limit lower/upper> must be finite numbers with "
                              f"lower < upper, got {float(lim[0])!r}, {float(lim[1])!r}")
+        if lim is not None and joint_span_problem(float(lim[0]), float(lim[1])):  # degrees read as radians
+            lo, hi = float(lim[0]), float(lim[1])
+            raise ModelError(f"{path}: joint '{joint.name}': <limit lower/upper> {lo:g}, {hi:g} rad: "
+                             f"{span_cause(lo, hi, None)}")
         limits.append([float(lim[0]), float(lim[1])] if lim is not None else [-math.pi, math.pi])
     return _ParsedUrdf(joint_names=joint_names, table=axes.table, T_base_0=axes.T_base_0, T_n_flange=axes.T_n_flange,
                        limits=torch.tensor(limits, dtype=torch.float64), base_link=base_link, end_link=end_link, notes=())
