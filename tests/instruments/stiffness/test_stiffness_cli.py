@@ -24,20 +24,6 @@ from torchcal.sim.twin import Twin, TwinConfig
 from torchcal.stages.store import load_model
 
 
-@pytest.fixture(scope="module")
-def case(tmp_path_factory):
-    out = tmp_path_factory.mktemp("stiffness") / "case"
-    assert main(["simulate", "instrument=stiffness", "--out", str(out), "n_train=80", "n_test=60", "seed=3"]) == 0
-    return out
-
-
-@pytest.fixture(scope="module")
-def fitted(case, tmp_path_factory):
-    model = tmp_path_factory.mktemp("fit") / "model"
-    assert main(["fit", "--robot", str(case / "robot.yaml"), "--data", str(case / "stiffness_train.csv"), "--out", str(model)]) == 0
-    return model
-
-
 def test_simulate_writes_the_case_files(case):
     names = sorted(p.name for p in case.iterdir())
     # and the hidden stamp that marks it as a twin case (torchcal.core.outputs)

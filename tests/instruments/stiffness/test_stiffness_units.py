@@ -51,19 +51,6 @@ def _one_error_line(err: str) -> str:
     return lines[0]
 
 
-@pytest.fixture(scope="module")
-def case(tmp_path_factory):
-    out = tmp_path_factory.mktemp("units") / "case"
-    assert main(["simulate", "instrument=stiffness", "--out", str(out), "n_train=40", "n_test=20", "seed=3"]) == 0
-    return out
-
-
-@pytest.fixture(scope="module")
-def fitted(case, tmp_path_factory):
-    model = tmp_path_factory.mktemp("units_fit") / "model"
-    assert main(["fit", "--robot", str(case / "robot.yaml"), "--data", str(case / "stiffness_train.csv"), "--out", str(model),
-                 "parameters=classic"]) == 0
-    return model
 
 
 @pytest.mark.parametrize("mistake", list(MISTAKES))
