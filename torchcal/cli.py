@@ -122,7 +122,7 @@ def _cmd_evaluate(args) -> int:
 
 
 def _cmd_export(args) -> int:
-    from torchcal.compensate.export import export_model
+    from torchcal.compensate.export import export_model, turned_tool_warning
 
     manifest = export_model(args.model, args.out, iterations=args.iterations, portable=args.portable, task=args.task,
                             tcp_mm=args.tcp_mm, tcp_rpy_deg=args.tcp_rpy_deg,
@@ -147,29 +147,10 @@ def _cmd_export(args) -> int:
               + f"), the tool orientation deviation up to {e['largest_tool_rotation_deg']:.3g} deg")
     for line in manifest["corrections"]["exceeded_but_allowed"]:
         print(f"warning: {line} (allowed by --allow-large-corrections)")
-    turned = _turned_tool_warning(manifest)
+    turned = turned_tool_warning(manifest)
     if turned:
-        print(turned)
+        print(f"warning: {turned}")
     return 0
-
-
-def _turned_tool_warning(manifest: dict) -> str | None:
-    """A warning where the position-first commands turn the tool by degrees beyond the nominal command's
-    (the convergence report's uniform poses), unless ``--tool-length-mm`` already guards against it."""
-    strata = manifest["convergence"]["strata"]
-    uniform = strata["uniform"]
-    if manifest["solver"].get("tool_length_m", 0.0) > 0 or not uniform.get("share_tool_turn_added_above_1_deg"):
-        return None
-    import math
-
-    wrist = strata["wrist_singular"]
-    near = (f", {100 * wrist['share_tool_turn_added_above_1_deg']:.1f} % near the wrist singularity"
-            if wrist.get("share_tool_turn_added_above_1_deg") else "")
-    return (f"warning: to hold the TCP position the commands turn the tool more than 1 deg beyond the nominal command on "
-            f"{100 * uniform['share_tool_turn_added_above_1_deg']:.1f} % of random poses{near} (up to "
-            f"{math.degrees(uniform['tool_turn_added_rad']['max']):.2g} deg, near the elbow, shoulder or wrist singularity); "
-            "a tool beyond the exported TCP then misses by its length times that turn: export for the tool's point "
-            "(--tcp-mm) or give --tool-length-mm (docs/export.md)")
 
 
 def _cmd_compensate(args) -> int:

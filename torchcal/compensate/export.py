@@ -184,6 +184,23 @@ def export_model(
                             tool_length=tool_length_mm * 1e-3)
 
 
+def turned_tool_warning(manifest: dict) -> str | None:
+    """A warning where the position-first commands turn the tool by degrees beyond the nominal command's
+    (the convergence report's uniform poses), unless ``--tool-length-mm`` already guards against it."""
+    strata = manifest["convergence"]["strata"]
+    uniform = strata["uniform"]
+    if manifest["solver"].get("tool_length_m", 0.0) > 0 or not uniform.get("share_tool_turn_added_above_1_deg"):
+        return None
+    wrist = strata["wrist_singular"]
+    near = (f", {100 * wrist['share_tool_turn_added_above_1_deg']:.1f} % near the wrist singularity"
+            if wrist.get("share_tool_turn_added_above_1_deg") else "")
+    return (f"to hold the TCP position the commands turn the tool more than 1 deg beyond the nominal command on "
+            f"{100 * uniform['share_tool_turn_added_above_1_deg']:.1f} % of random poses{near} (up to "
+            f"{math.degrees(uniform['tool_turn_added_rad']['max']):.2g} deg, near the elbow, shoulder or wrist singularity); "
+            "a tool beyond the exported TCP then misses by its length times that turn: export for the tool's point "
+            "(--tcp-mm) or give --tool-length-mm (docs/export.md)")
+
+
 def _export_into(out_dir: Path, model_dir: Path, stored, *, wrench_frame: str, iterations: int | None,
                  portable: bool, task: str, tcp: dict | None = None, allow_large_corrections: bool = True,
                  tool_length: float = 0.0) -> dict:
@@ -408,4 +425,5 @@ def export_and_check(model_dir: str | Path, out_dir: str | Path, test, true_tcp_
     result["summary"] = (
         f"export: {out_dir} (compensator ORT vs torch {result['compensator_tcp_max_mm']:.1e} mm, "
         f"float32 budget {manifest['float32_error_budget']['compensator_tcp_mm']['max']:.1e} mm)")
+    result["turned_tool_warning"] = turned_tool_warning(manifest)
     return result

@@ -32,3 +32,6 @@ def test_export_beside_the_report_reaches_the_report_and_the_summary(tmp_path):
     manifest = json.loads((exported / "small" / "manifest.json").read_text(encoding="utf-8"))
     assert sorted(manifest["files"]) == ["compensator", "compensator_f32", "monitor", "monitor_f32"]
     assert json.loads((out / "small" / "metrics.json").read_text(encoding="utf-8"))["export"] == summary["export"]
+    # the turned-tool warning of an export for the flange, where its convergence report counts such poses
+    turned = manifest["convergence"]["strata"]["uniform"]["share_tool_turn_added_above_1_deg"]
+    assert (summary["export"]["turned_tool_warning"] is not None) == (turned > 0)

@@ -166,6 +166,8 @@ def _run_into(folder: Path, destination: Path, config: RunConfig, console) -> di
                 if "export" not in summary:
                     summary["export"] = pending.result()
                     console.log(summary["export"]["summary"])
+                    if summary["export"].get("turned_tool_warning"):
+                        console.log(f"warning: {summary['export']['turned_tool_warning']}")
                     _log_compensation_on_twin(summary["export"]["compensation_on_true_robot"], console)
                 return summary["export"]
 
