@@ -60,7 +60,7 @@ def test_check_and_update_refuse_a_file_of_another_robot_and_take_its_units(cali
     for command in (["check"], ["update", "--out", str(tmp_path / "new")]):
         code = main([*command, "--model", str(stored.folder), "--data", str(tmp_path / "swapped.csv")])
         err = capsys.readouterr().err
-        assert code == 2 and "misses these poses by" in err and "even with the instrument frame re-fitted" in err
+        assert code == 2 and "misses these poses by" in err and "even with the instrument frame and the tool point" in err
         assert err.count("\n") == 1
     assert not (tmp_path / "new").exists()
     # the points in metres: the refusal names length_unit=m, and both commands take it
@@ -80,3 +80,10 @@ def test_check_and_update_refuse_a_file_of_another_robot_and_take_its_units(cali
 def _csv_lines(tmp_path, data) -> list[str]:
     write_measurements_csv(tmp_path / "plain.csv", data.q, data.position)
     return (tmp_path / "plain.csv").read_text().splitlines(keepends=True)
+
+
+def test_a_long_new_tool_is_a_changed_tool_not_another_robot(calibrated):
+    # 100 mm more tool: tens of mm off with the frame alone, which only the tool explains
+    twin, stored = calibrated
+    result = check_data(stored, twin.changed(tool_x=20 * MM, tool_z=100 * MM).sample(12, torch.Generator().manual_seed(5)))
+    assert result.verdict == "changed" and result.changed == ["tool"]

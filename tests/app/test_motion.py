@@ -206,3 +206,17 @@ def test_a_model_with_another_robot_file_is_refused(tmp_path, line_file, calibra
                  _start_arg(), "--model", str(model_dir)])
     err = capsys.readouterr().err
     assert code == 2 and "differ in their joint limits" in err
+
+
+def test_the_models_robot_file_as_rewritten_to_nine_digits_is_its_robot(calibrated):
+    from dataclasses import replace
+
+    from torchcal.app.motion import kinematics_of
+    from torchcal.core.errors import ModelError
+    from torchcal.stages.store import load_model
+
+    _, model_dir = calibrated
+    robot = load_model(model_dir).robot
+    kinematics_of(replace(robot, table=robot.table + 4e-9), model_dir)  # a rad/m file rewritten in deg/mm
+    with pytest.raises(ModelError, match="kinematic table"):
+        kinematics_of(replace(robot, table=robot.table + 1e-4), model_dir)

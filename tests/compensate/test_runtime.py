@@ -217,6 +217,9 @@ def test_a_changed_manifest_or_a_missing_checksum_file_is_refused(folder):
     path.write_text(path.read_text().replace('"robot": "', '"robot": "x', 1))  # a robot renamed by hand
     with pytest.raises(CompensatorError, match="manifest was changed after export"):
         CompensatorRuntime(folder)
+    (folder / "checksums.json").write_text('{"format": "torchcal-checksums/1", "files": ["manifest.json"]}')
+    with pytest.raises(CompensatorError, match=r"recording manifest\.json"):
+        CompensatorRuntime(folder)
     (folder / "checksums.json").unlink()
     with pytest.raises(CompensatorError, match=r"checksums\.json: missing"):
         CompensatorRuntime(folder)
@@ -229,6 +232,7 @@ def test_a_changed_manifest_or_a_missing_checksum_file_is_refused(folder):
     (lambda m: m.update(joint_names=["a", "b"]), "joint_names must list"),
     (lambda m: m["joint_limits_rad"].__setitem__(2, [1.0, -1.0]), r"joint_limits_rad\[2\]"),
     (lambda m: m["files"].update(compensator="../elsewhere/compensator.onnx"), "must name a file inside the folder"),
+    (lambda m: m.update(outputs=["q_corrected"]), "outputs must be an object"),
 ])
 def test_a_malformed_manifest_is_a_compensator_error(folder, edit, message):
     _edit_manifest(folder, edit)

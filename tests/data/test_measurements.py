@@ -56,7 +56,7 @@ def test_good_file_loads_in_si(robot, tmp_path, generator):
         (lambda h, r: ("q1,q2,q3,q4,q5,q6,x,x,z", r), "repeats column"),
         (lambda h, r: (h + ",temp", [x + (",-500" if k == 3 else ",21.5") for k, x in enumerate(r)]),
          r"row 5, column 'temp': temperature -500 deg C is outside"),
-        (lambda h, r: (h + ",temp", [x + ",295.1" for x in r]), r"row 2, column 'temp'.*not K or F"),
+        (lambda h, r: (h + ",temp", [x + ",295.1" for x in r]), r"row 2, column 'temp'.*kelvin"),
     ],
     ids=["missing-column", "extra-column", "misnamed-column", "nan", "text", "empty-cell", "joint-limit",
          "duplicate-row", "too-many-joints", "too-few-joints", "ragged-row", "header-only", "partial-orientation",

@@ -254,19 +254,28 @@ def test_exponent_notation_without_a_dot_is_a_number(robot, tmp_path):
 
 @pytest.mark.parametrize("old, new, match", [
     ("min: -170, max: 170", "min: -100000, max: 100000",
-     r"joint 1 'min'/'max' -100000..100000 deg: more than 2 turns \(720 deg\): not a joint range"),
+     r"joint 1 'min'/'max' -100000..100000 deg: beyond \+-20 rad \(1146 deg\): not a joint range"),
     ("angle_unit: deg", "angle_unit: rad", r"joint 1 'min'/'max' -170..170 rad: .*look like degrees: set "
                                            r"kinematics.angle_unit: deg"),
-    ("min: -350, max: 350", "min: 700, max: 800", r"joint 6 'min'/'max' 700..800 deg: more than 2 turns"),
+    ("min: -350, max: 350", "min: 1200, max: 1300", r"joint 6 'min'/'max' 1200..1300 deg: beyond \+-20 rad"),
 ])
-def test_yaml_joint_limits_wider_than_two_turns_are_refused(tmp_path, old, new, match):
+def test_yaml_joint_limits_beyond_any_joint_travel_are_refused(tmp_path, old, new, match):
     with pytest.raises(ModelError, match=match):
         load_robot(_twin_with(tmp_path, old, new))
 
 
-def test_two_turn_joint_range_is_accepted(tmp_path):
-    robot = load_robot(_twin_with(tmp_path, "min: -350, max: 350", "min: -360, max: 360"))  # as a UR's joints
-    assert float(robot.joint_limits[5, 1]) == pytest.approx(2 * math.pi)
+@pytest.mark.parametrize("limits, high_deg", [
+    ("min: -360, max: 360", 360.0),  # as a UR's joints
+    ("min: -400, max: 400", 400.0),  # ABB axis 6
+    ("min: -450, max: 450", 450.0),  # FANUC J6
+])
+def test_real_wrist_travels_are_accepted(tmp_path, limits, high_deg):
+    robot = load_robot(_twin_with(tmp_path, "min: -350, max: 350", limits))
+    assert float(robot.joint_limits[5, 1]) == pytest.approx(math.radians(high_deg))
+    # a generated UR URDF writes its +-2 pi a hair over: still a joint range
+    from torchcal.kinematics.robot_checks import joint_span_problem
+
+    assert not joint_span_problem(-6.28318530718, 6.28318530718)
 
 
 def _offset_urdf_with(tmp_path: Path, edit) -> Path:
@@ -277,8 +286,8 @@ def _offset_urdf_with(tmp_path: Path, edit) -> Path:
 
 def test_urdf_limits_in_degrees_are_refused(tmp_path):
     path = _offset_urdf_with(tmp_path, lambda t: t.replace('lower="-3.0" upper="3.0"', 'lower="-170" upper="170"', 1))
-    with pytest.raises(ModelError, match=r"joint 'j1': <limit lower/upper> -170, 170 rad: more than 2 turns "
-                                         r"\(720 deg\): they look like degrees where URDF expects radians"):
+    with pytest.raises(ModelError, match=r"joint 'j1': <limit lower/upper> -170, 170 rad: beyond \+-20 rad "
+                                         r"\(1146 deg\): they look like degrees where URDF expects radians"):
         load_robot(path)
 
 

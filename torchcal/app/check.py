@@ -45,7 +45,7 @@ from torchcal.identify.term_scale import TermScaleProblem
 from torchcal.kinematics.error_model import ErrorModel
 from torchcal.report.document import Paragraph, Preformatted, Report, Section, Table
 from torchcal.stages.foreign_data import refuse_foreign_file
-from torchcal.stages.geometry import held_out_errors, model_joints
+from torchcal.stages.geometry import model_joints
 from torchcal.stages.prediction_uncertainty import PosePrediction, stored_prediction
 from torchcal.stages.store import StoredModel, load_model
 
@@ -202,10 +202,27 @@ def refit_whitening(stored: StoredModel, data: Measurements) -> tuple[PosePredic
 
 
 def refuse_other_robots(stored: StoredModel, data: Measurements, refused: str) -> None:
-    """Refuse ``data`` the model misses by centimetres even with the instrument frame re-fitted
-    (another robot, tool or set-up, or swapped columns): a check or an update of it would only
-    name some group as changed (:func:`~torchcal.stages.foreign_data.refuse_foreign_file`)."""
-    refuse_foreign_file(held_out_errors(stored, data, register=True), stored, data, True, refused)
+    """Refuse ``data`` the model misses by centimetres even with the instrument frame and the tool
+    point re-fitted (another robot or set-up, or swapped columns): a check or an update of it would
+    only name some group as changed (:func:`~torchcal.stages.foreign_data.refuse_foreign_file`). A
+    new tool of any length is what ``check`` names and ``update free=tool`` fits: not refused."""
+    refuse_foreign_file(frame_and_tool_errors(stored, data), stored, data, True, refused,
+                        refitted="the instrument frame and the tool point")
+
+
+def frame_and_tool_errors(stored: StoredModel, data: Measurements) -> torch.Tensor:
+    """``measured - predicted`` ``(n, 3)`` (m) of the model with its instrument frame and tool point
+    re-fitted to ``data`` (the MDH table and joint-space terms as stored)."""
+    effective = _effective(stored, data)
+    model = ErrorModel(stored.robot, with_orientation=False, parallel_threshold_deg=stored.model.parallel_threshold_deg,
+                       T_instrument_base=register_instrument(stored.robot, effective, stored.model, stored.x))
+    layout = model.layout
+    x0 = stored.x.detach().cpu().to(torch.float64).clone()
+    x0[layout.base_slice] = 0.0
+    free = torch.cat([torch.arange(layout.base_slice.start, layout.base_slice.stop),
+                      torch.arange(layout.tool_slice.start, layout.tool_slice.start + 3)])
+    x = LevenbergMarquardt(max_iterations=60).solve(CalibrationProblem(model, effective, free), x0).x
+    return effective.position - model.tcp_position(effective.q, x)
 
 
 def check_data(stored: StoredModel, data: Measurements) -> CheckResult:

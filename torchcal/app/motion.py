@@ -113,7 +113,8 @@ def kinematics_of(robot: RobotModel, model_dir: Path | None) -> tuple[TcpKinemat
                                        ("joint limits", stored.robot.joint_limits, robot.joint_limits),
                                        ("base frame", stored.robot.T_base_0, robot.T_base_0),
                                        ("flange", stored.robot.T_n_flange, robot.T_n_flange))
-               if a.shape != b.shape or not torch.allclose(a.to(torch.float64), b.to(torch.float64), rtol=0, atol=1e-9,
+               # 1e-6 (rad, m): a model folder keeps its robot file rewritten in deg and mm to 9 digits
+               if a.shape != b.shape or not torch.allclose(a.to(torch.float64), b.to(torch.float64), rtol=0, atol=1e-6,
                                                            equal_nan=True)]
     if differs:  # the plan takes its limits from --robot and its kinematics from the model: both must be one robot
         raise ModelError(f"{model_dir}: the model's robot file and --robot differ in their {', '.join(differs)}; give the "

@@ -188,15 +188,14 @@ def turned_tool_warning(manifest: dict) -> str | None:
     """A warning where the position-first commands turn the tool by degrees beyond the nominal command's
     (the convergence report's uniform poses), unless ``--tool-length-mm`` already guards against it."""
     strata = manifest["convergence"]["strata"]
-    uniform = strata["uniform"]
-    if manifest["solver"].get("tool_length_m", 0.0) > 0 or not uniform.get("share_tool_turn_added_above_1_deg"):
+    uniform, wrist = strata["uniform"], strata["wrist_singular"]
+    shares = [s.get("share_tool_turn_added_above_1_deg") or 0.0 for s in (uniform, wrist)]
+    if manifest["solver"].get("tool_length_m", 0.0) > 0 or not any(shares):
         return None
-    wrist = strata["wrist_singular"]
-    near = (f", {100 * wrist['share_tool_turn_added_above_1_deg']:.1f} % near the wrist singularity"
-            if wrist.get("share_tool_turn_added_above_1_deg") else "")
+    largest = max(s["tool_turn_added_rad"]["max"] for s in (uniform, wrist) if "tool_turn_added_rad" in s)
     return (f"to hold the TCP position the commands turn the tool more than 1 deg beyond the nominal command on "
-            f"{100 * uniform['share_tool_turn_added_above_1_deg']:.1f} % of random poses{near} (up to "
-            f"{math.degrees(uniform['tool_turn_added_rad']['max']):.2g} deg, near the elbow, shoulder or wrist singularity); "
+            f"{100 * shares[0]:.1f} % of random poses and {100 * shares[1]:.1f} % near the wrist singularity (up to "
+            f"{math.degrees(largest):.2g} deg, near the elbow, shoulder or wrist singularity); "
             "a tool beyond the exported TCP then misses by its length times that turn: export for the tool's point "
             "(--tcp-mm) or give --tool-length-mm (docs/export.md)")
 

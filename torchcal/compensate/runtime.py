@@ -147,7 +147,7 @@ class CompensatorRuntime:
             binding, q, outputs = self._bound or self._bind_one()
             q[0] = array
             self._compensator[0].run_with_iobinding(binding)
-            if not np.isfinite(outputs[0]).all():
+            if not (np.isfinite(outputs[0]).all() and np.isfinite(outputs[1]).all()):
                 raise CompensatorError(f"{self.folder}: no finite output for this pose ({self.precision} graph); keep the nominal command")
             return outputs[0][0].copy(), outputs[1][0].copy()
 
@@ -248,7 +248,7 @@ class CompensatorRuntime:
         elif wrench is not None:
             raise CompensatorError(f"{self.folder}: this compensator has no stiffness stage; it takes no wrench")
         results = session.run(None, feeds)
-        out = results[0]
+        out = results[0] if outputs == 1 else np.concatenate([r.reshape(r.shape[0], -1) for r in results[:outputs]], 1)
         if not np.isfinite(out).all():
             # Never hand a controller NaN: float32 loses the solve at exactly singular poses.
             rows = np.flatnonzero(~np.isfinite(out).reshape(out.shape[0], -1).all(axis=1))
@@ -313,7 +313,8 @@ def _read_manifest(folder: Path) -> dict:
         raise CompensatorError(f"{checksums_path}: missing; copy the exported folder whole (or export it again)") from None
     except (json.JSONDecodeError, UnicodeDecodeError):
         raise CompensatorError(f"{checksums_path}: not valid JSON; copy the exported folder whole (or export it again)") from None
-    recorded = checksums.get("files", {}).get("manifest.json") if isinstance(checksums, dict) else None
+    files = checksums.get("files") if isinstance(checksums, dict) else None
+    recorded = files.get("manifest.json") if isinstance(files, dict) else None
     if not isinstance(checksums, dict) or checksums.get("format") != CHECKSUMS_FORMAT or recorded is None:
         raise CompensatorError(f"{checksums_path}: not a {CHECKSUMS_FORMAT} file recording manifest.json")
     if hashlib.sha256(data).hexdigest() != recorded:
@@ -337,6 +338,8 @@ def _read_manifest(folder: Path) -> dict:
     if not isinstance(names, list) or not all(isinstance(v, str) for v in names) or (isinstance(n, int) and len(names) != n):
         problems.append("joint_names must list n_joints names")
     problems += [f"{key} must be an object" for key in ("files", "sha256") if not isinstance(manifest.get(key), dict)]
+    problems += [f"{key} must be an object" for key in ("outputs", "dtypes", "stages", "wrench")
+                 if key in manifest and not isinstance(manifest[key], dict)]
     if problems:
         raise CompensatorError(f"{path}: " + "; ".join(problems))
     return manifest

@@ -81,7 +81,7 @@ class Measurements:
         )
 
 
-#: ``temp`` (deg C) outside this range is refused: no robot cell is measured there; a value in K or F is likely.
+#: ``temp`` (deg C) outside this range is refused: no robot cell is measured there (a value in kelvin, or a typo).
 TEMPERATURE_RANGE_C = (-40.0, 90.0)
 
 
@@ -157,7 +157,8 @@ def load_measurements(
         if len(outside):
             k = int(outside[0])
             raise DataError(f"temperature {temp[k]:g} deg C is outside {TEMPERATURE_RANGE_C[0]:g} to "
-                            f"{TEMPERATURE_RANGE_C[1]:g} deg C, where robots are measured (temp is in deg C, not K or F)",
+                            f"{TEMPERATURE_RANGE_C[1]:g} deg C, where robots are measured (temp is in deg C; kelvin read "
+                            "233 to 363)",
                             path=p, row=table.line_numbers[k], column="temp")
         temperature = torch.from_numpy(temp)
 

@@ -4,7 +4,7 @@
   (YAML keeps the last silently) and reads ``455e0`` / ``-1e9`` as numbers (YAML 1.1 reads an
   exponent without a dot, or without a sign after ``e``, as a string).
 * :func:`check_keys`: unknown keys of a mapping, with the closest allowed one.
-* :func:`joint_span_problem`, :func:`span_cause`: joint limits wider than :data:`MAX_JOINT_SPAN_RAD`.
+* :func:`joint_span_problem`, :func:`span_cause`: a joint limit beyond :data:`MAX_JOINT_BOUND_RAD`.
 * :func:`check_reach`: a nominal reach outside :data:`MIN_REACH_M` .. :data:`MAX_REACH_M`.
 """
 
@@ -25,10 +25,11 @@ from torchcal.core.errors import ModelError
 if TYPE_CHECKING:
     from torchcal.kinematics.robot import RobotModel
 
-#: Widest revolute joint travel accepted (rad): 2 turns (720 deg). A UR joint's +-360 deg is the
-#: widest travel of industrial arms; a joint without limits is written ``continuous``. More than this
-#: is a unit mix-up (degrees in a URDF, whose limits are radians) or not a joint range at all.
-MAX_JOINT_SPAN_RAD = 4.0 * math.pi
+#: Largest revolute joint limit accepted (rad, about 1146 deg). Industrial wrists turn far: ABB axis 6
+#: +-400 deg, FANUC J6 +-450 deg, UR joints +-360 deg (often written 6.28318530718, a hair over 2 pi),
+#: some +-720 deg; a joint without limits is written ``continuous``. Beyond this it is a unit mix-up
+#: (degrees in a URDF, whose limits are radians: +-170 reads as 170 rad) or not a joint range.
+MAX_JOINT_BOUND_RAD = 20.0
 #: Nominal reach (largest TCP distance from the base over the joint range, m) accepted: a desktop
 #: arm reaches ~0.2 m, the largest industrial arms ~4 m and gantry-like chains ~10 m. A factor of
 #: 1000 outside (mm read as m, or m as mm) lands far outside this window.
@@ -87,15 +88,15 @@ def check_keys(mapping: Mapping, allowed: Iterable[str], path: Path, where: str)
 
 
 def joint_span_problem(lo: float, hi: float) -> bool:
-    """Whether joint limits ``lo, hi`` (rad) are not a joint range: wider than
-    :data:`MAX_JOINT_SPAN_RAD`, or a bound beyond it."""
-    return hi - lo > MAX_JOINT_SPAN_RAD or max(abs(lo), abs(hi)) > MAX_JOINT_SPAN_RAD
+    """Whether joint limits ``lo, hi`` (rad) are not a joint range: a bound beyond :data:`MAX_JOINT_BOUND_RAD`."""
+    return max(abs(lo), abs(hi)) > MAX_JOINT_BOUND_RAD
 
 
 def span_cause(lo: float, hi: float, angle_unit: str | None) -> str:
     """Why joint limits ``lo, hi`` (in ``angle_unit``; ``None`` for a URDF, radians) are refused."""
-    turns = f"more than 2 turns ({math.degrees(MAX_JOINT_SPAN_RAD):g} deg)"
-    as_degrees = not joint_span_problem(math.radians(lo), math.radians(hi))
+    turns = f"beyond +-{MAX_JOINT_BOUND_RAD:g} rad ({math.degrees(MAX_JOINT_BOUND_RAD):.0f} deg)"
+    # read as degrees they would be a joint range (and not a tiny one): the likely mix-up
+    as_degrees = not joint_span_problem(math.radians(lo), math.radians(hi)) and max(abs(lo), abs(hi)) >= 30.0
     if angle_unit is None:
         return f"{turns}: they look like degrees where URDF expects radians" if as_degrees else \
             f"{turns}: not a joint range (URDF limits are radians)"

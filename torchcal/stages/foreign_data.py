@@ -13,11 +13,11 @@ FOREIGN_FILE_MEDIAN_MM = 25.0
 
 
 def refuse_foreign_file(errors: torch.Tensor, stored: StoredModel, data: Measurements, register: bool,
-                        refused: str = "nothing was scored") -> None:
+                        refused: str = "nothing was scored", refitted: str = "the instrument frame") -> None:
     """Refuse a file the model misses by centimetres: it belongs to another robot, tool or set-up.
 
-    ``errors`` ``(n, 3)`` m: the model's on the file, the instrument frame re-fitted to it first
-    where ``register``. ``refused``: what the caller leaves undone, for the message.
+    ``errors`` ``(n, 3)`` m: the model's on the file, ``refitted`` (the instrument frame, or also the
+    tool) re-fitted to it first where ``register``. ``refused``: what the caller leaves undone, for the message.
 
     Raises:
         DataError: naming the median error and the likely cause (``--register`` when the frame was not re-fitted).
@@ -25,7 +25,7 @@ def refuse_foreign_file(errors: torch.Tensor, stored: StoredModel, data: Measure
     median_mm = float(errors.norm(dim=-1).median()) * 1e3
     if median_mm <= FOREIGN_FILE_MEDIAN_MM:
         return
-    cause = ("even with the instrument frame re-fitted to its points: the file is of another robot, tool or set-up "
+    cause = (f"even with {refitted} re-fitted to its points: the file is of another robot or set-up "
              "(or its x, y, z columns are swapped)"
              if register else
              "the instrument was moved since the fit (then add --register to re-fit its frame), or the file is of "
