@@ -146,7 +146,9 @@ def correction_sigma(stored, graph, q: torch.Tensor, step: float = 0.01) -> torc
     sigma into the corrections it drives. The solved command is differenced (forward, ``step``
     sigma: the steps converge to 1e-10, far below ``step`` times a correction's sensitivity) along
     each column of a square root of that covariance (eigen-decomposition ``C = R R^T``), with the
-    graph's own task and steps; the variances of the columns add.
+    graph's own task and steps; the variances of the columns add. (With a ``tool_length`` a pose at
+    the switch between its corrected and its nominal command differences across the switch: its
+    sigma there is the jump's, an upper bound.)
     """
     layout = stored.model.layout
     free = stored.free.tolist()
