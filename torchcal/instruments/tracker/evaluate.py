@@ -11,7 +11,7 @@ import torch
 
 from torchcal.compensate.compensator import CompensatorGraph
 from torchcal.compensate.export_checks import regular_poses
-from torchcal.compensate.production_tcp import correction_extent
+from torchcal.compensate.production_tcp import correction_extent, production_view, tcp_transform
 from torchcal.config.schema import FitConfig
 from torchcal.core.errors import DataError
 from torchcal.core.metrics import iso9283_repeated, position_metrics
@@ -157,7 +157,12 @@ def compensator_summary(stored: StoredModel, q: torch.Tensor, model_errors: torc
     what a compensated command leaves: per pose the model's error plus the unsolved part. With
     ``corrections``, also the joint corrections over the poses not near a singularity, with their
     1-sigma from the calibration's uncertainty (:func:`~torchcal.compensate.production_tcp.correction_extent`).
+
+    The graph is the one ``torchcal export`` writes by default: both chains end in the flange
+    (:func:`~torchcal.compensate.production_tcp.production_view`), not in the measured point, whose
+    fitted probe rotation (a 6-D fit's) the nominal chain does not have.
     """
+    stored = production_view(stored, tcp_transform(None, None))
     graph = CompensatorGraph.from_stored(stored)
     with torch.no_grad():
         _, residual = graph.solve(q.to(torch.float64))
