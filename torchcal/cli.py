@@ -244,7 +244,7 @@ def _cmd_run(args) -> int:
     summary = default().run(config, console=_console(stderr=False))
     final = summary["test"][summary["final_stage"]]
     print(f"{summary['name']}: held-out RMS {final['position_rms_mm']:.4f} mm on {final['n_poses']} new twin poses "
-          f"({summary['model']}, chosen by grouped CV on the training poses); "
+          f"({summary['model']}, chosen by {config.fit.split} cross-validation on the training poses); "
           f"report in {Path(config.out) / config.name / 'report.md'}")
     return 0
 

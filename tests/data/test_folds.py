@@ -98,3 +98,11 @@ def test_grouped_folds_are_the_same_made_in_a_worker(robot, generator):
     for a, b, c in zip(here, there, two_threads, strict=True):
         np.testing.assert_array_equal(a, b)
         np.testing.assert_array_equal(a, c)
+
+
+def test_each_split_names_its_own_protocol(robot, generator):
+    q = robot.sample_joints(200, generator)
+    labels = {kind: make_folds(kind, robot, q, k=5).label for kind in ("grouped", "blocks", "random")}
+    assert labels == {"grouped": "5-fold grouped cross-validation",
+                      "blocks": "5-fold blocked (contiguous measurement order) cross-validation",
+                      "random": "5-fold random-row cross-validation"}

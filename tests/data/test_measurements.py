@@ -84,7 +84,7 @@ def test_too_few_poses_for_the_parameters(robot, tmp_path):
 
     path = _write(tmp_path, HEADER, _good_rows(robot, n=6))
     data = load_measurements(path, robot)
-    with pytest.raises(DataError, match=r"fewer than the .* parameters"):
+    with pytest.raises(DataError, match=r"6 poses give 18 equations \(3 per pose\), no more than the .* parameters"):
         calibrate(robot, data)
 
 

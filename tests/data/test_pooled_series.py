@@ -71,3 +71,12 @@ def test_a_series_given_twice_or_a_row_pasted_across_series_is_refused(robot):
                           source="b2.csv", line_numbers=tuple(range(2, 23)), sha256="b2" * 32)
     with pytest.raises(DataError, match=r"b2.csv, row 22.*copies row 9 of a.csv"):
         pool_series([a, pasted])
+
+
+def test_series_with_different_columns_name_the_file_that_has_them(robot):
+    a = _series(robot, 30, 1, "a.csv")
+    six_d = Measurements(q=a.q, position=a.position + 0.1, rotation=torch.eye(3, dtype=torch.float64).expand(30, 3, 3),
+                         source="six_d.csv", line_numbers=a.line_numbers, sha256="6d" * 32)
+    for order in ([six_d, a], [a, six_d]):
+        with pytest.raises(DataError, match=r"six_d\.csv has rotation, a\.csv does not"):
+            pool_series(order)

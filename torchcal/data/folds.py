@@ -51,6 +51,12 @@ class Folds:
     def k(self) -> int:
         return int(self.fold.max()) + 1 if len(self.fold) else 0
 
+    @property
+    def label(self) -> str:
+        """``5-fold grouped cross-validation`` (blocked, random): the protocol in a few words."""
+        kind = {"grouped": "grouped", "blocks": "blocked (contiguous measurement order)", "random": "random-row"}
+        return f"{self.k}-fold {kind.get(self.kind, self.kind)} cross-validation"
+
     def splits(self) -> list[tuple[np.ndarray, np.ndarray]]:
         """``(train, held-out)`` pose indices of each fold."""
         return [(np.flatnonzero(self.fold != f), np.flatnonzero(self.fold == f)) for f in range(self.k)]

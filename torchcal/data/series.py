@@ -35,7 +35,8 @@ def pool_series(series: list[Measurements]) -> Measurements:
             raise DataError(f"{other.q.shape[1]} joints, but {first.source} has {first.q.shape[1]}", path=other.source)
         for name in ("rotation", "wrench", "temperature"):
             if (getattr(other, name) is None) != (getattr(first, name) is None):
-                raise DataError(f"series differ in their columns: {name} in one file and not in {first.source}; "
+                has, lacks = (first, other) if getattr(other, name) is None else (other, first)
+                raise DataError(f"series differ in their columns: {has.source} has {name}, {lacks.source} does not; "
                                 "pool files with the same columns", path=other.source)
 
     def cat(name: str) -> torch.Tensor | None:

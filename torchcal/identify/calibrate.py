@@ -165,8 +165,10 @@ def calibrate(
         return _calibrate_map(model, problem, prior, identifier, units, data, start if warm else None)
     if rows <= len(candidates):
         raise DataError(
-            f"{len(data)} poses give {rows} equations, fewer than the {len(candidates)} parameters to "
-            f"identify; measure at least {len(candidates) // problem.rows_per_pose + 1} poses (3-4x that is advisable)",
+            f"{len(data)} poses give {rows} equations ({problem.rows_per_pose} per pose"
+            + (", positions only" if problem.rows_per_pose == 3 and data.rotation is not None else "")
+            + f"), no more than the {len(candidates)} parameters to identify; measure at least "
+            f"{len(candidates) // problem.rows_per_pose + 1} poses (3-4x that is advisable)",
             path=data.source,
         )
     _, jac0 = problem.jacobian(x0)

@@ -237,7 +237,7 @@ def _write_fit_report(folder: Path, data: Any, structure: Any, lines: list[str],
                                      f"({structure.folds.k}-fold, held out)")
     chosen_by = "set by the options (nothing to choose)"
     if structure is not None and len(structure.options) > 1:
-        chosen_by = f"chosen by {structure.folds.k}-fold grouped cross-validation"
+        chosen_by = f"chosen by {structure.folds.label}"
     pose_set = score_pose_set(stored, data, held_out=False, extra=extra, focus_extra=bool(extra))
     figures = [f"{position_metrics(s.errors_m)['position_rms_mm']:.4f} mm ({s.name})" for s in pose_set.stages
                if not s.name.endswith("cross-validated")]

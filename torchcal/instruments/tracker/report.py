@@ -217,7 +217,7 @@ def cross_validated_stage(stored: StoredModel, structure) -> StageErrors | None:
         return None
     vectors = torch.as_tensor(structure.error_vectors_mm[structure.comparison.chosen], dtype=torch.float64) * 1e-3
     return StageErrors(f"{structure_name(stored)}, cross-validated", vectors,
-                       f"held out: out-of-fold, {structure.folds.k}-fold grouped CV, each pose predicted by a fit that "
+                       f"held out: out-of-fold, {structure.folds.label}, each pose predicted by a fit that "
                        "never saw it")
 
 
