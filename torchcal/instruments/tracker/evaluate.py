@@ -30,8 +30,10 @@ from torchcal.stages.prediction_uncertainty import score as score_uncertainty
 from torchcal.stages.prediction_uncertainty import stored_prediction
 from torchcal.stages.store import StoredModel, load_model
 
-#: ``evaluate --register``: fewer poses are refused; fewer than the advised give a warning.
+#: ``evaluate --register``: fewer distinct configurations are refused; fewer than the advised give a warning.
 REGISTER_MIN_POSES, REGISTER_ADVISED_POSES = 4, 10
+#: The nominal robot's frame and tool (9 parameters) fitted to fewer distinct configurations is no comparison.
+NOMINAL_MIN_CONFIGURATIONS = 5
 
 
 @dataclass
@@ -72,14 +74,17 @@ def score(stored: StoredModel, data: Measurements, *, register: bool = False, le
     ``export`` states them over the training poses; the sigma costs a solve per table parameter).
     """
     warning: str | None = None
+    # repeated joints add measurements, not geometry: the frame and tool fits count configurations
+    distinct = len(torch.unique(data.q, dim=0))
+    configurations = f"{distinct} distinct joint configurations" + (f" ({len(data)} poses)" if distinct < len(data) else "")
     if register:
-        if len(data) < REGISTER_MIN_POSES:
-            raise DataError(f"--register fits the instrument frame (6 parameters) to the file's points; {len(data)} poses "
+        if distinct < REGISTER_MIN_POSES:
+            raise DataError(f"--register fits the instrument frame (6 parameters) to the file's points; {configurations} "
                             f"cannot check it (at least {REGISTER_MIN_POSES}, better {REGISTER_ADVISED_POSES})",
                             path=data.source)
-        if len(data) < REGISTER_ADVISED_POSES:
-            warning = (f"--register fitted 6 frame parameters to {len(data)} poses ({3 * len(data)} coordinates): "
-                       f"the RMS is optimistic; score on {REGISTER_ADVISED_POSES} or more poses")
+        if distinct < REGISTER_ADVISED_POSES:
+            warning = (f"--register fitted 6 frame parameters to {configurations}: the RMS is optimistic; score on "
+                       f"{REGISTER_ADVISED_POSES} or more configurations")
             warnings.warn(warning, stacklevel=2)
     errors = held_out_errors(stored, data, register=register)
     refuse_foreign_file(errors, stored, data, register)
@@ -88,7 +93,15 @@ def score(stored: StoredModel, data: Measurements, *, register: bool = False, le
     # the fair 'before' on the same poses: what the uncalibrated robot misses them by
     nominal_errors, nominal_frame, _ = nominal_fit(stored.robot, data)
     before = position_metrics(nominal_errors)
-    metrics["nominal"] = {**before, "protocol": NOMINAL_PROTOCOL}
+    protocol = NOMINAL_PROTOCOL
+    if distinct < NOMINAL_MIN_CONFIGURATIONS:  # 9 parameters (frame and tool) fitted to 3 coordinates per configuration
+        protocol += (f"; fitted to only {configurations}: {3 * distinct} coordinates for its 9 parameters, no "
+                     "comparison")
+        caveat = (f"the nominal robot's frame and tool were fitted to {configurations}: its figure is no comparison; "
+                  f"score on {NOMINAL_MIN_CONFIGURATIONS} or more")
+        warnings.warn(caveat, stacklevel=2)
+        warning = caveat if warning is None else f"{warning}; {caveat}"
+    metrics["nominal"] = {**before, "protocol": protocol}
     metrics["nominal_position_rms_mm"] = before["position_rms_mm"]
     angles = None
     if data.rotation is not None:  # the file measures the tool's orientation too: scored alike
