@@ -36,3 +36,33 @@ def test_kuka_14_fit_on_front_scored_on_the_other_placements(tmp_path):
     m = _fit_one_score_others(tmp_path, "kuka_14", "iiwa14.urdf", "front", ["left_back", "raised_left"])
     # nominal 0.81 mm; measured 0.262 / 0.069
     assert m["consistency_mean_mm"] < 0.3 and m["distortion_mean_mm"] < 0.1
+
+
+URDFS = {"panda": "panda.urdf", "kuka": "iiwa14.urdf", "dinova": "gen3lite.urdf"}
+
+
+@pytest.mark.parametrize("path", sorted(FOLDER.glob("sockets_*.csv")), ids=lambda p: p.stem)
+def test_every_recording_passes_the_nominal_plausibility_checks(path):
+    """The limits' margin is measured on these files (worst: panda_1_with_sensor, 24.3 mm per socket)."""
+    import torch
+
+    from torchcal.instruments.sockets.data import load_socket_data
+    from torchcal.instruments.sockets.plausibility import check_nominal
+    from torchcal.kinematics.robot import load_robot
+
+    robot = load_robot(FOLDER / "raw" / "urdf" / URDFS[path.stem.split("_")[1]], end_link="ball_link")
+    data = load_socket_data(path, robot, check_limits=False)  # the Kinova files pass q6 beyond the URDF's limits
+    with torch.no_grad():
+        check_nominal(robot.tcp_position(data.q), data, 50.0, robot.name)
+
+
+def test_a_kinova_recording_with_another_robot_file_is_refused(tmp_path, capsys):
+    """Used to fit with exit 0 (consistency 387 -> 9.3 mm) on the 6-joint twin robot."""
+    from torchcal.kinematics.robot import default_robot_path
+
+    data = FOLDER / "sockets_dinova_1.csv"
+    assert main(["fit", "--robot", str(default_robot_path()), "--data", str(data), "--out", str(tmp_path / "m"),
+                 "check_limits=false"]) == 2
+    err = capsys.readouterr().err
+    assert "sockets_dinova_1.csv, row 2" in err and "wrong robot file" in err
+    assert not (tmp_path / "m").exists()

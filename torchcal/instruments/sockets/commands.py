@@ -21,6 +21,7 @@ from torchcal.instruments.base import FitOutcome
 from torchcal.instruments.sockets.data import load_socket_data
 from torchcal.instruments.sockets.fit import fit_sockets_data
 from torchcal.instruments.sockets.metrics import socket_metrics
+from torchcal.instruments.sockets.plausibility import check_nominal, refuse_worse_than_nominal
 from torchcal.kinematics.robot import load_robot
 from torchcal.stages.geometry import model_joints
 from torchcal.stages.store import load_model, save_model
@@ -75,12 +76,19 @@ def sockets_config(overrides: list[str]) -> SocketsFitConfig:
 
 
 def fit_sockets(robot_path, data_path, out_dir, overrides, *, base_link=None, end_link=None, progress=None) -> FitOutcome:
-    """Fit a robot from socket constraints and write the model folder; returns it and the result lines."""
+    """Fit a robot from socket constraints and write the model folder; returns it and the result lines.
+
+    Refused before the fit: data the nominal robot cannot have recorded and too few configurations;
+    after it, a calibrated robot worse than the nominal one (nothing is written then).
+    """
     config = sockets_config(overrides)
     robot = load_robot(robot_path, base_link=base_link, end_link=end_link)
     data = load_socket_data(data_path, robot, joint_unit=config.joint_unit, check_limits=config.check_limits)
     if config.placements:
         data = data.select_placements(config.placements)
+    with torch.no_grad():
+        nominal_centres = robot.tcp_position(data.q)
+    check_nominal(nominal_centres, data, config.distance_mm, robot.name)
     if progress is not None:
         progress(f"identifying {robot.name} from {len(data)} socket configurations")
     res = fit_sockets_data(robot, data, distance_mm=config.distance_mm, distance_weight=config.distance_weight,
@@ -88,9 +96,11 @@ def fit_sockets(robot_path, data_path, out_dir, overrides, *, base_link=None, en
                            max_iterations=config.max_iterations, tolerance=config.identifiability_tolerance,
                            gravity_points=config.gravity_points, device=config.device)
     joints = JointSpaceErrors.of(res)
-    nominal = socket_metrics(robot.tcp_position(data.q), data, config.distance_mm)
-    calibrated = socket_metrics(res.model.tcp_position(joints.effective_joints(robot, data.q.to(res.x)), res.x), data,
-                                config.distance_mm)
+    nominal = socket_metrics(nominal_centres, data, config.distance_mm)
+    with torch.no_grad():
+        calibrated = socket_metrics(res.model.tcp_position(joints.effective_joints(robot, data.q.to(res.x)), res.x),
+                                    data, config.distance_mm)
+    refuse_worse_than_nominal(nominal, calibrated, data)
     ident = res.identifiability
     meta = {
         "method": "lm",
@@ -120,7 +130,10 @@ def fit_sockets(robot_path, data_path, out_dir, overrides, *, base_link=None, en
 
 
 def evaluate_sockets(model_dir, data_path, overrides, *, register: bool = False) -> dict:
-    """Consistency and distortion of a model folder on a socket file (``register`` is implied)."""
+    """Consistency and distortion (mm) of a model folder on a socket file (``register`` is implied).
+
+    Data the stored nominal robot cannot have recorded are refused (:func:`check_nominal`).
+    """
     config = sockets_config(overrides)
     stored = load_model(model_dir)
     data = load_socket_data(data_path, stored.robot, joint_unit=config.joint_unit, check_limits=config.check_limits)
@@ -130,7 +143,10 @@ def evaluate_sockets(model_dir, data_path, overrides, *, register: bool = False)
     q = data.q.to(stored.x)
     with torch.no_grad():
         predicted = stored.model.tcp_position(model_joints(stored, q), stored.x)
-        nominal = socket_metrics(stored.robot.tcp_position(q), data, distance)
+        nominal_centres = stored.robot.tcp_position(q)
+    # scores of a file the nominal robot cannot have recorded would be meaningless numbers
+    check_nominal(nominal_centres, data, distance, stored.robot.name)
+    nominal = socket_metrics(nominal_centres, data, distance)
     out = socket_metrics(predicted, data, distance)
     out.update({
         "n_poses": len(data),

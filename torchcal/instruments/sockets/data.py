@@ -17,6 +17,7 @@ import torch
 
 from torchcal.core.errors import DataError
 from torchcal.data.csv_table import check_units, joint_columns, read_csv_table
+from torchcal.data.plausibility import check_joint_unit
 from torchcal.kinematics.robot import RobotModel
 
 REQUIRED = ("placement", "socket")
@@ -90,7 +91,7 @@ def _assemble(q, placement, socket, source, sha256, lines) -> SocketData:
 
 def load_socket_data(path: str | Path, robot: RobotModel, *, joint_unit: str = "deg",
                      min_rows_per_group: int = 2, check_limits: bool = True) -> SocketData:
-    """Read and validate a socket file against ``robot`` (joint count, limits, group sizes).
+    """Read and validate a socket file against ``robot`` (joint count, joint unit, limits, group sizes).
 
     Every problem is a :class:`DataError` naming the file, row and column. ``check_limits=False``
     accepts joints outside the robot file's limits (recorded joints were reached by the robot, so
@@ -106,7 +107,10 @@ def load_socket_data(path: str | Path, robot: RobotModel, *, joint_unit: str = "
             raise DataError(f"missing column '{name}' (a socket file has placement, socket, q1..qN)", path=str(path), row=1)
     joints = joint_columns(header, path, robot.dof, robot.name)
     scale = math.pi / 180.0 if joint_unit == "deg" else 1.0
-    q = torch.tensor(np.stack([table.column(j) for j in joints], -1) * scale, dtype=torch.float64)
+    q_file = np.stack([table.column(j) for j in joints], -1)
+    # radians read as degrees stay inside every limit and fit to a meaningless robot
+    check_joint_unit(q_file, joint_unit, robot.joint_limits.numpy(), path=str(path), lines=table.line_numbers)
+    q = torch.tensor(q_file * scale, dtype=torch.float64)
     p_idx, s_idx = header.index("placement"), header.index("socket")
     placement, socket = [], []
     for row, line in zip(table.rows, table.line_numbers):

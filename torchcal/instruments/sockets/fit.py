@@ -1,6 +1,8 @@
 """Identification from socket constraints: robot parameters and ball-centre points together.
 
 1. Start: the nominal robot and, per group, the mean of its nominal ball centres.
+   Data with no more equations (3 per configuration + 1 per distance) than unknowns are refused;
+   fewer than 3 per fitted unknown warns (:mod:`torchcal.instruments.sockets.plausibility`).
 2. Identifiability (:func:`torchcal.identify.identifiability.analyze`) of every candidate
    column, points preferred over the ball offset over joints from the base out. The base frame
    is never a candidate (point constraints cannot see it); what the data leave free besides
@@ -26,6 +28,7 @@ from torchcal.identify.lm import LevenbergMarquardt
 from torchcal.identify.uncertainty import covariance
 from torchcal.instruments.sockets.data import SocketData
 from torchcal.instruments.sockets.model import SocketsProblem, group_means
+from torchcal.instruments.sockets.plausibility import few_equations_warning, refuse_too_few
 from torchcal.kinematics.error_model import DEFAULT_PARALLEL_THRESHOLD_DEG, ErrorModel
 from torchcal.kinematics.robot import RobotModel
 
@@ -112,6 +115,10 @@ def fit_sockets_data(robot: RobotModel, data: SocketData, *, distance_mm: float 
                                parallel_threshold_deg=parallel_threshold_deg, gravity_points=gravity_points,
                                device=device)
     size = problem.n_robot
+    candidates = problem.free
+    n_points = 3 * problem.n_groups
+    # before any solve: no more equations than unknowns leaves nothing to check and no covariance
+    refuse_too_few(data, n_points, int((candidates < size).sum()), int((candidates >= size + n_points).sum()))
     _, jac = problem.jacobian(z0)
     ident = analyze(jac, problem.names, tolerance=tolerance)
     names = problem.all_names
@@ -127,6 +134,9 @@ def fit_sockets_data(robot: RobotModel, data: SocketData, *, distance_mm: float 
         "kept at nominal (socket constraints cannot identify them): "
         + "; ".join(f"{n} ({', '.join(p) or 'no effect on the ball centre'})" for n, p in not_identifiable.items())),
         stacklevel=2)
+    few = few_equations_warning(data, kept.numel())
+    if few is not None:
+        warnings.warn(few, stacklevel=2)
     problem = problem.with_free(kept)
     solve = LevenbergMarquardt(max_iterations=max_iterations).solve(problem, z0)
     r, jac = problem.jacobian(solve.x)
@@ -138,6 +148,8 @@ def fit_sockets_data(robot: RobotModel, data: SocketData, *, distance_mm: float 
     point_var = torch.zeros(problem.n_groups * 3, dtype=torch.float64)
     point_var[kept[is_point] - size] = cov_all[is_point][:, is_point].diagonal().cpu()
     notes = [f"socket distance {distance_mm:g} mm (weight {distance_weight:g}) on {problem.pairs.shape[0]} placement(s)"]
+    if few is not None:
+        notes.append(f"warning: {few}")
     compliance = None
     if gravity_points:
         compliance = GravityCompliance(tuple(gravity_points), problem.coefficients(solve.x).detach().cpu().clone())
