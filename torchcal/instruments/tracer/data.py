@@ -208,13 +208,18 @@ def check_length_spread(data: TracerData, robot: RobotModel, length_unit: str) -
     distance from the median, as for tracker points: a single wrong reading is left to the
     triangle inequality, which names its row), not values.
 
+    A column that reads the same value at most of its poses (median distance 0) while the robot
+    moves is no unit mistake but a sensor that reads no change (stuck or disconnected); it is
+    refused as such, whatever the unit.
+
     Args:
         data: readings ``(n, m)`` in m as read (NaN where not seen) and joints, rad.
         robot: the nominal robot.
         length_unit: the unit the file was read in (``mm`` or ``m``), for the message.
 
     Raises:
-        DataError: naming the file, the station column of the widest spread and the likely unit.
+        DataError: naming the file and the station column: a constant column, or the widest
+            spread and the likely unit.
     """
     if len(data) < MIN_POSES_PER_STATION:
         return
@@ -229,6 +234,18 @@ def check_length_spread(data: TracerData, robot: RobotModel, length_unit: str) -
         col = lengths[np.isfinite(lengths[:, j]), j]
         if col.size:
             spread[j] = float(np.median(np.abs(col - np.median(col))))
+        if col.size >= MIN_POSES_PER_STATION and spread[j] == 0.0:
+            value = float(np.median(col)) * (1e3 if length_unit == "mm" else 1.0)
+            if float(np.ptp(col)) == 0.0:
+                what = f"every one of its {col.size} readings is {value:.6g} {length_unit}: the column is constant"
+            else:
+                share = int((col == np.median(col)).sum())
+                what = f"{share} of its {col.size} readings are {value:.6g} {length_unit}: the column is mostly constant"
+            raise DataError(
+                f"{what} while the nominal robot's TCP moves {reference * 1e3:.4g} mm around its median at the same "
+                "joints: the sensor reads no change (a stuck or disconnected sensor), whatever the length unit",
+                path=data.source, column=f"l{j + 1}",
+            )
     j = int(spread.argmax())
     ratio = float(spread[j]) / reference
     low, high = LENGTH_SPREAD_RATIO_RANGE

@@ -5,7 +5,10 @@ cross-validation (:mod:`.cv`), fits the one the blocked folds choose (``structur
 default) or the one named, and writes a normal model folder (``T_reference = I``: the model lives
 in the robot ``base`` frame; anchor, offset and the CV table in ``calibration.json`` under
 ``length_station``), so ``export`` works on it. ``evaluate`` keeps the robot and re-fits anchor
-and offset to the scored file (a new set-up), or with ``refit_anchor=false`` keeps those too.
+and offset to the scored file (a new set-up; the file needs
+:data:`~torchcal.instruments.tracer.one_station.data.REFIT_MIN_CONFIGURATIONS` distinct joint
+configurations that determine them), or with ``refit_anchor=false`` keeps those too (any
+non-empty file).
 """
 
 from __future__ import annotations
@@ -18,13 +21,22 @@ import torch
 from torchcal.config.compose import compose_options
 from torchcal.core.errors import TorchcalError
 from torchcal.core.overrides import check_range
+from torchcal.identify.identifiability import analyze
 from torchcal.identify.lm import LevenbergMarquardt
 from torchcal.instruments.base import FitOutcome
 from torchcal.instruments.tracer.joint_fit import TracerJointProblem
 from torchcal.instruments.tracer.lengths import station_distances
 from torchcal.instruments.tracer.one_station.cv import compare_structures
-from torchcal.instruments.tracer.one_station.data import load_length_data
-from torchcal.instruments.tracer.one_station.fit import STRUCTURES, fit_station
+from torchcal.instruments.tracer.one_station.data import (
+    REFIT_MIN_CONFIGURATIONS,
+    REFIT_PURPOSE,
+    load_length_data,
+)
+from torchcal.instruments.tracer.one_station.fit import (
+    STRUCTURES,
+    check_station_determined,
+    fit_station,
+)
 from torchcal.kinematics.robot import load_robot
 from torchcal.stages.store import load_model, save_model
 
@@ -116,22 +128,33 @@ def fit_length_station(robot_path, data_path, out_dir, overrides, *, base_link=N
 
 
 def evaluate_length_station(model_dir, data_path, overrides, *, register: bool = False) -> dict:
-    """Length residuals of a model folder on a one-station file (anchor and offset re-fitted by default)."""
+    """Length residuals of a model folder on a one-station file (anchor and offset re-fitted by default).
+
+    Raises:
+        DataError: besides the file's own problems, too few distinct joint configurations to re-fit
+            anchor and offset (:data:`REFIT_MIN_CONFIGURATIONS`), or configurations that cannot
+            determine them; with ``refit_anchor=false`` one row is enough.
+    """
     config = length_station_config(overrides)
     stored = load_model(model_dir)
+    refit = config.refit_anchor or register
     data = load_length_data(data_path, stored.robot, joint_unit=config.joint_unit, length_unit=config.length_unit,
-                            check_limits=config.check_limits)
+                            check_limits=config.check_limits,
+                            min_configurations=REFIT_MIN_CONFIGURATIONS if refit else 1,
+                            purpose=REFIT_PURPOSE if refit else "evaluate")
     meta = stored.metadata.get("length_station")
     if meta is None:
         raise TorchcalError(f"{model_dir}: not a length-station model (fit one on a q1..qN, l1 file)")
     anchor = torch.tensor(meta["anchor_mm"], dtype=torch.float64) * 1e-3
     dead = torch.tensor([-meta["offset_mm"] * 1e-3], dtype=torch.float64)
-    refit = config.refit_anchor or register
     if refit:
         p = stored.model.layout.size
         problem = TracerJointProblem(stored.model, data.q, data.lengths, torch.full_like(data.lengths, 1e3),
                                      torch.arange(p, p + 4))
-        z = LevenbergMarquardt(max_iterations=config.max_iterations).solve(problem, torch.cat([stored.x, anchor, dead])).x
+        z0 = torch.cat([stored.x, anchor, dead])
+        check_station_determined(analyze(problem.jacobian(z0)[1], problem.names), data,
+                                 "the anchor and offset that evaluate re-fits (refit_anchor=false keeps the fitted ones)")
+        z = LevenbergMarquardt(max_iterations=config.max_iterations).solve(problem, z0).x
         _, s, d = problem.split(z)
         anchor, dead = s[0], d
     points = stored.model.tcp_position(data.q, stored.x)

@@ -11,8 +11,22 @@ import torch
 
 from torchcal.core.errors import DataError
 from torchcal.data.csv_table import check_units, joint_columns, read_csv_table
+from torchcal.data.plausibility import check_joint_unit
 from torchcal.instruments.tracer.data import TracerData, check_length_spread, station_columns
 from torchcal.kinematics.robot import RobotModel
+
+#: Distinct joint configurations a fit needs: anchor (3), offset (1) and attachment (3) are 7
+#: unknowns, and the structures are compared by cross-validation, whose training folds need them
+#: with some to spare.
+FIT_MIN_CONFIGURATIONS = 20
+FIT_PURPOSE = "a length-station fit (anchor, attachment, offset: 7 unknowns, and cross-validation)"
+#: Distinct joint configurations ``evaluate`` needs to re-fit anchor and offset (4 unknowns) and
+#: check them with one more.
+REFIT_MIN_CONFIGURATIONS = 5
+REFIT_PURPOSE = ("evaluate to re-fit anchor and offset (4 unknowns, plus one to check them; refit_anchor=false "
+                 "keeps the fitted ones)")
+#: Joint values closer than this (rad) in every joint are the same configuration (a repeat).
+SAME_CONFIGURATION_RAD = 1e-6
 
 
 def is_single_station(header: set[str]) -> bool:
@@ -20,14 +34,50 @@ def is_single_station(header: set[str]) -> bool:
     return "l1" in header and "l2" not in header
 
 
+def count_configurations(q: torch.Tensor) -> int:
+    """Distinct joint configurations among the rows ``q (n, N)`` rad.
+
+    Rows repeating a configuration (within :data:`SAME_CONFIGURATION_RAD` per joint) measure the
+    same tool point again: repeatability, no new geometry.
+    """
+    if len(q) == 0:
+        return 0
+    grid = np.round(q.detach().cpu().numpy() / SAME_CONFIGURATION_RAD)
+    return int(np.unique(grid, axis=0).shape[0])
+
+
+def check_configurations(data: TracerData, minimum: int, purpose: str) -> None:
+    """Refuse ``data`` with fewer than ``minimum`` distinct joint configurations for ``purpose``.
+
+    Raises:
+        DataError: naming the file, the count of configurations and rows, and what needs them.
+    """
+    n = count_configurations(data.q)
+    if n >= minimum:
+        return
+    repeats = (f" in {len(data)} rows (rows that repeat a joint configuration measure the same point again: "
+               "repeatability data, not calibration data)" if n < len(data) else "")
+    raise DataError(f"{n} distinct joint configuration(s){repeats} are too few for {purpose}, which needs at least "
+                    f"{minimum}", path=data.source)
+
+
 def load_length_data(path: str | Path, robot: RobotModel, *, joint_unit: str = "deg", length_unit: str = "mm",
-                     check_limits: bool = True) -> TracerData:
+                     check_limits: bool = True, min_configurations: int = FIT_MIN_CONFIGURATIONS,
+                     purpose: str = FIT_PURPOSE) -> TracerData:
     """Read ``q1..qN, l1`` into a one-station :class:`~torchcal.instruments.tracer.data.TracerData` (SI).
 
     Every problem is a :class:`DataError` naming the file, row and column; rows stay in file
     order (the order the blocked cross-validation relies on). Refused besides the cells: another
-    station column without ``l2`` (``l1, l3``: a gap, not one station), and readings whose range
-    does not fit the nominal TCP's motion (lengths in the wrong unit).
+    station column without ``l2`` (``l1, l3``: a gap, not one station), joints that look like
+    radians read as degrees, fewer than ``min_configurations`` distinct joint configurations
+    (repeated rows add none; ``purpose`` says in the message what needs them), a constant length
+    column (a stuck sensor) and readings whose range does not fit the nominal TCP's motion
+    (lengths in the wrong unit).
+
+    Args:
+        min_configurations: distinct joint configurations required (:data:`FIT_MIN_CONFIGURATIONS`
+            for a fit, :data:`REFIT_MIN_CONFIGURATIONS` for ``evaluate`` re-fitting anchor and offset).
+        purpose: what needs them, for the message.
     """
     path = Path(path)
     check_units(joint_unit, length_unit, path)
@@ -39,8 +89,10 @@ def load_length_data(path: str | Path, robot: RobotModel, *, joint_unit: str = "
     # 'l1, l3' is recognised here (no l2) but is a tracer file with a gap, not one station
     station_columns(header, str(path))
     joints = joint_columns(header, path, robot.dof, robot.name)
+    q_file = np.stack([table.column(j) for j in joints], -1)
+    check_joint_unit(q_file, joint_unit, robot.joint_limits.numpy(), path=str(path), lines=table.line_numbers)
     scale = math.pi / 180.0 if joint_unit == "deg" else 1.0
-    q = torch.tensor(np.stack([table.column(j) for j in joints], -1) * scale, dtype=torch.float64)
+    q = torch.tensor(q_file * scale, dtype=torch.float64)
     lengths = torch.tensor(table.column("l1") * (1e-3 if length_unit == "mm" else 1.0), dtype=torch.float64)
     if check_limits:
         lim = robot.joint_limits
@@ -49,10 +101,8 @@ def load_length_data(path: str | Path, robot: RobotModel, *, joint_unit: str = "
             i, j = (int(v) for v in outside.nonzero()[0])
             raise DataError(f"{float(q[i, j]) / scale:.4g} {joint_unit} is outside the joint limits of {robot.name} "
                             "(check_limits=false accepts it)", path=str(path), row=table.line_numbers[i], column=joints[j])
-    if len(q) < 20:
-        raise DataError(f"{len(q)} rows are too few for a length station (anchor, attachment, offset: 7 unknowns "
-                        "and cross-validation)", path=str(path))
     digest = hashlib.sha256(path.read_bytes()).hexdigest()
     data = TracerData(q, lengths.unsqueeze(-1), str(path), tuple(table.line_numbers), digest)
+    check_configurations(data, min_configurations, purpose)
     check_length_spread(data, robot, length_unit)
     return data
