@@ -239,3 +239,10 @@ def test_evaluate_scores_the_tool_orientation_where_the_file_measures_it(tmp_pat
                                                                         "rz": angles[:, 2]})
     assert main(["evaluate", "--model", str(model), "--data", str(path), "--json", str(out)]) == 0
     assert any("worse than the nominal robot" in w for w in json.loads(out.read_text())["warnings"])
+
+
+def test_a_path_too_long_is_one_line(tmp_path, capsys):
+    out = tmp_path / ("a" * 300)  # one name over the file system's 255 bytes
+    assert main(["simulate", "--out", str(out), "n_train=20", "n_test=10"]) == 2
+    err = capsys.readouterr().err
+    assert "path too long for the file system" in err and err.count("\n") == 1 and "Traceback" not in err

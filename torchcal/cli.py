@@ -471,7 +471,7 @@ def _on_sigterm(signum, frame) -> None:
 
 
 def _write_failure(exc: OSError) -> str | None:
-    """The one line of a write that the system refused for want of space, or ``None`` for other errors."""
+    """The one line of a file operation the system refused (no space, file too large, path too long), or ``None`` for other errors."""
     import errno
 
     where = exc.filename or "a file"
@@ -480,6 +480,9 @@ def _write_failure(exc: OSError) -> str | None:
     if exc.errno == errno.EFBIG:
         return (f"{where}: file larger than this process may write (the shell's `ulimit -f`, or the file "
                 "system's limit); raise the limit or free space and run again")
+    if exc.errno == errno.ENAMETOOLONG:
+        shown = str(where) if len(str(where)) <= 80 else f"{str(where)[:40]}...{str(where)[-30:]}"
+        return f"{shown}: path too long for the file system (a name over 255 bytes, or a path over 4096); give a shorter one"
     return None
 
 

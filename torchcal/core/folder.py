@@ -153,6 +153,29 @@ def check_output_folder(dest: str | Path, what: str = "--out", purpose: str = "m
                               f"{'it' if len(foreign) == 1 else 'them'} out or give another folder")
 
 
+def refuse_foreign_entries(dest: Path, known: tuple[str, ...], sealed: tuple[str, ...] = (), what: str = "name=") -> None:
+    """Refuse to replace a torchcal output folder ``dest`` (not sealed itself) that holds what torchcal did not write.
+
+    ``known``: the names its own top level may hold; ``sealed``: its subfolders with their own
+    ``checksums.json`` (a model), whose unlisted files are the user's.
+
+    Raises:
+        FolderError: naming the first foreign entry.
+    """
+    if not dest.is_dir():
+        return
+    foreign = [p for p in sorted(dest.iterdir()) if not p.name.startswith(".") and p.name not in known]
+    for name in sealed:
+        sub = dest / name
+        if (sub / CHECKSUMS).is_file():
+            listed = _read_checksums(sub)
+            foreign += [p for p in sorted(sub.iterdir()) if not p.name.startswith(".") and p.name != CHECKSUMS
+                        and p.name not in listed and not (p.is_dir() and p.name == FIGURES)]
+    if foreign:
+        raise FolderError(f"{foreign[0]}: {what} would replace {dest}, and torchcal did not write this; move it out or "
+                          "give another name")
+
+
 def _exchange(a: Path, b: Path) -> bool:
     """Swap the directory entries ``a`` and ``b`` atomically; ``False`` where the system cannot."""
     try:

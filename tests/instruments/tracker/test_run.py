@@ -35,3 +35,34 @@ def test_export_beside_the_report_reaches_the_report_and_the_summary(tmp_path):
     # the turned-tool warning of an export for the flange, where its convergence report counts such poses
     turned = manifest["convergence"]["strata"]["uniform"]["share_tool_turn_added_above_1_deg"]
     assert (summary["export"]["turned_tool_warning"] is not None) == (turned > 0)
+
+
+def _small(out, exported, name="small") -> RunConfig:
+    config = RunConfig(name=name, out=str(out), export_dir=str(exported), twin=TwinConfig(seed=3, n_train=60, n_test=30))
+    config.fit.residual, config.fit.gravity_compliance, config.fit.joint_harmonics = "none", "none", "none"
+    config.fit.progress, config.fit.jobs = False, 1
+    return config
+
+
+@pytest.mark.parametrize("out, export_dir", [("runs", "runs"), ("runs", "runs/small"), ("r3/small", "r3")])
+def test_run_and_export_folders_that_coincide_or_nest_are_refused_before_any_work(tmp_path, out, export_dir):
+    from torchcal.core.folder import FolderError
+
+    with pytest.raises(FolderError, match="are the same folder or one lies in the other"):
+        run(_small(tmp_path / out, tmp_path / export_dir))
+    assert not any(tmp_path.iterdir())  # refused before any work: nothing written
+
+
+@pytest.mark.slow
+def test_a_rerun_keeps_files_torchcal_did_not_write(tmp_path):
+    from torchcal.core.folder import FolderError
+
+    out, exported = tmp_path / "runs", tmp_path / "exported"
+    run(_small(out, exported))
+    run(_small(out, exported))  # its own folder: rewritten
+    for notes in (out / "small" / "NOTES.txt", out / "small" / "model" / "NOTES.txt"):
+        notes.write_text("mine")
+        with pytest.raises(FolderError, match="torchcal did not write this"):
+            run(_small(out, exported))
+        assert notes.read_text() == "mine"
+        notes.unlink()

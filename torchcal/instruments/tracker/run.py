@@ -17,7 +17,13 @@ from torchcal.compensate.export import export_and_check
 from torchcal.config import save_resolved_config
 from torchcal.config.schema import RunConfig
 from torchcal.config.workers import start_fit_workers
-from torchcal.core.folder import check_output_folder, staged_folder, write_member_json
+from torchcal.core.folder import (
+    FolderError,
+    check_output_folder,
+    refuse_foreign_entries,
+    staged_folder,
+    write_member_json,
+)
 from torchcal.core.io import atomic_write_json
 from torchcal.core.metrics import position_metrics
 from torchcal.core.outputs import check_name
@@ -82,6 +88,10 @@ def run(config: RunConfig, console=None) -> dict:
         return _run(config, console)
 
 
+#: What a run folder holds (``.torchcal-output`` aside): anything else is the user's, and a rerun is refused.
+RUN_ENTRIES = ("case", "config.yaml", "figures", "metrics.json", "model", "report.html", "report.md")
+
+
 def _run(config: RunConfig, console=None) -> dict:
     from rich.console import Console
 
@@ -89,7 +99,13 @@ def _run(config: RunConfig, console=None) -> dict:
     final = Path(config.out) / check_name(config.name, "name=")
     within = ("study",)  # a study refits its best run inside its own folder
     if config.export:
-        check_output_folder(Path(config.export_dir) / config.name, "export_dir/name", purpose="export")
+        exported = Path(config.export_dir) / config.name
+        a, b = final.resolve(), exported.resolve()
+        if a == b or a.is_relative_to(b) or b.is_relative_to(a):  # one would replace or swallow the other
+            raise FolderError(f"{exported}: export_dir/name and out/name ({final}) are the same folder or one lies in the "
+                              "other; give them separate places")
+        check_output_folder(exported, "export_dir/name", purpose="export")
+    refuse_foreign_entries(final, RUN_ENTRIES, sealed=("model",))
     # the run is built in a staging sibling and swapped in whole: an interrupted run leaves the earlier one
     with staged_folder(final, "name=", purpose="run", sealed=False, within=within) as folder:
         return _run_into(folder, final, config, console)
