@@ -21,7 +21,7 @@ import json
 import os
 import shutil
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
@@ -222,6 +222,53 @@ def _remove_dead_stagings(dest: Path) -> None:
             pass
 
 
+def _swap_in(staging: Path, dest: Path, prefix: str) -> None:
+    """Put the complete folder ``staging`` at ``dest``, atomically where the system can exchange
+    the two, and delete the earlier ``dest``."""
+    if dest.is_dir() and _exchange(staging, dest):
+        _fsync_dir(dest.parent)
+        shutil.rmtree(staging, ignore_errors=True)  # now the earlier folder
+        return
+    if dest.is_dir():
+        old = Path(tempfile.mkdtemp(dir=dest.parent, prefix=prefix + "old-"))
+        os.rename(dest, old / dest.name)
+        os.rename(staging, dest)
+        shutil.rmtree(old, ignore_errors=True)
+    else:
+        os.rename(staging, dest)
+    _fsync_dir(dest.parent)
+
+
+@contextmanager
+def deferred_folder(dest: str | Path, what: str = "--out", purpose: str = "export") -> Iterator[tuple[Path, Callable[[], None]]]:
+    """A hidden sibling of ``dest`` for a writer that builds a whole folder (itself staged), moved to
+    ``dest`` only by the ``commit`` it yields: after the outputs it belongs with are in place.
+
+    Yields ``(pending, commit)``. Without ``commit`` (an error, an interrupt) ``pending`` is deleted
+    and ``dest`` is untouched; a killed process's ``pending`` is deleted by the next writer of ``dest``.
+    """
+    dest = Path(dest)
+    check_output_folder(dest, what, purpose)
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    _remove_dead_stagings(dest)
+    prefix = f".{dest.name}.staging-{os.getpid()}-"
+    pending = dest.parent / f"{prefix}pending"
+    shutil.rmtree(pending, ignore_errors=True)
+    committed = False
+
+    def commit() -> None:
+        nonlocal committed
+        _fsync_tree(pending)
+        _swap_in(pending, dest, prefix)
+        committed = True
+
+    try:
+        yield pending, commit
+    finally:
+        if not committed:
+            shutil.rmtree(pending, ignore_errors=True)
+
+
 @contextmanager
 def staged_folder(dest: str | Path, what: str = "--out", purpose: str = "model", sealed: bool = True,
                   within: tuple[str, ...] = ()) -> Iterator[Path]:
@@ -251,18 +298,7 @@ def staged_folder(dest: str | Path, what: str = "--out", purpose: str = "model",
             if unlisted or not listed:
                 seal(staging)
         _fsync_tree(staging)
-        if dest.is_dir() and _exchange(staging, dest):
-            _fsync_dir(dest.parent)
-            shutil.rmtree(staging, ignore_errors=True)  # now the earlier folder
-            return
-        if dest.is_dir():
-            old = Path(tempfile.mkdtemp(dir=dest.parent, prefix=prefix + "old-"))
-            os.rename(dest, old / dest.name)
-            os.rename(staging, dest)
-            shutil.rmtree(old, ignore_errors=True)
-        else:
-            os.rename(staging, dest)
-        _fsync_dir(dest.parent)
+        _swap_in(staging, dest, prefix)
     except BaseException:
         # this process's staging folders, also one whose name an interrupt kept from ``staging``;
         # never the "-old-" folder that may hold the earlier ``dest`` while it is being replaced

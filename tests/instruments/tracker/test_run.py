@@ -66,3 +66,25 @@ def test_a_rerun_keeps_files_torchcal_did_not_write(tmp_path):
             run(_small(out, exported))
         assert notes.read_text() == "mine"
         notes.unlink()
+
+
+@pytest.mark.slow
+def test_an_interrupted_rerun_leaves_the_earlier_run_and_export_a_matching_pair(tmp_path, monkeypatch):
+    from torchcal.instruments.tracker import run as run_module
+
+    out, exported = tmp_path / "runs", tmp_path / "exported"
+    run(_small(out, exported))
+    manifest = (exported / "small" / "manifest.json").read_bytes()
+    metrics = (out / "small" / "metrics.json").read_bytes()
+
+    def interrupted(path, data):
+        raise KeyboardInterrupt  # after the export was written, before the run folder is in place
+
+    monkeypatch.setattr(run_module, "atomic_write_json", interrupted)
+    config = _small(out, exported)
+    config.twin.seed = 4
+    with pytest.raises(KeyboardInterrupt):
+        run(config)
+    assert (exported / "small" / "manifest.json").read_bytes() == manifest
+    assert (out / "small" / "metrics.json").read_bytes() == metrics
+    assert [p.name for p in exported.iterdir()] == ["small"] and [p.name for p in out.iterdir()] == ["small"]

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import time
+from contextlib import ExitStack
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -20,6 +21,7 @@ from torchcal.config.workers import start_fit_workers
 from torchcal.core.folder import (
     FolderError,
     check_output_folder,
+    deferred_folder,
     refuse_foreign_entries,
     staged_folder,
     write_member_json,
@@ -98,21 +100,31 @@ def _run(config: RunConfig, console=None) -> dict:
     console = console or Console()
     final = Path(config.out) / check_name(config.name, "name=")
     within = ("study",)  # a study refits its best run inside its own folder
+    exported = Path(config.export_dir) / config.name
     if config.export:
-        exported = Path(config.export_dir) / config.name
         a, b = final.resolve(), exported.resolve()
         if a == b or a.is_relative_to(b) or b.is_relative_to(a):  # one would replace or swallow the other
             raise FolderError(f"{exported}: export_dir/name and out/name ({final}) are the same folder or one lies in the "
                               "other; give them separate places")
         check_output_folder(exported, "export_dir/name", purpose="export")
     refuse_foreign_entries(final, RUN_ENTRIES, sealed=("model",))
-    # the run is built in a staging sibling and swapped in whole: an interrupted run leaves the earlier one
-    with staged_folder(final, "name=", purpose="run", sealed=False, within=within) as folder:
-        return _run_into(folder, final, config, console)
+    # the run is built in a staging sibling and swapped in whole, and its export is moved into place only
+    # after it: an interrupted run leaves the earlier run and the earlier export, a matching pair
+    with ExitStack() as stack:
+        pending, commit = (stack.enter_context(deferred_folder(exported, "export_dir/name", purpose="export"))
+                           if config.export else (None, None))
+        with staged_folder(final, "name=", purpose="run", sealed=False, within=within) as folder:
+            summary = _run_into(folder, final, config, console, pending, exported)
+        if commit is not None:
+            commit()
+        return summary
 
 
-def _run_into(folder: Path, destination: Path, config: RunConfig, console) -> dict:
-    """The run's steps, writing into ``folder`` (staging); recorded paths name ``destination``, where it will be."""
+def _run_into(folder: Path, destination: Path, config: RunConfig, console, export_into: Path | None = None,
+              exported_at: Path | None = None) -> dict:
+    """The run's steps, writing into ``folder`` (staging); recorded paths name ``destination``, where it will be.
+
+    ``export_into``: where the export is written (a pending folder, moved to ``exported_at`` after the run)."""
     started = time.perf_counter()
     save_resolved_config(folder / "config.yaml", config)
     start_fit_workers(config.fit)  # they start while the twin is simulated (kept where the CLI started them)
@@ -175,12 +187,16 @@ def _run_into(folder: Path, destination: Path, config: RunConfig, console) -> di
     joint_truth = twin.gear_deviation if config.twin.gear else None
     if config.export:
         # the export and its checks in a worker while the report's figures are drawn here (core.workers)
-        with in_background(export_and_check, model_dir, Path(config.export_dir) / config.name, test,
+        with in_background(export_and_check, model_dir, export_into, test,
                            twin.true_tcp_positions, jobs=resolve_jobs(config.fit.jobs)) as pending:
 
             def exported() -> dict:
                 if "export" not in summary:
-                    summary["export"] = pending.result()
+                    # written into a pending folder that moves to export_dir/name after the run: named as it will be
+                    result = pending.result()
+                    for key in ("out_dir", "summary"):
+                        result[key] = result[key].replace(str(export_into), str(exported_at))
+                    summary["export"] = result
                     console.log(summary["export"]["summary"])
                     if summary["export"].get("turned_tool_warning"):
                         console.log(f"warning: {summary['export']['turned_tool_warning']}")
