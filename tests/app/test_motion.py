@@ -88,7 +88,7 @@ def test_bad_path_file_is_one_line(tmp_path, capsys, body, expected):
 @pytest.mark.parametrize("option, expected", [
     ([], "start=[q1,...,q6] (deg) is required"),
     (["start=[1,2,3]"], "start has 3 values"),
-    ([_start_arg(), "speed=-5"], "speed must be a finite number in (0, inf], got -5.0"),
+    ([_start_arg(), "speed=-5"], "speed must be a finite number in (0, inf), got -5.0"),
     ([_start_arg(), "joint_speed=[1,1,1,1,1,0]"], "joint_speed limits must be positive"),
     ([_start_arg(), "dampng=1"], "invalid override"),
     (["start=[0,-60,90,0,300,0]"], "start: q5 = 300 deg is outside joint 5's limits"),

@@ -15,9 +15,13 @@ dataclass defaults stand in for it and group selections are refused with a clear
 
 from __future__ import annotations
 
+import difflib
 import os
+from dataclasses import is_dataclass
 from pathlib import Path
 from typing import Any, TypeVar, cast
+
+import yaml
 
 from torchcal.config.schema import FitConfig, RunConfig
 from torchcal.core.errors import TorchcalError
@@ -35,7 +39,11 @@ def config_dir() -> Path | None:
     copy an installed wheel carries (``torchcal/configs``, written by the build)."""
     candidates = []
     if os.environ.get(CONFIG_DIR_ENV):
-        candidates.append(Path(os.environ[CONFIG_DIR_ENV]))
+        named = Path(os.environ[CONFIG_DIR_ENV])
+        if not (named / "config.yaml").is_file():  # asked for by name: never silently another folder
+            what = "has no config.yaml" if named.is_dir() else "is not a folder"
+            raise TorchcalError(f"{CONFIG_DIR_ENV}={named} {what}; point it at a configs/ folder or unset it")
+        candidates.append(named)
     package = Path(__file__).resolve().parents[1]
     candidates += [Path.cwd() / "configs", package.parent / "configs", package / "configs"]
     for candidate in candidates:
@@ -54,6 +62,53 @@ def split_overrides(overrides: list[str]) -> tuple[list[str], list[str]]:
     return groups, fields
 
 
+def _closest(word: str, options: list[str] | set[str]) -> str:
+    """`` (did you mean 'x'?)`` for the option closest to a misspelt ``word``, else nothing."""
+    match = difflib.get_close_matches(word, sorted(options), n=1, cutoff=0.6)
+    return f" (did you mean '{match[0]}'?)" if match else ""
+
+
+def _check_groups(group_overrides: list[str], folder: Path) -> None:
+    """Refuse a group selection Hydra would misread: a group given twice (Hydra keeps the last
+    silently), a value that is a path (``model=../config`` would load another folder's file as a
+    model) or an option that is not a file of the group (listing the group's options)."""
+    seen: dict[str, str] = {}
+    for item in group_overrides:
+        group, value = (part.strip() for part in item.split("=", 1))
+        if group in seen:
+            raise TorchcalError(f"config group '{group}' is given twice ('{seen[group]}' and '{item}'); give it once")
+        seen[group] = item
+        options = sorted(p.stem for p in (folder / group).glob("*.yaml")) if (folder / group).is_dir() else []
+        if not value or "/" in value or "\\" in value or ".." in value:
+            raise TorchcalError(f"'{item}': a config group takes the name of one of its options, not a path; "
+                                f"{group} options: {', '.join(options) or 'none'}")
+        if value not in options:
+            raise TorchcalError(f"'{item}': no option '{value}' in config group '{group}'{_closest(value, options)}; "
+                                f"{group} options: {', '.join(options) or 'none'} (files of {folder / group})")
+
+
+def _check_field_keys(schema: Any, fields: list[str], extra: tuple[str, ...] = (), prefix: str = "") -> None:
+    """Refuse a ``key=value`` whose key names no field of the dataclass ``schema``, with the closest
+    key (a dotted key is followed through nested dataclasses; below a field that is not one, a
+    mapping, it is left to the merge). ``extra``: other names a key may be (the config groups);
+    ``prefix``: the section the keys were taken from (``study.``), for the message."""
+    for item in fields:
+        key = item.split("=", 1)[0].strip()
+        node, done = schema, cast(list[str], [])
+        for part in key.split("."):
+            if not is_dataclass(node) or isinstance(node, type):
+                break
+            names = field_names(node)
+            if part not in names:
+                candidates = {".".join([*done, n]) for n in names} | (set(extra) if not done else set())
+                section = (prefix + ".".join(done)).rstrip(".")
+                where = f" in '{section}'" if section else ""
+                match = _closest(key, candidates).replace("'", f"'{prefix}", 1)
+                raise TorchcalError(f"invalid override (key '{prefix}{key}'): no key '{part}'{where}{match}")
+            done.append(part)
+            node = getattr(node, part)
+
+
 def _compose_yaml(config_name: str, group_overrides: list[str]):
     """The Hydra composition of ``config_name`` with group selections (an OmegaConf node)."""
     from omegaconf import OmegaConf
@@ -66,6 +121,7 @@ def _compose_yaml(config_name: str, group_overrides: list[str]):
                 f"(set {CONFIG_DIR_ENV} or run from the project folder)"
             )
         return OmegaConf.create({})
+    _check_groups(group_overrides, folder)
     from hydra import compose, initialize_config_dir
     from hydra.errors import HydraException
     from omegaconf.errors import OmegaConfBaseException
@@ -75,7 +131,28 @@ def _compose_yaml(config_name: str, group_overrides: list[str]):
             node = compose(config_name=config_name, overrides=group_overrides)
     except (HydraException, OmegaConfBaseException) as exc:
         raise TorchcalError(f"configs: {str(exc).splitlines()[0]}") from None
+    except yaml.YAMLError as exc:
+        raise TorchcalError(_yaml_problem(exc, folder)) from None
     return node
+
+
+def _yaml_problem(exc: Exception, folder: Path) -> str:
+    """One line for a config file YAML cannot read: the file, the line and the problem. Hydra reads
+    the files with OmegaConf's loader, a ``yaml.SafeLoader`` that refuses a key given twice and any
+    ``!!python`` tag (nothing of a file is run)."""
+    mark = getattr(exc, "problem_mark", None) or getattr(exc, "context_mark", None)
+    problem = str(getattr(exc, "problem", None) or exc).splitlines()[0]
+    if mark is None:
+        return f"configs: a file of {folder} is not valid YAML: {problem}"
+    first = getattr(exc, "context_mark", None)
+    if problem.startswith("found duplicate key") and first is not None:
+        key = problem[len("found duplicate key"):].strip()
+        again = "" if first.line == mark.line else f" (first on line {first.line + 1})"
+        problem = (f"key {key!r} is given twice in one mapping{again}; YAML would keep only the last value, "
+                   "so give each key once")
+    elif problem.startswith("could not determine a constructor for the tag"):
+        problem += " (config files are plain YAML: no Python tags)"
+    return f"configs: {mark.name}, line {mark.line + 1}: {problem}"
 
 
 def _merge(schema: Any, *nodes) -> Any:
@@ -111,7 +188,9 @@ def compose_run_config(overrides: list[str], config_name: str = "config", extra_
     for name in extra_sections:
         node = composed.pop(name, None) if name in composed else None
         sections[name] = (node, field_by_section[name])
-    config = apply_overrides(_merge(RunConfig(), composed), run_fields)
+    merged = _merge(RunConfig(), composed)
+    _check_field_keys(merged, run_fields, extra=GROUPS)
+    config = apply_overrides(merged, run_fields)
     return config, sections
 
 
@@ -119,7 +198,9 @@ def merge_section(schema: Any, section: tuple[Any, list[str]]):
     """A composed section plus its ``section.key=value`` overrides, merged onto ``schema``."""
     node, fields = section
     stripped = [item.split(".", 1)[1] for item in fields if "." in item.split("=", 1)[0]]
-    return apply_overrides(_merge(schema, node) if node is not None else schema, stripped)
+    base = _merge(schema, node) if node is not None else schema
+    _check_field_keys(base, stripped, prefix=fields[0].split(".", 1)[0] + "." if fields else "")
+    return apply_overrides(base, stripped)
 
 
 def save_resolved_config(path: str | Path, config: Any, **sections: Any) -> Path:
@@ -162,6 +243,7 @@ def compose_options(schema: T, overrides: list[str], *, groups: tuple[str, ...] 
         composed = _compose_yaml("config", chosen)
         node = composed.get(section, OmegaConf.create({})) if section else composed
         schema = _merge(schema, node)
+    _check_field_keys(schema, fields, extra=groups)
     return apply_overrides(schema, fields)
 
 

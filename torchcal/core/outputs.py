@@ -104,14 +104,15 @@ def _check_parent(path: Path, what: str) -> None:
         raise OutputClaimError(f"{parent}: not writable")
 
 
-def refuse_inside_output(path: str | Path, what: str) -> None:
+def refuse_inside_output(path: str | Path, what: str, within: tuple[str, ...] = ()) -> None:
     """Refuse an output path inside a torchcal output folder (a model, an export, a run), whose
-    files that folder's checksums own.
+    files that folder's checksums own; inside one whose purpose is in ``within`` it is allowed (a
+    study's own storage in its folder).
 
     Raises:
         OutputClaimError: one line naming the path and the folder.
     """
-    _refuse_inside(Path(path), what)
+    _refuse_inside(Path(path), what, within)
 
 
 def _refuse_inside(path: Path, what: str, within: tuple[str, ...] = ()) -> None:

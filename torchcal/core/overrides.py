@@ -170,7 +170,9 @@ def check_range(config: Any, name: str, *, low: float | None = None, high: float
 
     value = getattr(config, name)
     left, right = "(" if low_open else "[", ")" if high_open else "]"
-    span = f"{left}{'-inf' if low is None else f'{low:g}'}, {'inf' if high is None else f'{high:g}'}{right}"
+    # an open end reads "inf" with a round bracket: a finite number never reaches it
+    span = (f"{left if low is not None else '('}{'-inf' if low is None else f'{low:g}'}, "
+            f"{'inf' if high is None else f'{high:g}'}{right if high is not None else ')'}")
     ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
     if ok and low is not None:
         ok = value > low if low_open else value >= low

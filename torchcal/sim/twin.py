@@ -46,6 +46,8 @@ class Twin:
     @classmethod
     def create(cls, config: TwinConfig) -> Twin:
         robot = load_robot(config.robot or default_robot_path())
+        limits = robot.joint_limits.to(torch.float64)
+        config.check_margin([math.degrees(float(hi - lo)) for lo, hi in limits.tolist() if math.isfinite(hi - lo)])
         gen = torch.Generator().manual_seed(config.seed)
         model = ErrorModel(robot)
         layout = model.layout

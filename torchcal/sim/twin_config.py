@@ -9,6 +9,10 @@ from dataclasses import dataclass, field
 from torchcal.core.errors import TorchcalError
 from torchcal.core.overrides import check_range
 
+#: Largest ``margin_deg`` (exclusive): a margin kept from both limits of a joint eats twice its value
+#: of the range, and industrial joints span 90 deg and more.
+MAX_MARGIN_DEG = 45.0
+
 
 @dataclass
 class TwinConfig:
@@ -31,7 +35,9 @@ class TwinConfig:
         joint_stiffness_nm_per_rad: per-joint stiffness for the gravity compliance (a robot with
             more joints than values repeats the last value).
         link_masses_kg: point masses at the middle of links 2 and 3 and at the wrist.
-        margin_deg: distance kept from joint limits when sampling poses.
+        margin_deg: distance kept from joint limits when sampling poses, in ``[0, 45)`` deg
+            (:data:`MAX_MARGIN_DEG`) and below half the narrowest limited joint range of the robot
+            (:meth:`check_margin`): a larger margin leaves a joint no range to sample.
     """
 
     robot: str | None = None
@@ -58,8 +64,16 @@ class TwinConfig:
         for name in ("n_train", "n_test"):
             check_range(self, name, low=1, high=1_000_000)  # 10^6 poses: about 0.5 GB of float64 joints and Jacobians
         for name in ("length_error_mm", "angle_error_deg", "tool_error_mm", "tracker_sigma_mm", "repeatability_mm",
-                     "gear_amplitude_deg", "margin_deg"):
+                     "gear_amplitude_deg"):
+            _check_finite(self, name)
             check_range(self, name, low=0.0)
+        _check_finite(self, "margin_deg")
+        check_range(self, "margin_deg", low=0.0)
+        if self.margin_deg >= MAX_MARGIN_DEG:
+            raise TorchcalError(f"margin_deg must be in [0, {MAX_MARGIN_DEG:g}) deg, got {self.margin_deg!r}: it is kept "
+                                "from both limits of every joint when sampling poses, so a larger one leaves no "
+                                "range to sample")
+        _check_finite(self, "instrument_distance_mm")
         check_range(self, "instrument_distance_mm", low=0.0, low_open=True)
         check_range(self, "gear_orders", low=1, high=20)
         check_range(self, "compliance_cubic", low=-0.9, high=10.0)
@@ -71,6 +85,23 @@ class TwinConfig:
             raise TorchcalError(f"joint_stiffness_nm_per_rad needs finite values > 0 (N m/rad), got "
                                 f"{list(self.joint_stiffness_nm_per_rad)}")
 
+    def check_margin(self, joint_ranges_deg: list[float]) -> None:
+        """Refuse a ``margin_deg`` not below half the narrowest of ``joint_ranges_deg`` (the spans,
+        upper minus lower limit, of the robot's limited joints: a continuous joint keeps no margin)."""
+        if joint_ranges_deg and 2.0 * self.margin_deg >= min(joint_ranges_deg):
+            narrowest = min(joint_ranges_deg)
+            raise TorchcalError(f"margin_deg must be below half the narrowest joint range of the robot "
+                                f"({narrowest / 2:g} deg of {narrowest:g}), got {self.margin_deg!r}: it is kept from "
+                                "both limits when sampling poses, so that joint would have no range to sample")
+
     @property
     def noise_floor_rms_mm(self) -> float:
         return math.sqrt(3.0 * (self.tracker_sigma_mm**2 + self.repeatability_mm**2))
+
+
+def _check_finite(config: TwinConfig, name: str) -> None:
+    """A size that is not a finite number: refused in plain words (the range check would print an
+    ``inf`` bound beside an ``inf`` value)."""
+    value = getattr(config, name)
+    if isinstance(value, float) and not math.isfinite(value):
+        raise TorchcalError(f"{name} must be a finite number, got {value!r}")

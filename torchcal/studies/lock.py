@@ -71,7 +71,10 @@ class StudyLock:
             import sqlalchemy
 
             if self._engine is None:
-                self._engine = sqlalchemy.create_engine(self.url, pool_pre_ping=True, poolclass=sqlalchemy.pool.NullPool)
+                from torchcal.studies.storage import connect_args
+
+                self._engine = sqlalchemy.create_engine(self.url, pool_pre_ping=True, poolclass=sqlalchemy.pool.NullPool,
+                                                        connect_args=connect_args(self.url))
             conn = self._conn = self._engine.connect()
             try:
                 conn.execute(sqlalchemy.text("SELECT pg_advisory_lock(:k)"), {"k": _key(self.name)})

@@ -15,6 +15,7 @@ per worker process and reused by every trial that shares them.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import os
@@ -33,23 +34,43 @@ from torchcal.kinematics.robot import load_robot
 from torchcal.stages.geometry import fit_with_selection, held_out_errors, with_tool
 from torchcal.stages.pipeline import fit_model
 from torchcal.stages.store import load_model
-from torchcal.studies.spec import StudyConfig, search_space
+from torchcal.studies.spec import StudyConfig, apply_values, search_space
 
 # Fit settings that only change the residual heads; every other one changes the geometric part.
 HEAD_KEYS = ("residual", "head_time_check", "residual_hidden", "mayfly_population", "mayfly_iterations",
              "residual_margin", "progress")
 
 
-def apply_values(config, values: dict[str, Any]):
-    """``config`` (a RunConfig) with dotted ``values`` set, type-checked by its schema."""
-    from omegaconf import OmegaConf
-    from omegaconf.errors import OmegaConfBaseException
+CASE_FILES = ("robot.yaml", "train.csv", "test.csv", "truth.json")
+#: user attr of a trial stopped by Ctrl-C (SIGINT), and of the trial that runs its parameters again
+INTERRUPTED = "interrupted"
+RETRY_OF_INTERRUPTED = "retry_of_interrupted"
 
-    try:
-        merged = OmegaConf.merge(OmegaConf.structured(config), OmegaConf.from_dotlist([f"{k}={v}" for k, v in values.items()]))
-        return OmegaConf.to_object(merged)
-    except OmegaConfBaseException as exc:
-        raise TorchcalError(f"study.search_space: {str(exc).splitlines()[0]}") from None
+
+def file_sha256(path: str | Path) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def check_case(study, folder: Path) -> None:
+    """Refuse a cached twin case (``cases/<digest>/``) whose files changed since the study first used it.
+
+    The first use records the files' SHA-256 in the study's user attrs (``case:<digest>``): every
+    worker, on every machine, writes the same deterministic case and checks it against that record.
+    """
+    sums = {n: file_sha256(folder / n) for n in CASE_FILES if (folder / n).is_file()}
+    key = f"case:{folder.name}"
+    stored = study.user_attrs.get(key)
+    if stored is None:
+        study.set_user_attr(key, sums)
+        return
+    changed = sorted(n for n in set(stored) | set(sums) if stored.get(n) != sums.get(n))
+    if changed:
+        raise TorchcalError(f"cached twin case {folder}: {', '.join(changed)} changed since the study's trials were "
+                            f"scored on it (SHA-256 differs); delete {folder} to have it written again")
 
 
 def _digest(obj: Any) -> str:
@@ -92,15 +113,18 @@ class StudyObjective:
         self._prepared: dict[str, PreparedData] = {}
 
     # -------------------------------------------------------------------- data
-    def _case(self, twin_config) -> dict[str, Path]:
-        folder = self.study_dir / "cases" / _digest(asdict(twin_config))
-        paths = {n: folder / n for n in ("robot.yaml", "train.csv", "test.csv", "truth.json")}
+    def _case(self, twin_config, study=None) -> dict[str, Path]:
+        digest = _digest(asdict(twin_config))
+        folder = self.study_dir / "cases" / digest
+        paths = {n: folder / n for n in CASE_FILES}
         if not all(p.is_file() for p in paths.values()):
             # Deterministic for a given config, and written atomically: concurrent workers agree.
             default().twin().write(folder, twin_config)
+        if study is not None:
+            check_case(study, folder)
         return paths
 
-    def prepare(self, config) -> PreparedData:
+    def prepare(self, config, trial_study=None) -> PreparedData:
         """Data, structure cross-validation and fit on all poses for ``config``, once per distinct setting."""
         study = self.study
         source = asdict(config.twin) if study.train is None else [study.robot, study.train, study.test, study.holdout]
@@ -110,7 +134,7 @@ class StudyObjective:
             test: Measurements | None
             holdout: Measurements | None = None
             if study.train is None:
-                case = self._case(config.twin)
+                case = self._case(config.twin, study=trial_study)
                 robot = with_tool(load_robot(case["robot.yaml"]), config.fit)
                 train = load_measurements(case["train.csv"], robot)
                 test = load_measurements(case["test.csv"], robot)
@@ -139,6 +163,16 @@ class StudyObjective:
         return None
 
     def __call__(self, trial) -> float | tuple[float, ...]:
+        try:
+            return self._run(trial)
+        except KeyboardInterrupt:
+            # Optuna fails the trial and the command stops; the next run of the command queues
+            # its parameters again (runner.requeue_interrupted), as the heartbeat does for a killed one
+            with contextlib.suppress(Exception):
+                trial.set_user_attr(INTERRUPTED, True)
+            raise
+
+    def _run(self, trial) -> float | tuple[float, ...]:
         if self.on_start is not None:
             self.on_start(trial)
         values = {d.key: d.suggest(trial) for d in self.space}
@@ -149,7 +183,7 @@ class StudyObjective:
             # its result is known and deterministic, so it is recorded, not recomputed.
             trial.set_user_attr("repeat_of", repeat.number)
             for k, v in repeat.user_attrs.items():
-                if k not in ("worker_pid", "default_configuration", "repeat_of"):
+                if k not in ("worker_pid", "default_configuration", "repeat_of", INTERRUPTED, RETRY_OF_INTERRUPTED):
                     trial.set_user_attr(k, v)
             return repeat.values[0] if len(self.study.objectives) == 1 else tuple(repeat.values)
         config = apply_values(self.base, values)
@@ -161,7 +195,7 @@ class StudyObjective:
         trial_dir = self.study_dir / "trials" / f"{trial.number:04d}"
         save_resolved_config(trial_dir / "config.yaml", config)
         started = time.perf_counter()
-        data = self.prepare(config)
+        data = self.prepare(config, trial.study)
         fitted = fit_model(trial_dir / "model", data.robot, data.train, config.fit,
                            fitted=(data.result, data.structure))
         folder, kept = fitted.folder, fitted.head

@@ -117,6 +117,11 @@ def write_study_report(study, config: StudyConfig, study_dir: Path, best_run: di
                          f"test RMS {_mm(d.user_attrs.get('test_rms_mm'))}; the best trial is "
                          f"{100 * (1 - best.values[0] / d.values[0]):.1f} % lower on validation." if d.values[0] > 0 else "")
             lines.append("")
+        else:
+            queued = [t for t in trials if t.user_attrs.get("default_configuration")]
+            if queued:
+                states = ", ".join(f"trial {t.number} {t.state.name.lower()}" for t in queued)
+                lines += [f"Default configuration: not scored ({states}); run the same command again to score it.", ""]
         scores = [t.values[0] for t in complete]
         spread = max(scores) - min(scores)
         if len(complete) >= 3 and len(best.params) >= 1 and spread <= 1e-9 * max(1.0, abs(max(scores))):

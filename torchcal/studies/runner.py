@@ -13,8 +13,9 @@ import json
 import multiprocessing
 import os
 import sys
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import Any
 
 from torchcal.compensate.export import export_model
 from torchcal.config import save_resolved_config
@@ -28,12 +29,24 @@ from torchcal.kinematics.robot import load_robot
 from torchcal.stages.geometry import with_tool
 from torchcal.stages.pipeline import fit_model
 from torchcal.studies.lock import StudyLock
-from torchcal.studies.objective import apply_values
+from torchcal.studies.objective import (
+    INTERRUPTED,
+    RETRY_OF_INTERRUPTED,
+    apply_values,
+    check_case,
+    file_sha256,
+)
 from torchcal.studies.report import write_study_report
-from torchcal.studies.spec import StudyConfig, search_space
-from torchcal.studies.storage import open_study, shown_url, storage_url
+from torchcal.studies.spec import StudyConfig, check_space, search_space
+from torchcal.studies.storage import check_storage, open_study, shown_url, storage_url
 from torchcal.studies.worker import counts as _counts
 from torchcal.studies.worker import finished, work
+
+#: Local worker processes one command starts at most: each is a process with its own copy of the
+#: data and its own database connection, and more than the machine's cores only queue for them.
+MAX_WORKERS = max(4, os.cpu_count() or 1)
+#: Fit options that change how a trial runs, never its numbers (left out of the study's fingerprint).
+UNSCORED_FIT_OPTIONS = ("progress", "jobs")
 
 
 def study_folder(base, study: StudyConfig) -> Path:
@@ -108,19 +121,110 @@ def _check_same_space(study, config: StudyConfig) -> None:
                             f"({stored[:120]}...); give another study.name, or the same study=... as before")
 
 
+def fingerprint(base, config: StudyConfig) -> dict[str, Any]:
+    """What the study's trials are scored on, besides their searched values: the twin's settings
+    (or the SHA-256 of the measured data files) and the fit options the search space leaves fixed."""
+    searched = set(config.search_space)
+    out: dict[str, Any] = {}
+    if config.train is None:
+        out.update({f"twin.{k}": v for k, v in asdict(base.twin).items() if f"twin.{k}" not in searched})
+    else:
+        for name in ("robot", "train", "test", "holdout"):
+            path = getattr(config, name)
+            out[f"study.{name}"] = f"sha256:{file_sha256(path)}" if path is not None else None
+        out["study.holdout_register"] = config.holdout_register
+    out.update({f"fit.{k}": v for k, v in asdict(base.fit).items()
+                if f"fit.{k}" not in searched and k not in UNSCORED_FIT_OPTIONS})
+    return json.loads(json.dumps(out, default=str))
+
+
+def _check_same_data(study, base, config: StudyConfig) -> None:
+    """Refuse to resume a study whose trials were scored on other data or other fixed options (its
+    trials would no longer compare); a new study records its fingerprint, and its cached twin cases
+    are checked against the checksums its trials recorded."""
+    mine = fingerprint(base, config)
+    stored = study.user_attrs.get("fingerprint")
+    if stored is None:
+        study.set_user_attr("fingerprint", mine)
+    else:
+        changed = []
+        for key in sorted(set(stored) | set(mine)):
+            before, now = stored.get(key, "(unset)"), mine.get(key, "(unset)")
+            if before != now:
+                changed.append(f"{key} (file content differs)" if str(before).startswith("sha256:")
+                               and str(now).startswith("sha256:") else f"{key}: {before} -> {now}")
+        if changed:
+            shown = "; ".join(changed[:4]) + (f"; and {len(changed) - 4} more" if len(changed) > 4 else "")
+            raise TorchcalError(f"study '{config.name}' already exists with trials scored on other data or options "
+                                f"({shown}); give another study.name, or the same data and options as before")
+    cases = study_folder(base, config) / "cases"
+    if cases.is_dir():
+        for folder in sorted(p for p in cases.iterdir() if p.is_dir() and not p.name.startswith(".")):
+            if f"case:{folder.name}" in study.user_attrs:
+                check_case(study, folder)
+
+
+def requeue_interrupted(study) -> list[int]:
+    """Queue again, once, the parameters of trials a Ctrl-C (SIGINT) stopped (failed with the
+    ``interrupted`` user attr), as the heartbeat queues a killed trial: the default configuration
+    among them is then still compared. Returns the numbers queued again."""
+    from optuna.trial import TrialState
+
+    trials = study.get_trials(deepcopy=False)
+    done = {t.user_attrs.get(RETRY_OF_INTERRUPTED) for t in trials}
+    queued = []
+    for t in trials:
+        if t.state != TrialState.FAIL or not t.user_attrs.get(INTERRUPTED) or t.number in done:
+            continue
+        params = {**t.system_attrs.get("fixed_params", {}), **t.params}
+        attrs = {k: v for k, v in t.user_attrs.items() if k == "default_configuration"}
+        study.enqueue_trial(params, user_attrs={**attrs, RETRY_OF_INTERRUPTED: t.number})
+        queued.append(t.number)
+    return queued
+
+
+def _workers(workers: int, config: StudyConfig, finished_now: int | None, console) -> int:
+    """``workers``, refused when below 1 or above ``MAX_WORKERS``, and capped at the trials left
+    (``finished_now``: the trials already finished; ``None`` checks ``workers`` only)."""
+    if workers < 1:
+        raise TorchcalError(f"--workers must be at least 1, got {workers}")
+    if workers > MAX_WORKERS:
+        raise TorchcalError(f"--workers {workers}: at most {MAX_WORKERS} local workers (this machine's cores, at least "
+                            "4): each is a process with its own data and database connection, and more only queue "
+                            "for the cores; run more on other machines with a shared --storage")
+    if finished_now is None:
+        return workers
+    left = max(1, config.n_trials - finished_now)
+    if workers > left:
+        if console is not None:
+            console.log(f"study '{config.name}': {left} trial(s) left to run; starting {left} worker(s), not {workers} "
+                        "(the others would only wait)")
+        return left
+    return workers
+
+
 def run_study(base, config: StudyConfig, *, workers: int = 1, console=None) -> StudyOutcome:
     """Create or resume the study, run ``workers`` local processes, refit the best, report."""
     config.validate()
+    _workers(workers, config, None, console)
+    check_space(base, config)
     study_dir = study_folder(base, config)
+    check_storage(storage_url(config, study_dir), configured=bool(config.storage))
     claim_folder(study_dir, "study", "study.name")
     study_dir.mkdir(parents=True, exist_ok=True)
     stamp_folder(study_dir, "study")
     study = open_study(config, study_dir)
     _check_same_space(study, config)
+    _check_same_data(study, base, config)
     save_resolved_config(study_dir / "config.yaml", base, study=config)
     url = storage_url(config, study_dir)
     with StudyLock(url, config.name, study_dir):
         _enqueue_default(study, base, config)
+        requeued = requeue_interrupted(study)
+    if requeued and console is not None:
+        console.log(f"study '{config.name}': trial(s) {requeued} were stopped by an interrupt; their parameters are "
+                    "queued again")
+    workers = _workers(workers, config, finished(_counts(study)), console)
     if console is not None:
         done = _counts(study)
         console.log(f"study '{config.name}' at {shown_url(url)}: {finished(done)} of {config.n_trials} trials "

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, Literal
 
 from torchcal.core.errors import TorchcalError
@@ -134,9 +135,28 @@ class Distribution:
             return cls(key, kind, choices=tuple(choices))
         if kind not in ("int", "float"):
             raise TorchcalError(f"study.search_space['{key}']: type '{kind}' unknown; use int, float or categorical")
+        where = f"study.search_space['{key}']"
+        numbers = {f: spec[f] for f in ("low", "high", "step") if spec.get(f) is not None}
+        for name, value in numbers.items():
+            if not isinstance(value, (int, float)) or isinstance(value, bool) or value != value:
+                raise TorchcalError(f"{where}: {name} must be a number, got {value!r}")
+            if kind == "int" and int(value) != value:
+                raise TorchcalError(f"{where}: {name} of an int parameter must be a whole number, got {value!r}")
         if "low" not in spec or "high" not in spec or not spec["low"] < spec["high"]:
-            raise TorchcalError(f"study.search_space['{key}']: needs low < high")
-        return cls(key, kind, spec["low"], spec["high"], spec.get("step"), bool(spec.get("log", False)))
+            raise TorchcalError(f"{where}: needs low < high")
+        log = spec.get("log", False)
+        if not isinstance(log, bool):
+            raise TorchcalError(f"{where}: log is true or false, got {log!r}")
+        step = spec.get("step")
+        if step is not None and step <= 0:
+            raise TorchcalError(f"{where}: step must be > 0, got {step!r}")
+        if step is not None and step > spec["high"] - spec["low"]:
+            raise TorchcalError(f"{where}: step {step!r} is wider than the range [{spec['low']}, {spec['high']}]")
+        if log and spec["low"] <= 0:
+            raise TorchcalError(f"{where}: log: true needs low > 0 (a log scale never reaches {spec['low']!r})")
+        if log and step is not None and (kind == "float" or step != 1):
+            raise TorchcalError(f"{where}: log: true and a step do not go together; give one of them")
+        return cls(key, kind, spec["low"], spec["high"], step, log)
 
     def _choices(self) -> tuple:
         """The choices of a categorical parameter (``parse`` always sets them)."""
@@ -176,3 +196,92 @@ class Distribution:
 
 def search_space(config: StudyConfig) -> list[Distribution]:
     return [Distribution.parse(k, v) for k, v in config.search_space.items()]
+
+
+#: Sections of the run configuration a trial's settings come from (``twin`` for twin studies only).
+SEARCHED_SECTIONS = ("fit", "twin")
+
+
+def apply_values(config, values: dict[str, Any]):
+    """``config`` (a RunConfig) with dotted ``values`` set, type-checked by its schema."""
+    from omegaconf import OmegaConf
+    from omegaconf.errors import OmegaConfBaseException
+
+    try:
+        merged = OmegaConf.merge(OmegaConf.structured(config), OmegaConf.from_dotlist([f"{k}={v}" for k, v in values.items()]))
+        return OmegaConf.to_object(merged)
+    except OmegaConfBaseException as exc:
+        raise TorchcalError(f"study.search_space: {str(exc).splitlines()[0]}") from None
+
+
+def _option_type(parent: Any, name: str) -> Any:
+    """The declared type of field ``name`` of the dataclass ``parent`` (``None`` when unknown)."""
+    import typing
+
+    try:
+        return typing.get_type_hints(type(parent)).get(name)
+    except (NameError, TypeError):
+        value = getattr(parent, name, None)
+        return type(value) if value is not None else None
+
+
+def _check_value(base, key: str, value: Any) -> None:
+    """Refuse ``value`` of option ``key`` when the option's own checks would (its schema and the fit's)."""
+    try:
+        config = apply_values(base, {key: value})
+        if key.startswith("fit."):
+            from torchcal.residual import head_names
+            from torchcal.stages.geometry import structure_options
+
+            if config.fit.residual != "none":
+                head_names(config.fit.residual)
+            structure_options(config.fit)
+    except TorchcalError as exc:
+        message = str(exc).removeprefix("study.search_space: ")
+        raise TorchcalError(f"study.search_space['{key}']: the value {value!r} is refused: {message}") from None
+
+
+def check_space(base, config: StudyConfig) -> None:
+    """Refuse, before the first trial, a search space the run configuration ``base`` cannot take.
+
+    Every parameter must name a ``fit.*`` option (or ``twin.*`` in a twin study), with a did-you-mean
+    for a typo; its type must match the option's (an int option is searched as int, a flag or a name
+    as categorical); the bounds and every categorical choice must pass the option's own checks; and
+    the data files of a study on measured data must exist. A trial would otherwise find each of
+    these only by failing.
+    """
+    import dataclasses
+    import difflib
+
+    for name in ("robot", "train", "test", "holdout"):
+        path = getattr(config, name)
+        if path is not None and not Path(path).is_file():
+            raise TorchcalError(f"study.{name}: no file {path}")
+    sections = SEARCHED_SECTIONS if config.train is None else ("fit",)
+    for dist in search_space(config):
+        where = f"study.search_space['{dist.key}']"
+        section, _, rest = dist.key.partition(".")
+        if section not in sections or not rest:
+            raise TorchcalError(f"{where}: a trial's settings are {' or '.join(s + '.*' for s in sections)} options "
+                                f"(the study's own options and the output folders are not searched)")
+        parent, parts = getattr(base, section), rest.split(".")
+        for i, part in enumerate(parts):
+            names = [f.name for f in dataclasses.fields(parent)] if dataclasses.is_dataclass(parent) else []
+            if part not in names:
+                prefix = ".".join([section, *parts[:i]])
+                close = difflib.get_close_matches(part, names, n=1, cutoff=0.6)
+                hint = f" (did you mean '{prefix}.{close[0]}'?)" if close else ""
+                raise TorchcalError(f"{where}: no option '{dist.key}'{hint}")
+            if i < len(parts) - 1:
+                parent = getattr(parent, part)
+        declared = _option_type(parent, parts[-1])
+        text = str(declared)
+        if "bool" in text:
+            if dist.kind != "categorical":
+                raise TorchcalError(f"{where}: '{dist.key}' is a true/false option: search it as type: categorical "
+                                    "with choices [true, false]")
+        elif (declared is int or text in ("int", "<class 'int'>")) and dist.kind == "float":
+            raise TorchcalError(f"{where}: '{dist.key}' is an int option: search it as type: int")
+        values = list(dist.choices or ()) if dist.kind == "categorical" else [dist.low, dist.high]
+        for value in values:
+            _check_value(base, dist.key, value)

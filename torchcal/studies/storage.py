@@ -10,14 +10,19 @@ never touched again.
 
 from __future__ import annotations
 
+import os
 import time
 from pathlib import Path
 from typing import Any
 
 from torchcal.core.errors import TorchcalError
+from torchcal.core.outputs import refuse_inside_output
 from torchcal.studies.spec import StudyConfig
 
 CREATE_ATTEMPTS = 5
+#: seconds to wait for a database server to answer a new connection (a server that never answers
+#: would otherwise hold the study for minutes, at the mercy of the system's TCP timeouts)
+CONNECT_TIMEOUT_S = 10
 
 
 def storage_url(config: StudyConfig, study_dir: Path) -> str:
@@ -37,9 +42,66 @@ def storage_url(config: StudyConfig, study_dir: Path) -> str:
     return f"sqlite:///{(study_dir / 'study.db').resolve()}"
 
 
+def connect_args(url: str) -> dict[str, Any]:
+    """Driver arguments of a database server's connections: a connect timeout (PostgreSQL, MySQL)."""
+    if url.startswith(("postgresql", "mysql")):
+        return {"connect_timeout": CONNECT_TIMEOUT_S}
+    return {}
+
+
 def shown_url(url: str) -> str:
     """``url`` without user and password, for messages."""
     return url.split("@")[-1] if "@" in url else url
+
+
+def _optuna_tables() -> set[str]:
+    """The tables Optuna's RDB storage creates (its heartbeats and Alembic's version table included)."""
+    from optuna.storages._rdb import models
+
+    return set(models.BaseModel.metadata.tables) | {"alembic_version"}
+
+
+def check_storage(url: str, configured: bool) -> None:
+    """Refuse a storage a study cannot live in before anything is created there.
+
+    SQLite only: an in-memory database (lost when the command ends, and invisible to other
+    workers), a path that ends in a separator or names a folder, a file that is not an SQLite
+    database or holds another application's tables, and (``configured``, i.e. ``--storage``) a
+    file inside a torchcal output folder, which a later run into that folder would delete.
+    """
+    if not url.startswith("sqlite"):
+        return
+    from sqlalchemy.engine import make_url
+    from sqlalchemy.exc import ArgumentError
+
+    try:
+        database = make_url(url).database
+    except ArgumentError as exc:
+        raise TorchcalError(f"study storage '{url}': {exc}") from None
+    query = make_url(url).query
+    if not database or database == ":memory:" or database.startswith("file::memory:") or query.get("mode") == "memory":
+        raise TorchcalError(f"study storage '{url}' is an in-memory database: a study must persist (its trials "
+                            "are lost when the command ends); give a file, e.g. sqlite:///study.db")
+    if database.endswith(("/", os.sep)) or Path(database).is_dir():
+        raise TorchcalError(f"study storage '{url}' names a folder; give the database file, e.g. "
+                            f"sqlite:///{database.rstrip('/' + os.sep)}/study.db")
+    path = Path(database)
+    if configured:
+        refuse_inside_output(path.resolve(), "--storage", within=("study",))  # a study keeps its own in its folder
+    if path.is_file() and path.stat().st_size > 0:
+        import sqlite3
+
+        try:
+            with sqlite3.connect(f"{path.resolve().as_uri()}?mode=ro", uri=True) as conn:
+                tables = {name for (name,) in conn.execute("SELECT name FROM sqlite_master WHERE type = 'table'")}
+            conn.close()
+        except sqlite3.Error as exc:
+            raise TorchcalError(f"study storage '{url}': {path} is not an SQLite database ({exc})") from None
+        foreign = sorted(t for t in tables - _optuna_tables() if not t.startswith("sqlite_"))
+        if foreign:
+            shown = ", ".join(foreign[:5]) + (", ..." if len(foreign) > 5 else "")
+            raise TorchcalError(f"study storage '{url}': {path} is another application's database (tables {shown}); "
+                                "a study adds its tables only to its own database: give a new file")
 
 
 def _storage_class():
@@ -92,12 +154,13 @@ def open_storage(config: StudyConfig, study_dir: Path):
     warnings.filterwarnings("ignore", category=optuna.exceptions.ExperimentalWarning)
     optuna.logging.set_verbosity(optuna.logging.WARNING)
     url = storage_url(config, study_dir)
+    check_storage(url, configured=bool(config.storage))
     if url.startswith("sqlite"):
         study_dir.mkdir(parents=True, exist_ok=True)
         # Several local workers share the file; wait for its lock instead of failing at once.
         engine_kwargs: dict[str, Any] = {"connect_args": {"timeout": 60}}
     else:
-        engine_kwargs = {"pool_pre_ping": True}
+        engine_kwargs = {"pool_pre_ping": True, "connect_args": connect_args(url)}
     # Workers on several machines may start together on an empty database: all of them try to
     # create Optuna's tables and all but one fail on the catalog's unique index. The tables then
     # exist, so opening again succeeds.
@@ -119,7 +182,8 @@ def open_storage(config: StudyConfig, study_dir: Path):
         except (SQLAlchemyError, ImportError, ValueError, TypeError) as exc:
             error = exc
             break
-    raise TorchcalError(f"cannot open study storage '{shown_url(url)}': {str(error).splitlines()[0]}") from None
+    first = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
+    raise TorchcalError(f"cannot open study storage '{shown_url(url)}': {first}") from None
 
 
 def trial_seed(config: StudyConfig, number: int) -> int:
