@@ -148,7 +148,7 @@ def test_twin_parameters_fall_inside_their_posterior_sigmas_at_the_claimed_rate(
 
 def test_few_poses_are_calibrated_where_the_rank_cut_refuses():
     twin, train, test = _in_model_twin(3, 10)
-    with pytest.raises(DataError, match="fewer than"):
+    with pytest.raises(DataError, match="no more than the"):
         calibrate(twin.robot, train)
     result = calibrate(twin.robot, train, prior=PriorSpec())
     nominal = calibrate(twin.robot, train, prior=PriorSpec(scale=0.0))
