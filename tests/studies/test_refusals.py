@@ -209,3 +209,17 @@ def test_an_interrupted_trial_is_queued_again_once(tmp_path):
                                                                        RETRY_OF_INTERRUPTED: 0}
     study.optimize(lambda t: float(t.suggest_int("x", 0, 5)), n_trials=1)
     assert study.get_trials()[1].params == {"x": 3}
+
+
+@pytest.mark.parametrize("settings, message", [
+    ({"objectives": ["validation_rms_mm", "validation_rms_mm"]}, "validation_rms_mm given twice"),
+    ({"max_retry": -1}, "max_retry must be 0 or more"),
+    ({"holdout_register": True}, "give study.holdout too"),
+])
+def test_settings_without_meaning_are_refused(settings, message):
+    from torchcal.core.errors import TorchcalError
+    from torchcal.studies.spec import StudyConfig
+
+    config = StudyConfig(search_space={"fit.residual_hidden": {"type": "int", "low": 16, "high": 64}}, **settings)
+    with pytest.raises(TorchcalError, match=message):
+        config.validate()

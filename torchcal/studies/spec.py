@@ -76,6 +76,9 @@ class StudyConfig:
         unknown = [o for o in self.objectives if o not in OBJECTIVES]
         if not self.objectives or unknown:
             raise TorchcalError(f"study.objectives: unknown {unknown or 'empty list'}; choose from {sorted(OBJECTIVES)}")
+        repeated = sorted({o for o in self.objectives if self.objectives.count(o) > 1})
+        if repeated:  # the same objective twice makes a two-objective study with one front: no best trial
+            raise TorchcalError(f"study.objectives: {', '.join(repeated)} given twice; give each objective once")
         if self.sampler not in SAMPLERS:
             raise TorchcalError(f"study.sampler '{self.sampler}' unknown; choose one of {SAMPLERS}")
         if self.pruner not in PRUNERS:
@@ -89,6 +92,10 @@ class StudyConfig:
             raise TorchcalError("study.test needs study.train (the twin brings its own test poses)")
         if self.holdout is not None and self.train is None:
             raise TorchcalError("study.holdout needs study.robot and study.train (a held-out series of measured data)")
+        if self.max_retry < 0:
+            raise TorchcalError(f"study.max_retry must be 0 or more (times a killed trial is queued again), got {self.max_retry}")
+        if self.holdout_register and self.holdout is None:
+            raise TorchcalError("study.holdout_register re-fits the frame on the held-out series: give study.holdout too")
         if self.heartbeat_interval_s < 1 or self.grace_period_s <= self.heartbeat_interval_s:
             raise TorchcalError("study.heartbeat_interval_s must be at least 1 and grace_period_s longer than it")
         if not self.search_space:
