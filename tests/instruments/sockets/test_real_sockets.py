@@ -50,10 +50,16 @@ def test_every_recording_passes_the_nominal_plausibility_checks(path):
     from torchcal.instruments.sockets.plausibility import check_nominal
     from torchcal.kinematics.robot import load_robot
 
-    robot = load_robot(FOLDER / "raw" / "urdf" / URDFS[path.stem.split("_")[1]], end_link="ball_link")
+    urdf = FOLDER / "raw" / "urdf" / URDFS[path.stem.split("_")[1]]
+    robot = load_robot(urdf, end_link="ball_link")
     data = load_socket_data(path, robot, check_limits=False)  # the Kinova files pass q6 beyond the URDF's limits
     with torch.no_grad():
-        check_nominal(robot.tcp_position(data.q), data, 50.0, robot.name)
+        check_nominal(robot.flange_pose(data.q), data, 50.0, robot.name)
+    # a robot file that ends before the ball (at the gripper or the flange): the ball offset is fitted, not refused
+    end = {"panda": "panda_link8", "kuka": "link_7", "dinova": "gripper_base_link"}[path.stem.split("_")[1]]
+    flange_robot = load_robot(urdf, end_link=end)
+    with torch.no_grad():
+        check_nominal(flange_robot.flange_pose(data.q), data, 50.0, flange_robot.name)
 
 
 def test_a_kinova_recording_with_another_robot_file_is_refused(tmp_path, capsys):

@@ -88,7 +88,8 @@ def fit_sockets(robot_path, data_path, out_dir, overrides, *, base_link=None, en
         data = data.select_placements(config.placements)
     with torch.no_grad():
         nominal_centres = robot.tcp_position(data.q)
-    check_nominal(nominal_centres, data, config.distance_mm, robot.name)
+        end_poses = robot.flange_pose(data.q)
+    check_nominal(end_poses, data, config.distance_mm, robot.name)
     if progress is not None:
         progress(f"identifying {robot.name} from {len(data)} socket configurations")
     res = fit_sockets_data(robot, data, distance_mm=config.distance_mm, distance_weight=config.distance_weight,
@@ -144,8 +145,9 @@ def evaluate_sockets(model_dir, data_path, overrides, *, register: bool = False)
     with torch.no_grad():
         predicted = stored.model.tcp_position(model_joints(stored, q), stored.x)
         nominal_centres = stored.robot.tcp_position(q)
+        end_poses = stored.robot.flange_pose(q)
     # scores of a file the nominal robot cannot have recorded would be meaningless numbers
-    check_nominal(nominal_centres, data, distance, stored.robot.name)
+    check_nominal(end_poses, data, distance, stored.robot.name)
     nominal = socket_metrics(nominal_centres, data, distance)
     out = socket_metrics(predicted, data, distance)
     out.update({

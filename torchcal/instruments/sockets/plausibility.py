@@ -30,8 +30,8 @@ from torchcal.core.errors import DataError
 from torchcal.instruments.sockets.data import SocketData
 from torchcal.instruments.sockets.model import group_means
 
-#: Mean distance (mm) of a group's nominal ball centres from their mean beyond which the file is refused.
-#: Measured on the MUKCa recordings (nominal URDF to ball_link, per-group mean): kuka_14 <= 0.96,
+#: Mean distance (mm) of a group's nominal ball centres (ball offset fitted) from their mean beyond which the
+#: file is refused. Measured on the MUKCa recordings (nominal URDF to ball_link, per-group mean): kuka_14 <= 0.96,
 #: dinova_1/2 <= 11.2, panda_* <= 11.7, panda_1_with_sensor 24.3 (a sensor on the flange the URDF does
 #: not model): 50 mm keeps a factor 2 above the worst real file, while a wrong robot (387 mm on the
 #: twin robot with a Kinova file) or two fixtures under one name (about 100 mm on the twin) lie far beyond.
@@ -104,15 +104,31 @@ def _two_blocks(centres: torch.Tensor) -> tuple[int, float, float] | None:
     return best
 
 
-def check_nominal(nominal_centres: torch.Tensor, data: SocketData, distance_mm: float, robot_name: str) -> None:
+def ball_centres(end_poses: torch.Tensor, group: torch.Tensor, n_groups: int) -> torch.Tensor:
+    """``(n, 3)`` ball centres ``p + R t`` of the nominal chain's end poses ``(n, 4, 4)`` (m), with the
+    ball offset ``t`` (end frame) and the group points fitted by linear least squares: the fit
+    identifies the ball offset itself, so a robot file that ends at the flange is judged by what
+    no offset explains (a ball 180 mm out would otherwise spread the centres by ~120 mm)."""
+    rotation, position = end_poses[:, :3, :3], end_poses[:, :3, 3]
+    n = position.shape[0]
+    a = torch.zeros(n, 3, 3 + 3 * n_groups, dtype=torch.float64)
+    a[:, :, :3] = rotation
+    for k in range(3):
+        a[torch.arange(n), k, 3 + 3 * group + k] = -1.0
+    solution = torch.linalg.lstsq(a.reshape(3 * n, -1), -position.reshape(3 * n, 1)).solution
+    return position + rotation @ solution[:3, 0]
+
+
+def check_nominal(end_poses: torch.Tensor, data: SocketData, distance_mm: float, robot_name: str) -> None:
     """Refuse socket data the nominal robot cannot have recorded (see the module docstring).
 
     Args:
-        nominal_centres: ``(n, 3)`` ball centres of the nominal robot at the data's joints, m.
+        end_poses: ``(n, 4, 4)`` poses of the nominal chain's end (its tool frame) at the data's joints, m;
+            the ball offset from it is fitted (:func:`ball_centres`).
         distance_mm: the fixture's socket distance, mm.
     """
-    centres = nominal_centres.detach().to(torch.float64).cpu()
     group = data.group.cpu()
+    centres = ball_centres(end_poses.detach().to(torch.float64).cpu(), group, len(data.groups))
     means = group_means(centres, group, len(data.groups))
     dist = (centres - means[group]).norm(dim=-1) * 1e3
     for g, (p, s) in enumerate(data.groups):
