@@ -85,6 +85,20 @@ class Measurements:
 TEMPERATURE_RANGE_C = (-40.0, 90.0)
 
 
+#: Joint values closer than this (rad) in every joint are one configuration measured again: an encoder's
+#: readback of a repeat differs by ~1e-5 rad, and 1e-3 rad moves a tool 1 m out by 1 mm at most.
+SAME_CONFIGURATION_RAD = 1e-3
+
+
+def count_configurations(q: torch.Tensor) -> int:
+    """Distinct joint configurations among the rows ``q (n, N)`` rad (a repeat, within
+    :data:`SAME_CONFIGURATION_RAD` per joint, measures the same point again: no new geometry)."""
+    if len(q) == 0:
+        return 0
+    grid = np.round(q.detach().cpu().to(torch.float64).numpy() / SAME_CONFIGURATION_RAD)
+    return int(np.unique(grid, axis=0).shape[0])
+
+
 def load_measurements(
     path: str | Path,
     robot: RobotModel,

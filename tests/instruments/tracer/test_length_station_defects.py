@@ -151,7 +151,7 @@ def test_evaluate_refuses_configurations_that_leave_the_anchor_undetermined(case
     header, rows = _rows(case["test.csv"])
     first = rows[0]
     circle = _write(tmp_path / "circle.csv", header,
-                    [first[:5] + [repr(float(first[5]) + 10.0 * i), repr(float(first[6]) + 0.001 * i)] for i in range(8)])
+                    [first[:5] + [repr(float(first[5]) + 10.0 * i), repr(float(first[6]) + 0.001 * i)] for i in range(12)])
     rc, err = _run(["evaluate", "--model", str(case["model"]), "--data", str(circle)], capsys)
     assert rc == 2 and "cannot determine the anchor and offset that evaluate re-fits" in err and str(circle) in err
 
@@ -164,20 +164,20 @@ def test_evaluate_accepts_small_files_it_can_score(case, tmp_path):
     assert len(rows) == 15
     assert _evaluate(case, case["test.csv"], tmp_path, "refit_anchor=false")["n_poses"] == 15
     assert _evaluate(case, case["test.csv"], tmp_path)["n_poses"] == 15
-    five = _write(tmp_path / "five.csv", header, rows[:5])
-    metrics = _evaluate(case, five, tmp_path)
-    assert metrics["n_poses"] == 5 and metrics["registered"] and metrics["length_rms_mm"] < 0.5
+    ten = _write(tmp_path / "ten.csv", header, rows[:10])
+    metrics = _evaluate(case, ten, tmp_path)
+    assert metrics["n_poses"] == 10 and metrics["registered"] and metrics["length_rms_mm"] < 0.5
     one = _write(tmp_path / "one.csv", header, rows[:1])
     assert _evaluate(case, one, tmp_path, "refit_anchor=false")["n_poses"] == 1
 
 
 def test_evaluate_names_its_own_reason_for_too_few_configurations(case, tmp_path, capsys):
     header, rows = _rows(case["test.csv"])
-    four = _write(tmp_path / "four.csv", header, rows[:4])
+    nine = _write(tmp_path / "nine.csv", header, rows[:9])
     for extra in ([], ["--register"]):
-        rc, err = _run(["evaluate", "--model", str(case["model"]), "--data", str(four), *extra], capsys)
-        assert rc == 2 and "4 distinct joint configuration(s) are too few for evaluate to re-fit anchor and offset" in err
-        assert "needs at least 5" in err and "refit_anchor=false" in err and "cross-validation" not in err
+        rc, err = _run(["evaluate", "--model", str(case["model"]), "--data", str(nine), *extra], capsys)
+        assert rc == 2 and "9 distinct joint configuration(s) are too few for evaluate to re-fit anchor and offset" in err
+        assert "needs at least 10" in err and "refit_anchor=false" in err and "cross-validation" not in err
 
 
 def test_fit_still_needs_twenty_configurations(case, tmp_path, capsys):

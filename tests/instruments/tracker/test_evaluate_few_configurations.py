@@ -51,3 +51,12 @@ def test_a_nominal_fitted_to_too_few_configurations_is_no_comparison(fitted):
         warnings.simplefilter("error")  # twelve configurations: a comparison, no warning
         metrics = score(stored, _repeated(twin, 12, 1), corrections=False, leakage=False).metrics
     assert "no comparison" not in metrics["nominal"]["protocol"]
+
+
+def test_repeats_read_back_with_encoder_jitter_are_one_configuration(fitted):
+    twin, stored = fitted
+    data = _repeated(twin, 1, 20)
+    jitter = (torch.rand(data.q.shape, generator=torch.Generator().manual_seed(2), dtype=torch.float64) - 0.5) * 4e-5
+    jittered = Measurements(q=data.q + jitter, position=data.position, source="jitter.csv")
+    with pytest.raises(DataError, match=r"1 distinct joint configurations \(20 poses\)"):
+        score(stored, jittered, register=True, corrections=False)

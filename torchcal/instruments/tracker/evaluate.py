@@ -15,7 +15,7 @@ from torchcal.compensate.production_tcp import correction_extent, production_vie
 from torchcal.config.schema import FitConfig
 from torchcal.core.errors import DataError
 from torchcal.core.metrics import iso9283_repeated, position_metrics
-from torchcal.data.measurements import Measurements, load_measurements
+from torchcal.data.measurements import Measurements, count_configurations, load_measurements
 from torchcal.identify.joint_errors import JointSpaceErrors
 from torchcal.model_selection.leakage import leakage_report
 from torchcal.stages.foreign_data import refuse_foreign_file
@@ -75,7 +75,7 @@ def score(stored: StoredModel, data: Measurements, *, register: bool = False, le
     """
     warning: str | None = None
     # repeated joints add measurements, not geometry: the frame and tool fits count configurations
-    distinct = len(torch.unique(data.q, dim=0))
+    distinct = count_configurations(data.q)
     configurations = f"{distinct} distinct joint configurations" + (f" ({len(data)} poses)" if distinct < len(data) else "")
     if register:
         if distinct < REGISTER_MIN_POSES:
