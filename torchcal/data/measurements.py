@@ -95,8 +95,16 @@ def count_configurations(q: torch.Tensor) -> int:
     :data:`SAME_CONFIGURATION_RAD` per joint, measures the same point again: no new geometry)."""
     if len(q) == 0:
         return 0
-    grid = np.round(q.detach().cpu().to(torch.float64).numpy() / SAME_CONFIGURATION_RAD)
-    return int(np.unique(grid, axis=0).shape[0])
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    # rows within the tolerance of each other (max over joints) chain into one configuration; not a
+    # rounding grid, whose cell borders would split a repeat whose readbacks straddle one
+    points = q.detach().cpu().to(torch.float64).numpy()
+    pairs = cKDTree(points).query_pairs(SAME_CONFIGURATION_RAD, p=np.inf, output_type="ndarray")
+    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(points), len(points)))
+    return int(connected_components(graph, directed=False)[0])
 
 
 def load_measurements(
