@@ -166,6 +166,13 @@ def test_resume_on_other_data_or_a_changed_case_is_refused(tmp_path):
         run_study(_base(tmp_path, "twin.n_train=70"), _study("data", 2))
     with pytest.raises(TorchcalError, match=r"fit\.residual_margin: 0\.05 -> 0\.07"):
         run_study(_base(tmp_path, "fit.residual_margin=0.07"), _study("data", 2))
+    # a study recorded before an option existed: that option at its default changes nothing; set otherwise, it does
+    stored = optuna.load_study(study_name="data", storage=first.storage)
+    older = {k: v for k, v in stored.user_attrs["fingerprint"].items() if k != "fit.residual_margin"}
+    stored.set_user_attr("fingerprint", older)
+    with pytest.raises(TorchcalError, match=r"fit\.residual_margin: \(unset\) -> 0\.07"):
+        run_study(_base(tmp_path, "fit.residual_margin=0.07"), _study("data", 1))
+    runner._check_same_data(stored, _base(tmp_path), _study("data", 1))  # at its default: accepted
     (case,) = (first.study_dir / "cases").iterdir()
     with open(case / "train.csv", "a") as f:
         f.write("\n")
@@ -209,6 +216,12 @@ def test_an_interrupted_trial_is_queued_again_once(tmp_path):
                                                                        RETRY_OF_INTERRUPTED: 0}
     study.optimize(lambda t: float(t.suggest_int("x", 0, 5)), n_trials=1)
     assert study.get_trials()[1].params == {"x": 3}
+    # a retry of a retry stopped by Ctrl-C: a chain of max_retry retries stops
+    with pytest.raises(KeyboardInterrupt):
+        study.enqueue_trial({"x": 4}, user_attrs={RETRY_OF_INTERRUPTED: 1})
+        study.optimize(interrupted, n_trials=1)
+    assert requeue_interrupted(study, max_retry=1) == []
+    assert requeue_interrupted(study, max_retry=3) == [2]  # it was the second retry of trial 0
 
 
 @pytest.mark.parametrize("settings, message", [
@@ -223,3 +236,15 @@ def test_settings_without_meaning_are_refused(settings, message):
     config = StudyConfig(search_space={"fit.residual_hidden": {"type": "int", "low": 16, "high": 64}}, **settings)
     with pytest.raises(TorchcalError, match=message):
         config.validate()
+
+
+@pytest.mark.parametrize("url, args", [
+    ("postgresql+psycopg://u@h/db", {"connect_timeout": 10}),
+    ("postgresql+pg8000://u@h/db", {"timeout": 10}),
+    ("mysql+pymysql://u@h/db", {"connect_timeout": 10}),
+    ("sqlite:////tmp/s.db", {}),
+])
+def test_each_driver_gets_its_own_connect_timeout(url, args):
+    from torchcal.studies.storage import connect_args
+
+    assert connect_args(url) == args

@@ -46,7 +46,7 @@ from torchcal.studies.worker import finished, work
 #: data and its own database connection, and more than the machine's cores only queue for them.
 MAX_WORKERS = max(4, os.cpu_count() or 1)
 #: Fit options that change how a trial runs, never its numbers (left out of the study's fingerprint).
-UNSCORED_FIT_OPTIONS = ("progress", "jobs")
+UNSCORED_FIT_OPTIONS = ("progress", "jobs", "device")  # how a trial runs, not what it scores
 
 
 def study_folder(base, study: StudyConfig) -> Path:
@@ -148,8 +148,14 @@ def _check_same_data(study, base, config: StudyConfig) -> None:
         study.set_user_attr("fingerprint", mine)
     else:
         changed = []
+        # an option a later torchcal added is absent from an older study's record: at its default it
+        # changes nothing the trials were scored on
+        defaults = json.loads(json.dumps({**{f"fit.{k}": v for k, v in asdict(type(base.fit)()).items()},
+                                          **{f"twin.{k}": v for k, v in asdict(type(base.twin)()).items()}}, default=str))
         for key in sorted(set(stored) | set(mine)):
             before, now = stored.get(key, "(unset)"), mine.get(key, "(unset)")
+            if key not in stored and key in defaults and now == defaults[key]:
+                continue
             if before != now:
                 changed.append(f"{key} (file content differs)" if str(before).startswith("sha256:")
                                and str(now).startswith("sha256:") else f"{key}: {before} -> {now}")
@@ -164,17 +170,29 @@ def _check_same_data(study, base, config: StudyConfig) -> None:
                 check_case(study, folder)
 
 
-def requeue_interrupted(study) -> list[int]:
+def requeue_interrupted(study, max_retry: int = 1) -> list[int]:
     """Queue again, once, the parameters of trials a Ctrl-C (SIGINT) stopped (failed with the
     ``interrupted`` user attr), as the heartbeat queues a killed trial: the default configuration
-    among them is then still compared. Returns the numbers queued again."""
+    among them is then still compared. A chain of retries stops after ``max_retry`` (a trial the user
+    stops again and again, because it hangs, does not come back on every resume). Returns the
+    numbers queued again."""
     from optuna.trial import TrialState
 
     trials = study.get_trials(deepcopy=False)
+    by_number = {t.number: t for t in trials}
     done = {t.user_attrs.get(RETRY_OF_INTERRUPTED) for t in trials}
+
+    def retries(t) -> int:  # how many retries led to this trial
+        n, origin = 0, t.user_attrs.get(RETRY_OF_INTERRUPTED)
+        while origin is not None and origin in by_number and n <= max_retry:
+            n, origin = n + 1, by_number[origin].user_attrs.get(RETRY_OF_INTERRUPTED)
+        return n
+
     queued = []
     for t in trials:
         if t.state != TrialState.FAIL or not t.user_attrs.get(INTERRUPTED) or t.number in done:
+            continue
+        if retries(t) >= max_retry:
             continue
         params = {**t.system_attrs.get("fixed_params", {}), **t.params}
         attrs = {k: v for k, v in t.user_attrs.items() if k == "default_configuration"}
@@ -220,7 +238,7 @@ def run_study(base, config: StudyConfig, *, workers: int = 1, console=None) -> S
     url = storage_url(config, study_dir)
     with StudyLock(url, config.name, study_dir):
         _enqueue_default(study, base, config)
-        requeued = requeue_interrupted(study)
+        requeued = requeue_interrupted(study, config.max_retry)
     if requeued and console is not None:
         console.log(f"study '{config.name}': trial(s) {requeued} were stopped by an interrupt; their parameters are "
                     "queued again")

@@ -44,7 +44,10 @@ def storage_url(config: StudyConfig, study_dir: Path) -> str:
 
 def connect_args(url: str) -> dict[str, Any]:
     """Driver arguments of a database server's connections: a connect timeout (PostgreSQL, MySQL)."""
-    if url.startswith(("postgresql", "mysql")):
+    scheme = url.split("://", 1)[0]
+    if scheme.endswith(("+pg8000", "+asyncpg")):  # these drivers name it "timeout"
+        return {"timeout": CONNECT_TIMEOUT_S}
+    if scheme.startswith(("postgresql", "mysql")):
         return {"connect_timeout": CONNECT_TIMEOUT_S}
     return {}
 
