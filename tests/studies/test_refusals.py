@@ -7,6 +7,7 @@ import socket
 import sqlite3
 import threading
 import time
+from dataclasses import replace
 
 import optuna
 import pytest
@@ -248,3 +249,10 @@ def test_each_driver_gets_its_own_connect_timeout(url, args):
     from torchcal.studies.storage import connect_args
 
     assert connect_args(url) == args
+
+
+def test_a_best_refit_whose_export_is_its_run_folder_is_refused_before_any_trial(tmp_path):
+    base = _base(tmp_path, f"export_dir={tmp_path / 'runs'}", "export=true")  # export_dir = out: the best's export is its run folder
+    with pytest.raises(TorchcalError, match="give export_dir another place than out"):
+        run_study(base, replace(_study("clash"), refit_best=True))
+    assert not (tmp_path / "runs").exists()

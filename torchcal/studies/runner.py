@@ -227,6 +227,13 @@ def run_study(base, config: StudyConfig, *, workers: int = 1, console=None) -> S
     _workers(workers, config, None, console)
     check_space(base, config)
     study_dir = study_folder(base, config)
+    if config.refit_best and base.export:
+        # the best refit's run (study folder / best) and export must not coincide: found now, not after every trial
+        run_at = (study_dir / "best").resolve()
+        export_at = (Path(base.export_dir) / "studies" / config.name / "best").resolve()
+        if run_at == export_at or run_at.is_relative_to(export_at) or export_at.is_relative_to(run_at):
+            raise TorchcalError(f"export_dir ({base.export_dir}) puts the best refit's export at {export_at}, its run "
+                                "folder: give export_dir another place than out")
     check_storage(storage_url(config, study_dir), configured=bool(config.storage))
     claim_folder(study_dir, "study", "study.name")
     study_dir.mkdir(parents=True, exist_ok=True)

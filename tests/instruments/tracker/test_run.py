@@ -88,3 +88,13 @@ def test_an_interrupted_rerun_leaves_the_earlier_run_and_export_a_matching_pair(
     assert (exported / "small" / "manifest.json").read_bytes() == manifest
     assert (out / "small" / "metrics.json").read_bytes() == metrics
     assert [p.name for p in exported.iterdir()] == ["small"] and [p.name for p in out.iterdir()] == ["small"]
+
+
+@pytest.mark.slow
+def test_a_rerun_without_export_says_the_earlier_export_no_longer_matches(tmp_path):
+    out, exported = tmp_path / "runs", tmp_path / "exported"
+    run(_small(out, exported))
+    config = _small(out, exported)
+    config.export = False
+    with pytest.warns(UserWarning, match="no longer matches the run's model"):
+        run(config)

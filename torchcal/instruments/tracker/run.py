@@ -107,6 +107,11 @@ def _run(config: RunConfig, console=None) -> dict:
             raise FolderError(f"{exported}: export_dir/name and out/name ({final}) are the same folder or one lies in the "
                               "other; give them separate places")
         check_output_folder(exported, "export_dir/name", purpose="export")
+    elif (exported / "manifest.json").is_file():
+        import warnings
+
+        warnings.warn(f"{exported} holds the export of an earlier run of this name; this run (export=false) does not "
+                      "replace it, so it no longer matches the run's model", stacklevel=2)
     refuse_foreign_entries(final, RUN_ENTRIES, sealed=("model",))
     # the run is built in a staging sibling and swapped in whole, and its export is moved into place only
     # after it: an interrupted run leaves the earlier run and the earlier export, a matching pair
