@@ -212,16 +212,10 @@ def refuse_other_robots(stored: StoredModel, data: Measurements, refused: str) -
 
 def frame_and_tool_errors(stored: StoredModel, data: Measurements) -> torch.Tensor:
     """``measured - predicted`` ``(n, 3)`` (m) of the model with its instrument frame and tool point
-    re-fitted to ``data`` (the MDH table and joint-space terms as stored)."""
+    re-fitted to ``data`` (:func:`refit` of the tool point, unweighted; the MDH table and joint-space
+    terms as stored)."""
+    _, x, model = refit(stored, data, ["tool_x", "tool_y", "tool_z"], torch.ones(len(data), dtype=torch.float64))
     effective = _effective(stored, data)
-    model = ErrorModel(stored.robot, with_orientation=False, parallel_threshold_deg=stored.model.parallel_threshold_deg,
-                       T_instrument_base=register_instrument(stored.robot, effective, stored.model, stored.x))
-    layout = model.layout
-    x0 = stored.x.detach().cpu().to(torch.float64).clone()
-    x0[layout.base_slice] = 0.0
-    free = torch.cat([torch.arange(layout.base_slice.start, layout.base_slice.stop),
-                      torch.arange(layout.tool_slice.start, layout.tool_slice.start + 3)])
-    x = LevenbergMarquardt(max_iterations=60).solve(CalibrationProblem(model, effective, free), x0).x
     return effective.position - model.tcp_position(effective.q, x)
 
 
