@@ -23,6 +23,7 @@ from torchcal.core.outputs import claim_file, claim_folder, csv_with_header, sta
 from torchcal.kinematics import transforms as tf
 from torchcal.kinematics.error_model import ErrorModel
 from torchcal.kinematics.robot import RobotModel, load_robot
+from torchcal.kinematics.robot_checks import nominal_reach
 from torchcal.motion.planner import PlannedMotion, PlanOptions, measure, plan_motion
 from torchcal.motion.priority import TcpKinematics
 from torchcal.motion.waypoints import Waypoints, load_waypoints
@@ -70,8 +71,8 @@ def refuse_implausible_path(robot: RobotModel, waypoints: Waypoints, start_deg: 
     """
     model = ErrorModel(robot)
     x = model.nominal_vector()
+    reach = nominal_reach(robot)
     with torch.no_grad():
-        reach = float(model.tcp_position(robot.sample_joints(200, torch.Generator().manual_seed(0)), x).norm(dim=-1).max())
         start = model.tcp_pose(torch.tensor(start_deg, dtype=torch.float64).unsqueeze(0) * DEG, x)[0]
     farthest = float(waypoints.poses[:, :3, 3].norm(dim=-1).max())
     if farthest < METRES_AS_MM_REACH_SHARE * reach:

@@ -67,6 +67,7 @@ from torchcal.data.plausibility import check_joint_unit
 from torchcal.kinematics import transforms as tf
 from torchcal.kinematics.error_model import ErrorModel
 from torchcal.kinematics.ik import solve_ik
+from torchcal.kinematics.robot_checks import nominal_reach
 from torchcal.stages.files import read_json_member
 from torchcal.stages.store import load_model
 
@@ -203,8 +204,7 @@ def read_tcp_targets(path: Path, robot, start_deg: list[float]) -> tuple[torch.T
     oriented = all(c in table.header for c in ROTATION_COLUMNS)
     other = other_columns(table, POSITION_COLUMNS + (ROTATION_COLUMNS if oriented else ()), robot.dof)
     position = torch.from_numpy(np.stack([table.column(c) for c in POSITION_COLUMNS], 1)) * 1e-3
-    with torch.no_grad():  # the reach: the nominal TCP's distance from the base at the start and over the joint range
-        reach = float(robot.tcp_position(robot.sample_joints(200, torch.Generator().manual_seed(0))).norm(dim=-1).max())
+    reach = nominal_reach(robot)
     if float(position.norm(dim=-1).max()) < METRES_AS_MM_REACH_SHARE * reach:
         raise DataError(f"every TCP target lies within {float(position.norm(dim=-1).max()) * 1e3:.3g} mm of the base origin, "
                         f"the robot reaches {reach * 1e3:.0f} mm: the targets look like metres; a program file's x, y, z "

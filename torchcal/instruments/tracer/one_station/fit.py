@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 import torch
 
 from torchcal.core.errors import DataError, IdentifiabilityWarning, TorchcalError
+from torchcal.data.measurements import count_configurations
 from torchcal.identify.base import SolveResult
 from torchcal.identify.identifiability import IdentifiabilityReport, analyze
 from torchcal.identify.lm import LevenbergMarquardt
@@ -32,7 +33,6 @@ from torchcal.identify.uncertainty import covariance
 from torchcal.instruments.tracer.data import TracerData
 from torchcal.instruments.tracer.joint_fit import TracerJointProblem, station_names
 from torchcal.instruments.tracer.lengths import station_distances, stations_from_points
-from torchcal.instruments.tracer.one_station.data import count_configurations
 from torchcal.kinematics.error_model import DEFAULT_PARALLEL_THRESHOLD_DEG, ErrorModel
 from torchcal.kinematics.robot import RobotModel
 
