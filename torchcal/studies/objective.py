@@ -26,6 +26,7 @@ from typing import Any
 
 from torchcal.config import save_resolved_config
 from torchcal.core.errors import TorchcalError
+from torchcal.core.hashing import sha256_file
 from torchcal.core.metrics import position_metrics
 from torchcal.core.threads import fit_threads
 from torchcal.data.measurements import Measurements, load_measurements
@@ -47,21 +48,13 @@ INTERRUPTED = "interrupted"
 RETRY_OF_INTERRUPTED = "retry_of_interrupted"
 
 
-def file_sha256(path: str | Path) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
-
-
 def check_case(study, folder: Path) -> None:
     """Refuse a cached twin case (``cases/<digest>/``) whose files changed since the study first used it.
 
     The first use records the files' SHA-256 in the study's user attrs (``case:<digest>``): every
     worker, on every machine, writes the same deterministic case and checks it against that record.
     """
-    sums = {n: file_sha256(folder / n) for n in CASE_FILES if (folder / n).is_file()}
+    sums = {n: sha256_file(folder / n) for n in CASE_FILES if (folder / n).is_file()}
     key = f"case:{folder.name}"
     stored = study.user_attrs.get(key)
     if stored is None:

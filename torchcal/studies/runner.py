@@ -20,6 +20,7 @@ from typing import Any
 from torchcal.compensate.export import export_model
 from torchcal.config import save_resolved_config
 from torchcal.core.errors import TorchcalError
+from torchcal.core.hashing import sha256_file
 from torchcal.core.outputs import claim_folder, stamp_folder
 from torchcal.core.shutdown import skip_collection_at_exit
 from torchcal.data.measurements import load_measurements
@@ -34,7 +35,6 @@ from torchcal.studies.objective import (
     RETRY_OF_INTERRUPTED,
     apply_values,
     check_case,
-    file_sha256,
 )
 from torchcal.studies.report import write_study_report
 from torchcal.studies.spec import StudyConfig, check_space, search_space
@@ -131,7 +131,7 @@ def fingerprint(base, config: StudyConfig) -> dict[str, Any]:
     else:
         for name in ("robot", "train", "test", "holdout"):
             path = getattr(config, name)
-            out[f"study.{name}"] = f"sha256:{file_sha256(path)}" if path is not None else None
+            out[f"study.{name}"] = f"sha256:{sha256_file(path)}" if path is not None else None
         out["study.holdout_register"] = config.holdout_register
     out.update({f"fit.{k}": v for k, v in asdict(base.fit).items()
                 if f"fit.{k}" not in searched and k not in UNSCORED_FIT_OPTIONS})
