@@ -15,7 +15,6 @@ dataclass defaults stand in for it and group selections are refused with a clear
 
 from __future__ import annotations
 
-import difflib
 import os
 from dataclasses import is_dataclass
 from pathlib import Path
@@ -24,7 +23,7 @@ from typing import Any, TypeVar, cast
 import yaml
 
 from torchcal.config.schema import FitConfig, RunConfig
-from torchcal.core.errors import TorchcalError
+from torchcal.core.errors import TorchcalError, did_you_mean
 from torchcal.core.folder import CHECKSUMS, write_member_text
 from torchcal.core.io import atomic_write_text
 from torchcal.core.overrides import apply_overrides, field_names
@@ -62,12 +61,6 @@ def split_overrides(overrides: list[str]) -> tuple[list[str], list[str]]:
     return groups, fields
 
 
-def _closest(word: str, options: list[str] | set[str]) -> str:
-    """`` (did you mean 'x'?)`` for the option closest to a misspelt ``word``, else nothing."""
-    match = difflib.get_close_matches(word, sorted(options), n=1, cutoff=0.6)
-    return f" (did you mean '{match[0]}'?)" if match else ""
-
-
 def _check_groups(group_overrides: list[str], folder: Path) -> None:
     """Refuse a group selection Hydra would misread: a group given twice (Hydra keeps the last
     silently), a value that is a path (``model=../config`` would load another folder's file as a
@@ -83,7 +76,7 @@ def _check_groups(group_overrides: list[str], folder: Path) -> None:
             raise TorchcalError(f"'{item}': a config group takes the name of one of its options, not a path; "
                                 f"{group} options: {', '.join(options) or 'none'}")
         if value not in options:
-            raise TorchcalError(f"'{item}': no option '{value}' in config group '{group}'{_closest(value, options)}; "
+            raise TorchcalError(f"'{item}': no option '{value}' in config group '{group}'{did_you_mean(value, sorted(options))}; "
                                 f"{group} options: {', '.join(options) or 'none'} (files of {folder / group})")
 
 
@@ -103,7 +96,7 @@ def _check_field_keys(schema: Any, fields: list[str], extra: tuple[str, ...] = (
                 candidates = {".".join([*done, n]) for n in names} | (set(extra) if not done else set())
                 section = (prefix + ".".join(done)).rstrip(".")
                 where = f" in '{section}'" if section else ""
-                match = _closest(key, candidates).replace("'", f"'{prefix}", 1)
+                match = did_you_mean(key, sorted(candidates), prefix)
                 raise TorchcalError(f"invalid override (key '{prefix}{key}'): no key '{part}'{where}{match}")
             done.append(part)
             node = getattr(node, part)

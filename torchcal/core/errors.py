@@ -2,6 +2,17 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterable
+
+
+def did_you_mean(word: object, options: Iterable[str], prefix: str = "") -> str:
+    """`` (did you mean 'x'?)`` for the option closest to a misspelt ``word`` (``prefix`` written
+    before it), else ``""``: a message's hint for an unknown key, option or name."""
+    import difflib
+
+    match = difflib.get_close_matches(str(word), list(options), n=1, cutoff=0.6)
+    return f" (did you mean '{prefix}{match[0]}'?)" if match else ""
+
 
 class TorchcalError(Exception):
     """Base class of every error torchcal reports to a user."""

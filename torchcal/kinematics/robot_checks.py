@@ -10,7 +10,6 @@
 
 from __future__ import annotations
 
-import difflib
 import math
 import re
 from collections.abc import Iterable, Mapping
@@ -20,7 +19,7 @@ from typing import TYPE_CHECKING
 import torch
 import yaml
 
-from torchcal.core.errors import ModelError
+from torchcal.core.errors import ModelError, did_you_mean
 
 if TYPE_CHECKING:
     from torchcal.kinematics.robot import RobotModel
@@ -82,9 +81,8 @@ def check_keys(mapping: Mapping, allowed: Iterable[str], path: Path, where: str)
     for key in mapping:
         if key in allowed:
             continue
-        close = difflib.get_close_matches(str(key), allowed, n=1, cutoff=0.6)
-        hint = f" (did you mean '{close[0]}'?)" if close else ""
-        raise ModelError(f"{path}: {where} has unknown key {str(key)!r}{hint}; allowed: {', '.join(allowed)}")
+        raise ModelError(f"{path}: {where} has unknown key {str(key)!r}{did_you_mean(key, allowed)}; "
+                         f"allowed: {', '.join(allowed)}")
 
 
 def joint_span_problem(lo: float, hi: float) -> bool:

@@ -6,7 +6,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
-from torchcal.core.errors import TorchcalError
+from torchcal.core.errors import TorchcalError, did_you_mean
 from torchcal.core.outputs import check_name
 
 Direction = Literal["minimize", "maximize"]
@@ -258,7 +258,6 @@ def check_space(base, config: StudyConfig) -> None:
     these only by failing.
     """
     import dataclasses
-    import difflib
 
     for name in ("robot", "train", "test", "holdout"):
         path = getattr(config, name)
@@ -276,9 +275,7 @@ def check_space(base, config: StudyConfig) -> None:
             names = [f.name for f in dataclasses.fields(parent)] if dataclasses.is_dataclass(parent) else []
             if part not in names:
                 prefix = ".".join([section, *parts[:i]])
-                close = difflib.get_close_matches(part, names, n=1, cutoff=0.6)
-                hint = f" (did you mean '{prefix}.{close[0]}'?)" if close else ""
-                raise TorchcalError(f"{where}: no option '{dist.key}'{hint}")
+                raise TorchcalError(f"{where}: no option '{dist.key}'{did_you_mean(part, names, prefix + '.')}")
             if i < len(parts) - 1:
                 parent = getattr(parent, part)
         declared = _option_type(parent, parts[-1])
