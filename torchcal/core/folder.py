@@ -142,15 +142,23 @@ def check_output_folder(dest: str | Path, what: str = "--out", purpose: str = "m
     inside another torchcal output only where that one's purpose is in ``within``)."""
     claim_folder(dest, purpose, what, within)
     dest = Path(dest)
-    if purpose in ("model", "export") and (dest / CHECKSUMS).is_file():
-        # a sealed folder lists every file torchcal wrote: one it does not list is the user's own
-        listed = _read_checksums(dest)
-        foreign = sorted(p.name for p in dest.iterdir() if not p.name.startswith(".") and p.name != CHECKSUMS
-                         and p.name not in listed and not (p.is_dir() and p.name == FIGURES))
+    if purpose in ("model", "export"):
+        foreign = [p.name for p in _unlisted(dest)]
         if foreign:
             raise FolderError(f"{dest / foreign[0]}: {what} would replace this folder, and torchcal did not write "
                               f"{', '.join(foreign[:3])}{' ...' if len(foreign) > 3 else ''}; move "
                               f"{'it' if len(foreign) == 1 else 'them'} out or give another folder")
+
+
+def _unlisted(folder: Path) -> list[Path]:
+    """The entries of a sealed ``folder`` its ``checksums.json`` does not list (its figures folder
+    aside), sorted: a sealed folder lists every file torchcal wrote, so these are the user's own.
+    ``[]`` for a folder without a checksum list."""
+    if not (folder / CHECKSUMS).is_file():
+        return []
+    listed = _read_checksums(folder)
+    return sorted(p for p in folder.iterdir() if not p.name.startswith(".") and p.name != CHECKSUMS
+                  and p.name not in listed and not (p.is_dir() and p.name == FIGURES))
 
 
 def refuse_foreign_entries(dest: Path, known: tuple[str, ...], sealed: tuple[str, ...] = (), what: str = "name=") -> None:
@@ -166,11 +174,7 @@ def refuse_foreign_entries(dest: Path, known: tuple[str, ...], sealed: tuple[str
         return
     foreign = [p for p in sorted(dest.iterdir()) if not p.name.startswith(".") and p.name not in known]
     for name in sealed:
-        sub = dest / name
-        if (sub / CHECKSUMS).is_file():
-            listed = _read_checksums(sub)
-            foreign += [p for p in sorted(sub.iterdir()) if not p.name.startswith(".") and p.name != CHECKSUMS
-                        and p.name not in listed and not (p.is_dir() and p.name == FIGURES)]
+        foreign += _unlisted(dest / name)
     if foreign:
         raise FolderError(f"{foreign[0]}: {what} would replace {dest}, and torchcal did not write this; move it out or "
                           "give another name")
