@@ -20,6 +20,7 @@ from torchcal.config.compose import compose_options
 from torchcal.core.errors import DataError, ModelError, TorchcalError
 from torchcal.core.io import atomic_write_json, atomic_write_text
 from torchcal.core.outputs import claim_file, claim_folder, csv_with_header, stamp_folder
+from torchcal.data.plausibility import check_targets_not_metres
 from torchcal.kinematics import transforms as tf
 from torchcal.kinematics.error_model import ErrorModel
 from torchcal.kinematics.robot import RobotModel, load_robot
@@ -53,8 +54,6 @@ def default_report_folder(out: Path) -> Path:
     return out.with_name(f"{out.stem}_report")
 
 
-#: Waypoints all closer to the base than this share of the arm's reach: metres written as mm.
-METRES_AS_MM_REACH_SHARE = 0.01
 #: The first waypoint's orientation read as radians this close to the start pose (deg) while read as
 #: degrees (the contract) it is further than :data:`DEGREES_FAR_DEG` off: the angles are in radians.
 RADIANS_NEAR_DEG, DEGREES_FAR_DEG = 5.0, 20.0
@@ -74,11 +73,8 @@ def refuse_implausible_path(robot: RobotModel, waypoints: Waypoints, start_deg: 
     reach = nominal_reach(robot)
     with torch.no_grad():
         start = model.tcp_pose(torch.tensor(start_deg, dtype=torch.float64).unsqueeze(0) * DEG, x)[0]
-    farthest = float(waypoints.poses[:, :3, 3].norm(dim=-1).max())
-    if farthest < METRES_AS_MM_REACH_SHARE * reach:
-        raise DataError(f"every waypoint lies within {farthest * 1e3:.3g} mm of the base origin, the robot reaches "
-                        f"{reach * 1e3:.0f} mm: x, y, z look like metres; a path file gives mm", path=str(waypoints.path),
-                        row=waypoints.lines[0], column="x")
+    check_targets_not_metres(waypoints.poses[:, :3, 3], reach, what="waypoint", path=str(waypoints.path),
+                             row=waypoints.lines[0], advice="x, y, z look like metres; a path file gives mm")
     first = waypoints.poses[0, :3, :3]
     written = tf.matrix_to_euler_xyz(first) * (180.0 / math.pi)  # the first row's rx, ry, rz as written
     if float(written.abs().max()) > 2 * math.pi:

@@ -63,7 +63,7 @@ from torchcal.core.hashing import sha256_bytes
 from torchcal.core.io import atomic_write_json, atomic_write_text
 from torchcal.core.outputs import refuse_inside_output
 from torchcal.data.csv_table import check_joint_limits, joint_columns, read_csv_table
-from torchcal.data.plausibility import check_joint_unit
+from torchcal.data.plausibility import check_joint_unit, check_targets_not_metres
 from torchcal.kinematics import transforms as tf
 from torchcal.kinematics.error_model import ErrorModel
 from torchcal.kinematics.ik import solve_ik
@@ -176,9 +176,6 @@ def other_columns(table, used, n_joints: int) -> dict[str, list[str]]:
     return other
 
 
-#: A program's TCP targets all closer to the robot's base than this share of its reach: metres written as mm.
-METRES_AS_MM_REACH_SHARE = 0.01
-
 
 def is_tcp_program(path: Path) -> bool:
     """Whether the program file holds TCP poses (``x, y, z`` and no joint column) rather than joint targets."""
@@ -204,11 +201,8 @@ def read_tcp_targets(path: Path, robot, start_deg: list[float]) -> tuple[torch.T
     oriented = all(c in table.header for c in ROTATION_COLUMNS)
     other = other_columns(table, POSITION_COLUMNS + (ROTATION_COLUMNS if oriented else ()), robot.dof)
     position = torch.from_numpy(np.stack([table.column(c) for c in POSITION_COLUMNS], 1)) * 1e-3
-    reach = nominal_reach(robot)
-    if float(position.norm(dim=-1).max()) < METRES_AS_MM_REACH_SHARE * reach:
-        raise DataError(f"every TCP target lies within {float(position.norm(dim=-1).max()) * 1e3:.3g} mm of the base origin, "
-                        f"the robot reaches {reach * 1e3:.0f} mm: the targets look like metres; a program file's x, y, z "
-                        "are in mm", path=str(path), column="x")
+    check_targets_not_metres(position, nominal_reach(robot), what="TCP target", path=str(path),
+                             advice="the targets look like metres; a program file's x, y, z are in mm")
     if oriented:
         angles = torch.from_numpy(np.radians(np.stack([table.column(c) for c in ROTATION_COLUMNS], 1)))
         targets = tf.homogeneous(tf.euler_xyz_to_matrix(angles), position)

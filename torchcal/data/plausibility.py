@@ -27,6 +27,9 @@ from torchcal.kinematics.robot import RobotModel
 SPREAD_RATIO_RANGE = (0.2, 5.0)
 #: A point farther from the others than this multiple of the robot's reach (+ 0.2 m) is refused.
 OUTLIER_REACH_FACTOR = 2.0
+#: Target points (a program's, a path's) all closer to the robot's base than this share of its reach:
+#: metres written as mm.
+METRES_AS_MM_REACH_SHARE = 0.01
 
 
 def _mm(distance_m: float) -> str:
@@ -100,3 +103,18 @@ def check_point_spread(robot: RobotModel, q: torch.Tensor, position: torch.Tenso
     raise DataError(
         f"the measured points spread {got * 1e3:.4g} mm around their median, the nominal robot's TCP at the same "
         f"joints {ref * 1e3:.4g} mm (ratio {ratio:.3g}): {hint}", path=path, column="x")
+
+
+def check_targets_not_metres(points_m: torch.Tensor, reach_m: float, *, what: str, advice: str, path: str,
+                             row: int | None = None) -> None:
+    """Refuse target points ``(n, 3)`` (robot base frame, read as mm, m) that all lie within
+    :data:`METRES_AS_MM_REACH_SHARE` of the robot's reach ``reach_m`` from the base origin: metres
+    written where mm were due. ``what`` names a point (``TCP target``), ``advice`` ends the message.
+
+    Raises:
+        DataError: naming the file (and ``row``) and column ``x``.
+    """
+    farthest = float(points_m.norm(dim=-1).max())
+    if farthest < METRES_AS_MM_REACH_SHARE * reach_m:
+        raise DataError(f"every {what} lies within {farthest * 1e3:.3g} mm of the base origin, the robot reaches "
+                        f"{reach_m * 1e3:.0f} mm: {advice}", path=path, row=row, column="x")
