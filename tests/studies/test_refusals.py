@@ -71,6 +71,33 @@ def test_another_applications_database_is_left_alone(tmp_path):
         storage.check_storage(f"sqlite:///{tmp_path / 'junk.db'}", configured=True)
 
 
+def test_a_locked_study_database_is_announced_and_named_as_locked_not_as_foreign(tmp_path, monkeypatch):
+    import sqlite3
+    import warnings
+
+    from torchcal.studies import storage
+
+    path = tmp_path / "study.db"
+    holder = sqlite3.connect(path, isolation_level=None)
+    holder.execute("CREATE TABLE studies (study_id INTEGER)")
+    assert not storage.sqlite_lock_held(path, wait_s=0.1)
+    holder.execute("BEGIN EXCLUSIVE")  # another program holds the file
+    try:
+        assert storage.sqlite_lock_held(path, wait_s=0.1)
+        monkeypatch.setattr(storage, "SQLITE_LOCK_WAIT_S", 0.2)
+        monkeypatch.setattr(storage, "SQLITE_LOCK_PROBE_S", 0.1)
+        with warnings.catch_warnings(record=True) as caught, pytest.raises(TorchcalError, match="still locked after 0 s"):
+            warnings.simplefilter("always")
+            storage.check_storage(f"sqlite:///{path}", configured=True)
+        assert any("is locked by another process" in str(w.message) for w in caught)
+    finally:
+        holder.execute("ROLLBACK")
+        holder.close()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # released: no warning, no refusal
+        storage.check_storage(f"sqlite:///{path}", configured=True)
+
+
 def test_storage_inside_an_output_folder_is_refused(tmp_path):
     from torchcal.core.outputs import stamp_folder
 
@@ -256,3 +283,12 @@ def test_a_best_refit_whose_export_is_its_run_folder_is_refused_before_any_trial
     with pytest.raises(TorchcalError, match="give export_dir another place than out"):
         run_study(base, replace(_study("clash"), refit_best=True))
     assert not (tmp_path / "runs").exists()
+
+
+def test_a_best_refit_whose_export_folder_cannot_be_written_is_refused_before_any_trial(tmp_path):
+    blocker = tmp_path / "exports"
+    blocker.write_text("a file where export_dir needs a folder")
+    base = _base(tmp_path, f"export_dir={blocker}", "export=true")
+    with pytest.raises(TorchcalError, match="a file stands where export_dir/studies/<study>/best needs a folder"):
+        run_study(base, replace(_study("blocked"), refit_best=True))
+    assert not (tmp_path / "runs").exists()  # refused before the study folder and its first trial

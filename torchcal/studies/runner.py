@@ -20,6 +20,7 @@ from typing import Any
 from torchcal.compensate.export import export_model
 from torchcal.config import save_resolved_config
 from torchcal.core.errors import TorchcalError
+from torchcal.core.folder import check_output_folder
 from torchcal.core.hashing import sha256_file
 from torchcal.core.outputs import claim_folder, stamp_folder
 from torchcal.core.shutdown import skip_collection_at_exit
@@ -234,6 +235,8 @@ def run_study(base, config: StudyConfig, *, workers: int = 1, console=None) -> S
         if run_at == export_at or run_at.is_relative_to(export_at) or export_at.is_relative_to(run_at):
             raise TorchcalError(f"export_dir ({base.export_dir}) puts the best refit's export at {export_at}, its run "
                                 "folder: give export_dir another place than out")
+        # a file or a foreign folder where the export goes is found now, not after the trials
+        check_output_folder(export_at, "export_dir/studies/<study>/best", purpose="export")
     check_storage(storage_url(config, study_dir), configured=bool(config.storage))
     claim_folder(study_dir, "study", "study.name")
     study_dir.mkdir(parents=True, exist_ok=True)

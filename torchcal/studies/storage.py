@@ -23,6 +23,11 @@ CREATE_ATTEMPTS = 5
 #: seconds to wait for a database server to answer a new connection (a server that never answers
 #: would otherwise hold the study for minutes, at the mercy of the system's TCP timeouts)
 CONNECT_TIMEOUT_S = 10
+#: seconds a study waits for its SQLite file's lock (local workers share the file and hold the lock
+#: for milliseconds per write; longer means another program holds it)
+SQLITE_LOCK_WAIT_S = 60.0
+#: a lock still held after this long at opening is announced before the wait
+SQLITE_LOCK_PROBE_S = 1.0
 
 
 def storage_url(config: StudyConfig, study_dir: Path) -> str:
@@ -94,10 +99,16 @@ def check_storage(url: str, configured: bool) -> None:
     if path.is_file() and path.stat().st_size > 0:
         import sqlite3
 
+        _announce_lock(path)
         try:
-            with sqlite3.connect(f"{path.resolve().as_uri()}?mode=ro", uri=True) as conn:
+            with sqlite3.connect(f"{path.resolve().as_uri()}?mode=ro", uri=True, timeout=SQLITE_LOCK_WAIT_S) as conn:
                 tables = {name for (name,) in conn.execute("SELECT name FROM sqlite_master WHERE type = 'table'")}
             conn.close()
+        except sqlite3.OperationalError as exc:
+            if _is_lock_error(exc):
+                raise TorchcalError(f"study storage '{url}': {path} is still locked after {SQLITE_LOCK_WAIT_S:.0f} s by "
+                                    "another process; close the program that holds it open, or wait for it") from None
+            raise TorchcalError(f"study storage '{url}': {path} is not an SQLite database ({exc})") from None
         except sqlite3.Error as exc:
             raise TorchcalError(f"study storage '{url}': {path} is not an SQLite database ({exc})") from None
         foreign = sorted(t for t in tables - _optuna_tables() if not t.startswith("sqlite_"))
@@ -105,6 +116,41 @@ def check_storage(url: str, configured: bool) -> None:
             shown = ", ".join(foreign[:5]) + (", ..." if len(foreign) > 5 else "")
             raise TorchcalError(f"study storage '{url}': {path} is another application's database (tables {shown}); "
                                 "a study adds its tables only to its own database: give a new file")
+
+
+def _is_lock_error(exc: Exception) -> bool:
+    return "locked" in str(exc) or "busy" in str(exc)
+
+
+def sqlite_lock_held(path: Path, wait_s: float = SQLITE_LOCK_PROBE_S) -> bool:
+    """Whether another connection holds a write lock on the SQLite file ``path`` for longer than ``wait_s``."""
+    import sqlite3
+
+    conn = sqlite3.connect(str(path), timeout=wait_s, isolation_level=None)
+    try:
+        conn.execute("BEGIN IMMEDIATE")  # takes the write lock (released at once), waiting at most wait_s
+        conn.execute("ROLLBACK")
+        return False
+    except sqlite3.OperationalError as exc:
+        if _is_lock_error(exc):
+            return True
+        raise
+    finally:
+        conn.close()
+
+
+def _announce_lock(path: Path) -> None:
+    """Warn, before the wait, when the study's SQLite file is locked: the wait is otherwise silent."""
+    import sqlite3
+    import warnings
+
+    try:
+        held = sqlite_lock_held(path)
+    except sqlite3.Error:  # not a database: check_storage says so next
+        return
+    if held:
+        warnings.warn(f"study storage {path} is locked by another process (a program holding it open, or a worker "
+                      f"writing); waiting up to {SQLITE_LOCK_WAIT_S:.0f} s for it", stacklevel=3)
 
 
 def _storage_class():
@@ -161,7 +207,7 @@ def open_storage(config: StudyConfig, study_dir: Path):
     if url.startswith("sqlite"):
         study_dir.mkdir(parents=True, exist_ok=True)
         # Several local workers share the file; wait for its lock instead of failing at once.
-        engine_kwargs: dict[str, Any] = {"connect_args": {"timeout": 60}}
+        engine_kwargs: dict[str, Any] = {"connect_args": {"timeout": SQLITE_LOCK_WAIT_S}}
     else:
         engine_kwargs = {"pool_pre_ping": True, "connect_args": connect_args(url)}
     # Workers on several machines may start together on an empty database: all of them try to
