@@ -161,8 +161,9 @@ def test_export_and_check_reports_parity(model_dir, twin, tmp_path):
     assert on_twin["torch"]["position_rms_mm"] < 0.5 * on_twin["uncompensated"]["position_rms_mm"]
     assert result["monitor_max_mm"] <= 1e-9
     assert result["n_poses"] == 200
-    # the exported monitor predicts the held-out tracker points to the noise level of the twin
-    assert result["held_out_monitor"]["position_rms_mm"] < 0.2
+    # the exported monitor predicts the held-out tracker points to the noise level of the twin (an
+    # in-model twin: no gravity, no gear errors; 150 training poses leave a few percent above the floor)
+    assert result["held_out_monitor"]["position_rms_mm"] < 1.2 * twin.config.noise_floor_rms_mm
     assert (tmp_path / "out" / "manifest.json").is_file()
 
 
@@ -200,3 +201,39 @@ def test_export_with_a_tool_length_states_it_and_the_default_warns_of_turned_too
     assert added < uniform["tool_turn_added_rad"]["max"]  # kept nominal where the turn would cost a tool its position
     assert main(["export", "--model", str(model_dir), "--out", str(tmp_path / "bad"), "--tool-length-mm", "-5"]) == 2
     assert "--tool-length-mm must be a finite length >= 0 mm" in capsys.readouterr().err
+
+
+def test_portable_export_uses_standard_operators_only_and_reaches_the_same_targets(model_dir, exported, stored, tmp_path):
+    """``--portable``: no onnxruntime contrib node anywhere (Loop bodies included), and the
+    commands put the calibrated TCP on the nominal target as the default export's do."""
+    from torchcal.compensate.compensator import CONVERGED_POSITION_M
+    from torchcal.compensate.export import export_model
+    from torchcal.compensate.linalg import CONTRIB_DOMAIN
+
+    folder, _ = exported
+    manifest = export_model(model_dir, tmp_path / "portable", portable=True)
+
+    def domains(graph) -> set[str]:
+        found = {node.domain for node in graph.node}
+        for node in graph.node:
+            for attribute in node.attribute:
+                if attribute.type == onnx.AttributeProto.GRAPH:
+                    found |= domains(attribute.g)
+        return found
+
+    for key in ("compensator", "compensator_f32"):
+        model = onnx.load(str(tmp_path / "portable" / manifest["files"][key]))
+        assert CONTRIB_DOMAIN not in domains(model.graph) | {o.domain for o in model.opset_import}
+    default_model = onnx.load(str(folder / GRAPHS["compensator"][0]))
+    assert CONTRIB_DOMAIN in domains(default_model.graph)  # the default does use onnxruntime's Inverse
+    gen = torch.Generator().manual_seed(31)
+    q = torch.cat([stored.robot.sample_joints(1000, gen), wrist_singular_samples(stored.robot, 300, gen)])
+    model = stored.model
+    tcp = lambda qq: (model.base_flange_pose(qq, stored.x) @ model.flange_from_tool(stored.x))[..., :3, 3]  # noqa: E731
+    target = stored.robot.tcp_position(q)
+    left_default = (tcp(run(folder, "compensator", q)) - target).norm(dim=-1)
+    left_portable = (tcp(run(tmp_path / "portable", "compensator", q)) - target).norm(dim=-1)
+    solved = left_default < CONVERGED_POSITION_M
+    assert solved.double().mean() > 0.9
+    assert float(left_portable[solved].max()) < 2 * CONVERGED_POSITION_M
+    assert (left_portable < CONVERGED_POSITION_M).double().mean() >= solved.double().mean() - 0.01

@@ -169,8 +169,13 @@ def test_tcp_poses_with_a_start_give_the_joint_programs_result(twin, model_dir, 
     if oriented:  # the pose fixes the joints: the same program
         for j in range(1, 7):
             assert np.allclose(a[f"q{j}"], b[f"q{j}"], atol=1e-6)
-    # the TCP position of the corrected command, on the model, is the target's either way
+    # the TCP position of the corrected command, on the model, is the target's either way: the file's
+    # own account, and the calibrated model's forward kinematics at the corrected joints
     assert np.allclose(b["remaining_mm"], 0.0, atol=1e-3)
+    q_c = torch.deg2rad(torch.tensor(np.stack([b[f"q{j}"] for j in range(1, 7)], 1), dtype=torch.float64))
+    reached = (stored.model.base_flange_pose(q_c, stored.x) @ stored.model.flange_from_tool(stored.x))[:, :3, 3]
+    target = nominal.tcp_pose(q, nominal.nominal_vector())[:, :3, 3]
+    assert float((reached - target).norm(dim=-1).max()) < 1e-6  # m
 
 
 def test_tcp_poses_need_a_start_and_name_an_unreachable_row(model_dir, tmp_path, capsys):

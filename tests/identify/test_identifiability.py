@@ -27,8 +27,11 @@ def test_base_frame_absorbs_row_one_and_tool_absorbs_d6(robot, generator):
     assert report.dependent["d1"][0][0] == "base_z"
     assert report.dependent["d6"][0][0] == "tool_z"
     assert report.rank == len(report.base_set)
-    # 4R + 6 - 3 (no tool orientation) = 27 minus the wrist's two position-only dependencies
+    # 4R + 6 - 3 (no tool orientation) = 27 minus the wrist's two position-only dependencies: with the
+    # tool point on axis 6, tilting axis 6 about x5 (alpha6) moves it as d5 does, shifting it along x5
+    # (a6) as turning joint 5's zero (theta5) does
     assert len(report.base_set) == 25
+    assert report.dependent["alpha6"][0][0] == "d5" and report.dependent["a6"][0][0] == "theta5"
     assert report.condition_number < 100
 
 

@@ -8,6 +8,7 @@ from pathlib import Path
 import pytest
 import torch
 
+from tests.conftest import REAL_DATA
 from torchcal.core.errors import ModelError
 from torchcal.kinematics.robot import load_robot, mdh_to_urdf, robot_to_yaml
 
@@ -192,7 +193,7 @@ def test_urdf_parser_notes_name_a_misspelt_attribute(tmp_path, capfd):
 # ------------------------------------------------------------- typos, duplicates and wrong units
 
 TWIN = Path(__file__).parents[2] / "torchcal" / "resources" / "robots" / "twin-kr6.yaml"
-REAL = Path("/work/shared/data/real")
+REAL = REAL_DATA  # ../shared/data/real beside the checkout, or TORCHCAL_REAL_DATA
 
 
 def _twin_with(tmp_path: Path, old: str, new: str) -> Path:
@@ -332,6 +333,7 @@ def test_embedded_and_real_robot_files_load(path):
     assert robot.dof >= 6
 
 
+@pytest.mark.real
 def test_real_robot_folder_has_robot_files():
     if not REAL.is_dir():
         pytest.skip(f"{REAL} is not here")
