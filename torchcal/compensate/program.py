@@ -12,9 +12,13 @@ program's targets, with the same safety limits:
 * the export's refusal: a model whose median joint correction or tool orientation deviation over
   its training poses exceeds the limits of :mod:`torchcal.compensate.production_tcp` is refused
   unless ``allow_large_corrections`` (the same check, :func:`check_corrections`);
-* a target counts as corrected when the model's remaining TCP position error at the corrected
-  command is within :data:`SOLVED_WITHIN_M` (the export's convergence figure, 1 um). A target that
-  is not corrected keeps its nominal command in the output and gets one line saying why.
+* the command written is the compensator's own, as the exported runtime returns it; a target
+  counts as corrected (``corrected`` 1) when the model's remaining TCP position error at that
+  command is within :data:`SOLVED_WITHIN_M` (the export's convergence figure, 1 um). Any other
+  target gets one line: *not solved to 1 um* where the command is the compensator's but leaves more
+  (its remaining error and the nominal command's are stated), *nominal command kept* where the
+  compensator returned the nominal command (its steps ended further off: beyond reach, a joint
+  limit or a singularity).
 
 Targets: ``q1..qN`` (deg), one row per target, the data contract's joint columns; other columns
 (speed, zone...) are carried to the output as written, after its own. Or **TCP poses** with a start configuration: ``x, y, z`` (mm, the robot's base frame,
@@ -24,8 +28,7 @@ project's inverse kinematics (:func:`torchcal.kinematics.ik.solve_ik`, on the no
 in the production TCP) from the previous target's solution (the first from the start), so the
 program keeps one arm configuration; those joint targets then go through the same compensator. A
 pose the nominal robot cannot reach from there, or only outside its joint limits, is one line
-naming its row (exit status 2). Output: ``q1..qN`` (deg, the corrected command or, where not corrected, the nominal
-one), ``corrected`` (1/0), ``correction_deg`` (the largest joint move), ``remaining_mm`` (the
+naming its row (exit status 2). Output: ``q1..qN`` (deg, the compensator's command), ``corrected`` (1/0: solved to 1 um), ``correction_deg`` (the largest joint move), ``remaining_mm`` (the
 model's remaining TCP error at the written command), then the program's other columns. It is written atomically with a sidecar
 ``<out>.torchcal.json`` (model, targets and output SHA-256, the settings, the summary); an
 existing output is overwritten only when its sidecar says torchcal wrote it for this purpose and
@@ -45,6 +48,7 @@ import numpy as np
 import torch
 
 from torchcal.compensate.compensator import DEFAULT_TASK, TASKS
+from torchcal.compensate.export import MAX_ITERATIONS
 from torchcal.compensate.export_checks import regular_poses
 from torchcal.compensate.graphs import (
     build_graphs,
@@ -95,7 +99,7 @@ class ProgramOutcome:
 
     def lines(self) -> list[str]:
         """What the command prints: one line per target that was not corrected, then the summary."""
-        summary = (f"{self.out}: {self.n_corrected} of {self.n_targets} targets corrected in {self.seconds:.2f} s; "
+        summary = (f"{self.out}: {self.n_corrected} of {self.n_targets} targets corrected (the solve {self.seconds:.2f} s); "
                    f"largest joint correction {self.largest_correction_deg:.4g} deg (joint {self.largest_correction_joint}); "
                    f"{self.tcp_note}")
         allowed = [f"warning: {line} (allowed by --allow-large-corrections)" for line in self.allowed]
@@ -198,7 +202,12 @@ def read_tcp_targets(path: Path, robot, start_deg: list[float]) -> tuple[torch.T
                         path=str(path))
     start = np.asarray(start_deg, dtype=np.float64)[None]
     check_joint_limits(start, "deg", robot.joint_limits.numpy(), path="--start", lines=[1], robot_name=robot.name)
-    oriented = all(c in table.header for c in ROTATION_COLUMNS)
+    given = [c for c in ROTATION_COLUMNS if c in table.header]
+    if given and len(given) < len(ROTATION_COLUMNS):
+        missing = [c for c in ROTATION_COLUMNS if c not in table.header]
+        raise DataError(f"column(s) {', '.join(given)} given without {', '.join(missing)}: a TCP orientation needs "
+                        "rx, ry and rz (deg, fixed-axis XYZ); give all three, or none for positions only", path=str(path))
+    oriented = len(given) == len(ROTATION_COLUMNS)
     other = other_columns(table, POSITION_COLUMNS + (ROTATION_COLUMNS if oriented else ()), robot.dof)
     position = torch.from_numpy(np.stack([table.column(c) for c in POSITION_COLUMNS], 1)) * 1e-3
     check_targets_not_metres(position, nominal_reach(robot), what="TCP target", path=str(path),
@@ -218,12 +227,35 @@ def read_tcp_targets(path: Path, robot, start_deg: list[float]) -> tuple[torch.T
             raise DataError(f"the TCP pose is not reachable by the nominal robot from the previous target's joints "
                             f"(inverse kinematics leaves {float(result.position_error[0]) * 1e3:.3g} mm, "
                             f"{math.degrees(float(result.rotation_error[0])):.3g} deg)", path=str(path), row=line)
-        q = result.q[0]
+        q = within_limits(result.q[0], q, robot.joint_limits.to(torch.float64), path, line)
         solved.append(q)
-    q_all = torch.stack(solved)
-    check_joint_limits(np.degrees(q_all.numpy()), "deg", robot.joint_limits.numpy(), path=path,
-                       lines=table.line_numbers, robot_name=robot.name)
-    return q_all, list(table.line_numbers), other
+    return torch.stack(solved), list(table.line_numbers), other
+
+
+def within_limits(q: torch.Tensor, previous: torch.Tensor, limits: torch.Tensor, path: Path, line: int) -> torch.Tensor:
+    """``q`` ``(N,)`` rad with each joint at the whole turn, within its limits, nearest ``previous``: the
+    program keeps its configuration (the inverse kinematics may end a joint a turn away: 470 deg for
+    110 deg outside the limits, or -330 deg for 30 deg inside them).
+
+    Raises:
+        DataError: naming the row (the pose) and the joint that no whole turn brings inside its limits.
+    """
+    turn = 2.0 * math.pi
+    out = q.clone()
+    tol = math.radians(0.01)  # as the limit check of measurement files
+    for j in range(len(q)):
+        low, high = float(limits[j, 0]), float(limits[j, 1])
+        value = float(q[j])
+        if not (math.isfinite(low) and math.isfinite(high)):  # a continuous joint: the turn nearest the previous value
+            out[j] = value + round((float(previous[j]) - value) / turn) * turn
+            continue
+        options = [value + k * turn for k in range(math.ceil((low - tol - value) / turn), math.floor((high + tol - value) / turn) + 1)]
+        if not options:
+            raise DataError(f"the nominal robot reaches this TCP pose from the previous target's joints only with joint "
+                            f"{j + 1} at {math.degrees(value):.6g} deg, outside its limits [{math.degrees(low):.6g}, "
+                            f"{math.degrees(high):.6g}] deg, whatever whole turn it takes", path=str(path), row=line)
+        out[j] = min(options, key=lambda v: abs(v - float(previous[j])))
+    return out
 
 
 def _csv(q_deg: np.ndarray, corrected: np.ndarray, correction_deg: np.ndarray, remaining_mm: np.ndarray,
@@ -262,8 +294,8 @@ def compensate_program(
     model_dir, targets, out = Path(model_dir), Path(targets), Path(out)
     if task not in TASKS:
         raise TorchcalError(f"task must be one of {list(TASKS)}, got {task!r}")
-    if iterations is not None and iterations < 1:
-        raise TorchcalError(f"iterations must be >= 1, got {iterations}")
+    if iterations is not None and not 1 <= iterations <= MAX_ITERATIONS:  # the export's bound: the same compensator
+        raise TorchcalError(f"--iterations must be in [1, {MAX_ITERATIONS}] (as for export), got {iterations}")
     check_tool_length(tool_length_mm)
     check_program_output(out, targets)
     stored = load_model(model_dir)
@@ -296,16 +328,26 @@ def compensate_program(
             residual.append(b)
     seconds = time.perf_counter() - start
     commands, rest = torch.cat(q_c), torch.cat(residual)
+    # the compensator's own command everywhere (the exported runtime's): it returns the nominal one
+    # itself where its steps end further off; a command that is better but not solved to 1 um is kept
+    written = commands
     corrected = rest[:, 0] <= SOLVED_WITHIN_M
-    written = torch.where(corrected.unsqueeze(-1), commands, q)
-    remaining = rest[:, 0].clone()
-    if not bool(corrected.all()):  # the nominal command is written there: the model's error of that command
+    remaining_mm = rest[:, 0] * 1e3  # the model's remaining error at the written command (the graph's residual)
+    kept = (commands == q).all(-1)
+    unsolved = torch.nonzero(~corrected).flatten().tolist()
+    if unsolved:
         with torch.no_grad():
-            remaining[~corrected] = graphs["monitor"](q[~corrected]).norm(dim=-1)
-    remaining_mm = remaining * 1e3
-    failures = [f"{targets}: row {lines[k]}: not corrected, nominal command kept: the compensator's command leaves the "
-                f"model's TCP {float(rest[k, 0]) * 1e3:.3g} mm off the target (beyond reach, a joint limit or a singularity)"
-                for k in torch.nonzero(~corrected).flatten().tolist()]
+            nominal_mm = graphs["monitor"](q[unsolved]).norm(dim=-1) * 1e3
+    failures = []
+    for i, k in enumerate(unsolved):
+        if bool(kept[k]):
+            failures.append(f"{targets}: row {lines[k]}: not corrected, nominal command kept ({float(nominal_mm[i]):.3g} mm "
+                            "off by the model): the compensator's steps ended further off (beyond reach, a joint limit "
+                            "or a singularity)")
+        else:
+            failures.append(f"{targets}: row {lines[k]}: not solved to {SOLVED_WITHIN_M * 1e3:g} mm: the compensator's "
+                            f"command, written, leaves the model's TCP {float(remaining_mm[k]):.3g} mm off the target "
+                            f"(the nominal command {float(nominal_mm[i]):.3g} mm)")
     applied = (written - q).abs()
     worst = int(applied.amax(0).argmax()) if len(q) else 0
     text = _csv(np.degrees(written.numpy()), corrected.numpy(), np.degrees(applied.amax(-1).numpy()),
