@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import re
 import warnings
 from dataclasses import dataclass, replace
 
@@ -14,14 +15,17 @@ from torchcal.core.errors import DataError, ModelError
 from torchcal.identify.calibrate import calibrate
 from torchcal.identify.lm import LevenbergMarquardt
 from torchcal.identify.prior import (
+    EarlierModel,
     PriorProblem,
     PriorSpec,
     Tolerances,
+    beyond_tolerance_warning,
     parameter_kind,
     posterior_covariance,
     prior_table,
     resolve_tolerances,
     solve_map,
+    taught_summary,
 )
 from torchcal.sim.twin import Twin, TwinConfig
 
@@ -262,3 +266,191 @@ def test_a_warm_started_fit_reaches_the_cold_fit_in_fewer_steps():
     sd = cold.covariance.diagonal().sqrt()
     assert float(((cold.x[cold.free] - warm.x[warm.free]).abs() / sd).max()) < 0.1
     assert warm.solve.iterations <= cold.solve.iterations
+
+
+def _map_covariances(a: torch.Tensor, units: np.ndarray, noise: float, shared: float, reps: int):
+    """Monte-Carlo of the near-flat-prior MAP of ``y = offset[region] + noise`` (2 rows per pose).
+
+    Returns the averaged classical and widened posterior covariances and the empirical covariance of the
+    estimate over the repetitions. ``s`` is the data's own, ``|r|^2 / (m - 2)``, as the fit re-estimates it.
+    """
+    m, rows_per_pose = len(units), 2
+    pose_units = units[::rows_per_pose]
+    assert np.array_equal(np.repeat(pose_units, rows_per_pose), units)  # a pose's rows share its region
+    lam = 1e-6 * torch.eye(2, dtype=torch.float64)  # sigma 1000 against posterior sigmas ~1e-3: near flat
+    gen = torch.Generator().manual_seed(2)
+    classical = torch.zeros(2, 2, dtype=torch.float64)
+    widened = torch.zeros(2, 2, dtype=torch.float64)
+    estimates = []
+    for _ in range(reps):
+        y = shared * torch.randn(int(units.max()) + 1, generator=gen, dtype=torch.float64)[units] + \
+            noise * torch.randn(m, generator=gen, dtype=torch.float64)
+        ls = torch.linalg.solve(a.T @ a, a.T @ y)
+        s = float((y - a @ ls).norm()) / (m - 2) ** 0.5
+        x = torch.linalg.solve(a.T @ a / s**2 + lam, a.T @ y / s**2)  # the MAP, closed form
+        r = y - a @ x
+        classical += posterior_covariance(-a, r, lam, s)[0]
+        widened += posterior_covariance(-a, r, lam, s, pose_units, rows_per_pose)[0]
+        estimates.append(x)
+    return classical / reps, widened / reps, torch.cov(torch.stack(estimates).T)
+
+
+def test_posterior_covariance_widens_to_the_sampling_covariance_of_residuals_shared_within_regions():
+    """A straight line over 40 regions whose residuals share one offset per region: the classical
+    ``(J^T J / s^2 + Lambda)^-1`` misses the shared part; widened to the cluster-robust estimate it matches the
+    Monte-Carlo covariance of the estimate. Without a shared offset it stays near the classical one."""
+    from tests.identify.test_uncertainty import _design, _true_covariance
+
+    a, units = _design(40, 10)
+    classical, widened, empirical = _map_covariances(a, units, noise=0.01, shared=0.02, reps=400)
+    # the Monte Carlo is the truth here; it agrees with the closed form of a shared offset
+    assert torch.allclose(empirical.diagonal(), _true_covariance(a, units, 0.01, 0.02).diagonal(), rtol=0.2)
+    assert (classical.diagonal() < 0.3 * empirical.diagonal()).all(), (classical, empirical)
+    assert torch.allclose(widened.diagonal(), empirical.diagonal(), rtol=0.2), (widened, empirical)
+    classical, widened, _ = _map_covariances(a, units, noise=0.01, shared=0.0, reps=150)
+    assert torch.allclose(classical.diagonal(), _true_covariance(a, units, 0.01, 0.0).diagonal(), rtol=0.1)
+    # the max of two estimates can only add; with nothing shared it adds little
+    assert (widened.diagonal() >= classical.diagonal() * (1 - 1e-12)).all()
+    assert torch.allclose(widened.diagonal(), classical.diagonal(), rtol=0.2), (widened, classical)
+
+
+def _layout(robot):
+    from torchcal.kinematics.error_model import ErrorModel
+
+    model = ErrorModel(robot)
+    return list(model.layout.names), torch.nonzero(model.default_active()).squeeze(-1), model.nominal_vector()
+
+
+def test_an_earlier_model_gives_the_prior_mean_and_the_inverse_of_its_covariance_block(robot):
+    """``PriorSpec(earlier=...)``: the earlier estimate as mean and the inverse of its (scaled) covariance as
+    precision over the robot parameters it estimated; the instrument frame keeps no prior; parameters it did
+    not estimate keep their tolerance."""
+    names, free, nominal = _layout(robot)
+    mdh = ["alpha2", "a2", "theta2", "d4", "theta6"]
+    # instrument-frame entries among them; no tool entry: an earlier tool block is scaled with the table (not as
+    # the docs say of the tool), which this test does not pin
+    taken = [mdh[0], "base_x", *mdh[1:3], "base_rz", *mdh[3:]]
+    gen = torch.Generator().manual_seed(0)
+    root = torch.randn(len(taken), len(taken), generator=gen, dtype=torch.float64) * 1e-4
+    cov = root @ root.T + 1e-10 * torch.eye(len(taken), dtype=torch.float64)  # correlated, frame included
+    x = nominal + 1e-3 * torch.randn(len(nominal), generator=gen, dtype=torch.float64)
+    earlier = EarlierModel(x=x, indices=torch.tensor([names.index(n) for n in taken]), covariance=cov, label="earlier")
+    scale = 2.0
+    prior = PriorSpec(scale=scale, earlier=earlier).build(names, free, nominal)
+    pos = {names[i]: k for k, i in enumerate(free.tolist())}
+    for n in names:
+        expected = x[names.index(n)] if n in mdh else nominal[names.index(n)]
+        assert float(prior.mean[names.index(n)]) == float(expected), n
+    # the earlier covariance over the MDH entries (the frame marginalised out), sigmas times the scale
+    sub = [taken.index(n) for n in mdh]
+    block = cov.numpy()[np.ix_(sub, sub)] * scale**2
+    rows = [pos[n] for n in mdh]
+    got = prior.precision.numpy()[np.ix_(rows, rows)]
+    np.testing.assert_allclose(got, np.linalg.inv(block), rtol=1e-6)
+    np.testing.assert_allclose(prior.sigma[rows].numpy(), np.sqrt(np.diag(block)), rtol=1e-6)
+    others = [k for k in range(len(free)) if k not in rows]
+    assert float(prior.precision[rows][:, others].abs().max()) == 0.0
+    tol = Tolerances()
+    for n, k in pos.items():
+        if n.startswith("base_"):
+            assert float(prior.precision[k].abs().max()) == 0.0 and math.isinf(float(prior.sigma[k])), n
+        elif n not in mdh:
+            expected = {"length_mm": tol.length_mm * 1e-3 * scale, "angle_deg": math.radians(tol.angle_deg) * scale,
+                        "joint_offset_deg": math.radians(tol.joint_offset_deg) * scale,
+                        "tool_mm": tol.tool_mm * 1e-3}[parameter_kind(n)]
+            assert float(prior.sigma[k]) == pytest.approx(expected, rel=1e-12), n
+            assert float(prior.precision[k, k]) == pytest.approx(expected**-2, rel=1e-9), n
+
+
+def test_a_recalibration_on_few_poses_with_an_earlier_model_as_prior_lands_nearer_the_truth():
+    """A fit on 150 poses, then 12 new poses of the same robot: with the first fit as prior the model predicts the
+    twin's true positions better than the same 12 poses with the tolerance prior."""
+    twin, train, _ = _in_model_twin(2, 150)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        first = calibrate(twin.robot, train, prior=PriorSpec())
+        earlier = EarlierModel(x=first.x, indices=first.free, covariance=first.covariance, label="first")
+        gen = torch.Generator().manual_seed(102)
+        few, check = twin.sample(12, gen), twin.sample(400, gen)
+        with_earlier = calibrate(twin.robot, few, prior=PriorSpec(earlier=earlier))
+        tolerance = calibrate(twin.robot, few, prior=PriorSpec())
+    truth = twin.true_positions(check.q)
+
+    def rms(r):  # m, against the noise-free truth
+        return float((truth - r.model.tcp_position(check.q, r.x)).norm(dim=1).pow(2).mean().sqrt())
+
+    assert rms(with_earlier) < 0.6 * rms(tolerance), (rms(with_earlier), rms(tolerance), rms(first))
+    assert rms(with_earlier) < 2.0 * rms(first)
+
+
+def test_the_scale_multiplies_the_mdh_sigmas_and_not_the_tool(robot):
+    """docs/prior.md: x4 gives 4 x 0.5 mm on lengths, 4 x 0.1 deg on joint offsets, 4 x 0.05 deg on angles; the
+    tool keeps its 10 mm; the instrument frame has no prior."""
+    names, free, nominal = _layout(robot)
+    prior = PriorSpec(scale=4.0).build(names, free, nominal)
+    pos = {names[i]: k for k, i in enumerate(free.tolist())}
+    expected = {"a2": 4 * 0.5e-3, "d4": 4 * 0.5e-3, "theta3": math.radians(4 * 0.1), "theta6": math.radians(4 * 0.1),
+                "alpha5": math.radians(4 * 0.05), "beta3": math.radians(4 * 0.05),
+                "tool_x": 10e-3, "tool_y": 10e-3, "tool_z": 10e-3}
+    for n, value in expected.items():
+        k = pos[n]
+        assert float(prior.sigma[k]) == pytest.approx(value, rel=1e-12), n
+        assert float(prior.precision[k, k]) == pytest.approx(value**-2, rel=1e-9), n
+    assert float(prior.tolerance_sigma[pos["a2"]]) == pytest.approx(0.5e-3)  # the tolerance band stays unscaled
+    base = [n for n in pos if n.startswith("base_")]
+    assert len(base) == 6
+    for n in base:
+        assert float(prior.precision[pos[n]].abs().max()) == 0.0 and math.isinf(float(prior.sigma[pos[n]])), n
+
+
+@pytest.fixture(scope="module")
+def alpha4_off_fit():
+    """A position-only fit (200 poses) of a twin whose alpha4 is 0.6 deg (12 prior sigmas) below nominal, every
+    other error within the fitted set and tolerance-sized (sigma 0.3 mm / 0.03 deg against 0.5 mm / 0.05 deg)."""
+    twin, _, _ = _in_model_twin(0, 1, n_test=1)
+    twin.x_true[twin.model.layout.index("alpha4")] -= math.radians(0.6)
+    train = twin.sample(200, torch.Generator().manual_seed(11))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        result = calibrate(twin.robot, train, prior=PriorSpec())
+    layout = result.model.layout
+    rows = prior_table(list(layout.names), layout.is_angle().tolist(), result.prior, result.x, result.covariance)
+    return twin, result, rows
+
+
+def test_the_summary_counts_the_parameters_the_data_sharpened_and_names_those_at_their_prior(alpha4_off_fit):
+    """theta6 only turns the tool (about axis 6, as tool_x/tool_y do): position data leave it at its prior.
+    N of M: the count of posterior / prior sigma < 0.9, from the covariance and the prior directly."""
+    _, result, rows = alpha4_off_fit
+    names = result.model.layout.names
+    post = result.covariance.diagonal().sqrt()
+    ratio = {names[i]: float(post[k] / result.prior.sigma[k]) for k, i in enumerate(result.free.tolist())
+             if math.isfinite(float(result.prior.sigma[k]))}
+    assert len(ratio) == 27  # 24 MDH entries of twin-kr6 and the tool point; the instrument frame has no prior
+    assert ratio["theta6"] > 0.99
+    summary = taught_summary(rows)
+    match = re.fullmatch(r"prior vs posterior: the data sharpened (\d+) of (\d+) parameters \(posterior sigma < 0\.9 "
+                         r"prior\); (\d+) stay at their prior \(the data do not see them\): (.*)", summary)
+    assert match, summary
+    sharpened, total, stay = (int(match.group(i)) for i in (1, 2, 3))
+    at_prior = match.group(4).split(", ")
+    assert sharpened == sum(r < 0.9 for r in ratio.values()) and total == len(ratio), (summary, ratio)
+    assert "theta6" in at_prior and stay == len(at_prior) == total - sharpened
+    assert at_prior == [n for n in names if n in ratio and ratio[n] > 0.9]
+    assert 15 <= sharpened < total  # the data determine most of the table, not all of it
+
+
+def test_a_parameter_off_by_12_prior_sigmas_and_only_it_is_named_beyond_tolerance(alpha4_off_fit):
+    twin, _, rows = alpha4_off_fit
+    flagged = [r["name"] for r in rows if r["beyond_tolerance"]]
+    assert flagged == ["alpha4"], [(r["name"], r["moved_sigmas"]) for r in rows if abs(r["moved_sigmas"]) > 2]
+    row = next(r for r in rows if r["name"] == "alpha4")
+    truth = math.degrees(float(twin.x_true[twin.model.layout.index("alpha4")] - twin.model.nominal_vector()[
+        twin.model.layout.index("alpha4")]))
+    assert -0.65 < truth < -0.55  # the 0.6 deg plus the twin's own small error there
+    assert abs(row["posterior"] - row["prior"] - truth) < 0.05  # deg: the fit found the offset
+    warning = beyond_tolerance_warning(rows)
+    assert warning is not None and warning.startswith("1 parameter(s) moved beyond their manufacturing tolerance: ")
+    assert re.search(r"alpha4 -0\.5\d* deg \(tolerance 0\.15\)", warning), warning
+    others = [r["name"] for r in rows if r["name"] != "alpha4"]
+    assert not any(re.search(rf"\b{n} ", warning) for n in others), warning
