@@ -54,8 +54,8 @@ far the tool is turned from the nominal orientation.
 **Iterations.** Each pose steps until it has converged (:data:`CONVERGED_POSITION_M`, and
 :data:`CONVERGED_ORIENTATION_RAD` in the steps that move the orientation), at most
 ``iterations`` steps; a converged pose keeps its command while the rest of its batch steps on, so
-its result does not depend on the batch. Regular poses take two or three steps, the wrist
-singular ones four. The exported graph runs each phase of steps (mixed, then position-only) as an
+its result does not depend on the batch. Regular poses take two or three steps (most of them two), the
+wrist singular ones four. The exported graph runs each phase of steps (mixed, then position-only) as an
 ONNX ``Loop`` whose body is :meth:`CompensatorGraph.iterate` (:mod:`torchcal.compensate.loop_graph`).
 The manifest's ``convergence`` (:func:`torchcal.compensate.export_checks.convergence_report`) shows what
 the steps reach over the joint range, with the singular neighbourhoods as separate strata.
@@ -104,11 +104,15 @@ DEFAULT_MAX_STEP = 0.1
 """Largest joint move of one step (of the position part of a position-first step), rad."""
 DEFAULT_MAX_ORIENTATION_STEP = 0.02
 """Largest joint move of the orientation part of a position-first step, rad."""
-CONVERGED_POSITION_M = 1e-10
-"""A pose stops stepping once its TCP position error is below this (m; 1e-4 of the 1 um that the
+CONVERGED_POSITION_M = 1e-9
+"""A pose stops stepping once its TCP position error is below this (m; 1e-3 of the 1 um that the
 guarantees speak of) and, in the steps that move the orientation, its rotation error below
-:data:`CONVERGED_ORIENTATION_RAD`."""
-CONVERGED_ORIENTATION_RAD = 1e-10
+:data:`CONVERGED_ORIENTATION_RAD`. Tighter tolerances (1e-10 m and rad) cost a third step on most
+regular poses (the orientation converges linearly under its damping floor) and about a quarter
+of the graph's latency, for nothing a tool can feel (``scripts/bench_onnx.py``, docs/export.md)."""
+CONVERGED_ORIENTATION_RAD = 1e-7
+"""Rotation error (rad) below which a step that moves the orientation has converged: 0.1 um at a
+1 m lever, far below any tool's or measurement's orientation."""
 RESIDUAL_OUTPUT = "residual"
 """Second output of the compensator: ``(B, 2)`` remaining TCP position error (m) and orientation deviation (rad)."""
 SOLVERS = {"inverse": ort_solve, "gauss_jordan": gauss_jordan}
@@ -255,6 +259,9 @@ class CompensatorGraph(nn.Module):
             can be held only by turning the wrist (near the elbow, shoulder or wrist singularity)
             a tool would otherwise miss by its length times the turn. ``0`` (default): the TCP's
             position alone is judged.
+        converged_position_m, converged_orientation_rad: the tolerances of the convergence test
+            (default :data:`CONVERGED_POSITION_M`, :data:`CONVERGED_ORIENTATION_RAD`); tighter ones
+            serve finite differences of the solved command (:func:`~torchcal.compensate.production_tcp.correction_sigma`).
         device: where the constants live (CPU by default).
     """
 
@@ -295,6 +302,8 @@ class CompensatorGraph(nn.Module):
         solver: str = "inverse",
         joint_errors: JointSpaceErrors | None = None,
         tool_length: float = 0.0,
+        converged_position_m: float = CONVERGED_POSITION_M,
+        converged_orientation_rad: float = CONVERGED_ORIENTATION_RAD,
         device: str | torch.device = "cpu",
     ) -> None:
         super().__init__()
@@ -307,6 +316,8 @@ class CompensatorGraph(nn.Module):
             raise ValueError(f"solver must be one of {sorted(SOLVERS)}, got {solver!r}")
         if not (max_step > 0 and max_orientation_step > 0):
             raise ValueError(f"max_step and max_orientation_step must be > 0 rad, got {max_step}, {max_orientation_step}")
+        if not (converged_position_m > 0 and converged_orientation_rad > 0):
+            raise ValueError(f"the convergence tolerances must be > 0, got {converged_position_m} m, {converged_orientation_rad} rad")
         if not (math.isfinite(tool_length) and tool_length >= 0):
             raise ValueError(f"tool_length must be a finite length >= 0 m, got {tool_length}")
         self.tool_length = float(tool_length)
@@ -338,7 +349,8 @@ class CompensatorGraph(nn.Module):
         self.register_buffer("one", torch.tensor(1.0, **f64))  # a float64 constant: no Cast node in the test
         self.register_buffer("blocks", blocks)  # sums of e e: |e_p|^2, |e_o|^2
         self.register_buffer("is_position_row", torch.tensor([[True], [False]], device=device))
-        scores = blocks / torch.tensor([[CONVERGED_POSITION_M**2], [CONVERGED_ORIENTATION_RAD**2]], **f64)
+        self.tolerances = (float(converged_position_m), float(converged_orientation_rad))
+        scores = blocks / torch.tensor([[converged_position_m**2], [converged_orientation_rad**2]], **f64)
         self.register_buffer("scores_both", scores)
         self.register_buffer("scores_position", scores[:1].clone())
 

@@ -135,6 +135,12 @@ RANK_CUT_NOTE = ("a fit without a prior (prior=none): the parameters its rank cu
                  "so this sigma is a lower bound")
 
 
+DIFFERENCE_TOLERANCE = (1e-10, 1e-10)
+"""Convergence tolerances (m, rad) of the commands :func:`correction_sigma` differences: tighter than
+the exported graph's, so that where a pose stops does not enter the difference (the orientation's
+1e-7 rad would add about 1e-5 rad per column at ``step`` 0.01)."""
+
+
 def correction_sigma(stored, graph, q: torch.Tensor, step: float = 0.01) -> torch.Tensor:
     """1-sigma ``(n, N)`` (rad) of each joint correction of ``graph``'s commands at ``q`` ``(n, N)`` rad.
 
@@ -144,7 +150,7 @@ def correction_sigma(stored, graph, q: torch.Tensor, step: float = 0.01) -> torc
     parameter that only moves it (``theta1`` with the frame's rotation about z) is no uncertainty of
     a command, while one the data did not see (``theta6``: the flange's roll) carries its prior's
     sigma into the corrections it drives. The solved command is differenced (forward, ``step``
-    sigma: the steps converge to 1e-10, far below ``step`` times a correction's sensitivity) along
+    sigma: the steps converge to :data:`DIFFERENCE_TOLERANCE`, far below ``step`` times a correction's sensitivity) along
     each column of a square root of that covariance (eigen-decomposition ``C = R R^T``), with the
     graph's own task and steps; the variances of the columns add. (With a ``tool_length`` a pose at
     the switch between its corrected and its nominal command differences across the switch: its
@@ -182,8 +188,9 @@ def correction_sigma(stored, graph, q: torch.Tensor, step: float = 0.01) -> torc
             if len(coefficients):
                 metadata = {**metadata, **terms.shifted(coefficients, shift[len(table_rows):]).to_metadata()}
             changed = replace(stored, x=x, metadata=metadata)
-        return type(graph).from_stored(changed, task=graph.task, iterations=graph.iterations,
-                                       tool_length=graph.tool_length).solve(q)[0]
+        return type(graph).from_stored(changed, task=graph.task, iterations=graph.iterations, tool_length=graph.tool_length,
+                                       converged_position_m=DIFFERENCE_TOLERANCE[0],
+                                       converged_orientation_rad=DIFFERENCE_TOLERANCE[1]).solve(q)[0]
 
     with torch.no_grad():
         at_fit = solved(None)
