@@ -327,8 +327,7 @@ def test_an_earlier_model_gives_the_prior_mean_and_the_inverse_of_its_covariance
     not estimate keep their tolerance."""
     names, free, nominal = _layout(robot)
     mdh = ["alpha2", "a2", "theta2", "d4", "theta6"]
-    # instrument-frame entries among them; no tool entry: an earlier tool block is scaled with the table (not as
-    # the docs say of the tool), which this test does not pin
+    # instrument-frame entries among them; the tool's earlier block: test_an_earlier_tool_block_is_never_scaled
     taken = [mdh[0], "base_x", *mdh[1:3], "base_rz", *mdh[3:]]
     gen = torch.Generator().manual_seed(0)
     root = torch.randn(len(taken), len(taken), generator=gen, dtype=torch.float64) * 1e-4
@@ -360,6 +359,37 @@ def test_an_earlier_model_gives_the_prior_mean_and_the_inverse_of_its_covariance
                         "tool_mm": tol.tool_mm * 1e-3}[parameter_kind(n)]
             assert float(prior.sigma[k]) == pytest.approx(expected, rel=1e-12), n
             assert float(prior.precision[k, k]) == pytest.approx(expected**-2, rel=1e-9), n
+
+
+@pytest.mark.parametrize("scale", [0.0, 1.0, 4.0])
+def test_an_earlier_tool_block_is_never_scaled(robot, scale):
+    """The tool is the user's: its earlier covariance is its prior at every scale, the nominal candidate (0)
+    included (it was scaled to zero there: a tool with no prior reported with sigma 0); the table's block
+    scales; an entry without a prior keeps sigma inf (not inf * 0)."""
+    names, free, nominal = _layout(robot)
+    taken = ["a2", "d4", "tool_x", "tool_y", "tool_z"]
+    gen = torch.Generator().manual_seed(3)
+    root = torch.randn(5, 5, generator=gen, dtype=torch.float64) * 1e-4
+    cov = root @ root.T + 1e-10 * torch.eye(5, dtype=torch.float64)
+    earlier = EarlierModel(x=nominal.clone(), indices=torch.tensor([names.index(n) for n in taken]), covariance=cov,
+                           label="earlier")
+    if scale == 0.0:  # the nominal candidate: the table is fixed, not free (calibrate drops it)
+        free = torch.tensor([i for i in free.tolist() if names[i].startswith(("tool_", "base_"))])
+    prior = PriorSpec(scale=scale, earlier=earlier).build(names, free, nominal)
+    pos = {names[i]: k for k, i in enumerate(free.tolist())}
+    factor = np.array([scale, scale, 1.0, 1.0, 1.0])
+    block = factor[:, None] * cov.numpy() * factor[None, :]
+    kept = [k for k, n in enumerate(taken) if n in pos]
+    rows = [pos[taken[k]] for k in kept]
+    expected = np.linalg.pinv(block[np.ix_(kept, kept)])
+    np.testing.assert_allclose(prior.precision.numpy()[np.ix_(rows, rows)], expected, rtol=1e-6, atol=1e-6 * np.abs(expected).max())
+    tool = [pos[n] for n in ("tool_x", "tool_y", "tool_z")]
+    marginal = np.sqrt(np.diag(np.linalg.pinv(prior.precision.numpy())[np.ix_(tool, tool)]))
+    np.testing.assert_allclose(prior.sigma[tool].numpy(), marginal, rtol=1e-6)
+    assert (prior.sigma[tool] > 0).all() and torch.isfinite(prior.sigma[tool]).all()
+    for n, k in pos.items():
+        if n.startswith("base_"):
+            assert math.isinf(float(prior.sigma[k])) and float(prior.precision[k].abs().max()) == 0.0, n
 
 
 def test_a_recalibration_on_few_poses_with_an_earlier_model_as_prior_lands_nearer_the_truth():

@@ -188,7 +188,7 @@ class PriorSpec:
         tol = torch.tensor([self.tolerances.sigma_si(names[i]) for i in idx], dtype=torch.float64)
         # the scale is on the robot's manufacturing (the MDH table); the tool is the user's, never scaled
         table = torch.tensor([not names[i].startswith("tool_") for i in idx])
-        sigma = torch.where(table, tol * self.scale, tol)
+        sigma = torch.where(table & torch.isfinite(tol), tol * self.scale, tol)  # no prior stays inf (not inf * 0)
         precision = torch.diag(torch.where(torch.isfinite(sigma), 1.0 / sigma.clamp_min(1e-300) ** 2, 0.0))
         if self.earlier is not None:
             e = self.earlier
@@ -197,7 +197,10 @@ class PriorSpec:
             for k in take:
                 mean[int(e.indices[k])] = e.x[int(e.indices[k])]
             if take:
-                block = e.covariance[take][:, take] * self.scale**2
+                # scaled as the tolerances are: the table's entries, never the tool's (the user's)
+                factor = torch.tensor([1.0 if names[int(e.indices[k])].startswith("tool_") else self.scale for k in take],
+                                      dtype=torch.float64)
+                block = factor[:, None] * e.covariance[take][:, take] * factor[None, :]
                 block_precision = torch.linalg.pinv(block, hermitian=True)
                 r = torch.tensor(rows)
                 precision[r[:, None], r[None, :]] = block_precision
