@@ -220,3 +220,50 @@ def test_the_models_robot_file_as_rewritten_to_nine_digits_is_its_robot(calibrat
     kinematics_of(replace(robot, table=robot.table + 4e-9), model_dir)  # a rad/m file rewritten in deg/mm
     with pytest.raises(ModelError, match="kinematic table"):
         kinematics_of(replace(robot, table=robot.table + 1e-4), model_dir)
+
+
+def test_a_waypoint_far_beyond_reach_or_a_grid_too_fine_is_one_line(tmp_path, line_file, capsys):
+    path, _ = line_file
+    far = tmp_path / "huge.csv"
+    poses = line_file[1].clone()
+    poses[1, :3, 3] = torch.tensor([1e9, 0.0, 0.0], dtype=torch.float64)  # 1e12 mm: no allocation of a grid that long
+    far.write_text(waypoints_csv(poses))
+    assert main(["motion", "--robot", ROBOT, "--path", str(far), "--out", str(tmp_path / "t.csv"), _start_arg()]) == 2
+    assert "row 3: the waypoint is 1e+12 mm from the base, beyond the arm's nominal reach" in capsys.readouterr().err
+    assert main(["motion", "--robot", ROBOT, "--path", str(path), "--out", str(tmp_path / "t.csv"), _start_arg(),
+                 "step=1e-5", "gain=1"]) == 2  # 100 mm at 1e-5 mm: 1e7 grid points
+    assert "grid points of step=1e-05 mm, more than 1000000; give a larger step" in capsys.readouterr().err
+    assert not (tmp_path / "t.csv").exists()
+
+
+def test_a_coarse_interpolation_period_is_judged_between_its_samples(tmp_path, line_file, capsys):
+    """The samples lie on the line, but a controller interpolating the joints linearly between samples
+    100 ms apart leaves it: measured halfway, by forward kinematics, and refused beyond the tolerance."""
+    from torchcal.motion.planner import between_samples_error_mm
+
+    path, _ = line_file
+    out = tmp_path / "t.csv"
+    assert main(["motion", "--robot", ROBOT, "--path", str(path), "--out", str(out), _start_arg()]) == 0
+    fine = capsys.readouterr().out
+    assert "halfway between them (joints interpolated linearly)" in fine
+    assert main(["motion", "--robot", ROBOT, "--path", str(path), "--out", str(tmp_path / "c.csv"), _start_arg(),
+                 "dt=0.2"]) == 2
+    err = capsys.readouterr().err
+    assert "halfway between the samples" in err and "give a shorter interpolation period dt" in err
+    # the measure itself, against a hand computation: two joint vectors whose midpoint's TCP is off the chord
+    model = ErrorModel(load_robot(default_robot_path()))
+    x = model.nominal_vector()
+
+    class Kin:
+        @staticmethod
+        def pose(q):
+            return model.tcp_pose(q, x)
+
+    q = torch.tensor([Q_START, [v + 40.0 for v in Q_START]], dtype=torch.float64) * DEG
+    ends = model.tcp_pose(q, x)
+    mid = model.tcp_pose(q.mean(0, keepdim=True), x)[0, :3, 3]
+    a, b = ends[0, :3, 3], ends[1, :3, 3]
+    lam = float(torch.dot(mid - a, b - a) / torch.dot(b - a, b - a))
+    expected = float((mid - (a + min(max(lam, 0.0), 1.0) * (b - a))).norm()) * 1e3
+    got = between_samples_error_mm(Kin, q, ends)
+    assert got.shape == (1,) and expected > 1.0 and abs(float(got[0]) - expected) < 1e-9

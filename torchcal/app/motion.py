@@ -59,8 +59,14 @@ def default_report_folder(out: Path) -> Path:
 RADIANS_NEAR_DEG, DEGREES_FAR_DEG = 5.0, 20.0
 
 
+#: A waypoint further from the base than this many times the nominal reach is refused before planning
+#: (the planner then finds no motion; nearer ones it reports where the path leaves the workspace).
+BEYOND_REACH = 2.0
+
+
 def refuse_implausible_path(robot: RobotModel, waypoints: Waypoints, start_deg: list[float]) -> None:
-    """Refuse a path file in the wrong units: ``x, y, z`` in metres, ``rx, ry, rz`` in radians.
+    """Refuse a path file in the wrong units (``x, y, z`` in metres, ``rx, ry, rz`` in radians) or with a
+    waypoint beyond the arm's reach.
 
     Judged against the nominal robot: its reach over the joint range, and its TCP orientation at
     the start joints (the first waypoint is solved from there, so it is usually near it).
@@ -75,6 +81,12 @@ def refuse_implausible_path(robot: RobotModel, waypoints: Waypoints, start_deg: 
         start = model.tcp_pose(torch.tensor(start_deg, dtype=torch.float64).unsqueeze(0) * DEG, x)[0]
     check_targets_not_metres(waypoints.poses[:, :3, 3], reach, what="waypoint", path=str(waypoints.path),
                              row=waypoints.lines[0], advice="x, y, z look like metres; a path file gives mm")
+    distance = waypoints.poses[:, :3, 3].norm(dim=-1)
+    far = torch.nonzero(distance > BEYOND_REACH * reach).flatten()
+    if len(far):  # no joint motion reaches it; found here, not after a path grid of that length is built
+        k = int(far[0])
+        raise DataError(f"the waypoint is {float(distance[k]) * 1e3:.6g} mm from the base, beyond the arm's nominal "
+                        f"reach ({reach * 1e3:.6g} mm)", path=str(waypoints.path), row=waypoints.lines[k])
     first = waypoints.poses[0, :3, :3]
     written = tf.matrix_to_euler_xyz(first) * (180.0 / math.pi)  # the first row's rx, ry, rz as written
     if float(written.abs().max()) > 2 * math.pi:
@@ -179,6 +191,11 @@ def run_motion(robot_file: Path, path_file: Path, out: Path, overrides: list[str
         failures.append(f"path error {metrics['path_error_max_mm']:.3g} mm at t = {planned.t[k]:.3f} s (between rows "
                         f"{waypoints.lines[seg]} and {waypoints.lines[seg + 1]} of {waypoints.path}) exceeds the "
                         f"tolerance {options.tolerance:g} mm")
+    if metrics["path_error_between_samples_max_mm"] > options.tolerance:
+        k = int(np.argmax(measured["between_samples_error_mm"]))
+        failures.append(f"halfway between the samples at t = {planned.t[k]:.3f} and {planned.t[k + 1]:.3f} s (joints "
+                        f"interpolated linearly) the TCP passes {metrics['path_error_between_samples_max_mm']:.3g} mm from "
+                        f"the path, beyond the tolerance {options.tolerance:g} mm: give a shorter interpolation period dt")
     over_v = np.array(metrics["joint_speed_max_deg_s"]) / np.array(metrics["joint_speed_limit_deg_s"])
     over_a = np.array(metrics["joint_accel_max_deg_s2"]) / np.array(metrics["joint_accel_limit_deg_s2"])
     for name, ratio in (("speed", over_v), ("acceleration", over_a)):
@@ -247,8 +264,9 @@ def summary_lines(metrics: dict, out: Path, report_dir: Path) -> list[str]:
     accel = peak_a / np.array(metrics["joint_accel_limit_deg_s2"])
     trajectory = f"trajectory: {out} ({metrics['n_samples']} samples, {metrics['duration_s']:.3f} s)"
     path_error = (f"path error: max {metrics['path_error_max_mm']:.2g} mm over the samples (start "
-                  f"{metrics['start_error_mm']:.2g}, end {metrics['end_error_mm']:.2g}; tolerance "
-                  f"{metrics['tolerance_mm']:g} mm)")
+                  f"{metrics['start_error_mm']:.2g}, end {metrics['end_error_mm']:.2g}), "
+                  f"{metrics['path_error_between_samples_max_mm']:.2g} mm halfway between them (joints interpolated "
+                  f"linearly); tolerance {metrics['tolerance_mm']:g} mm")
     orientation = (f"orientation deviation: max {metrics['orientation_deviation_max_deg']:.3g} deg "
                    f"({_outside(metrics['orientation_deviation_regular_max_deg'])}; "
                    f"{metrics['samples_orientation_yielding']} samples where the orientation task is near-singular "

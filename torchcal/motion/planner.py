@@ -40,6 +40,8 @@ from torchcal.motion.waypoints import WaypointPath
 DEG = math.pi / 180.0
 DEFAULT_JOINT_ACCEL_DEG_S2 = 3000.0
 MAX_SAMPLES = 1_000_000
+#: Most points of the geometric pass's grid over the whole path (each is a Newton solve).
+MAX_GRID_POINTS = 1_000_000
 
 
 @dataclass
@@ -212,9 +214,13 @@ def plan_motion(kin: TcpKinematics, robot: RobotModel, waypoints: torch.Tensor, 
     splines, laws, grids, offset = [], [], [], 0.0
     q = q_first
     h_max = options.step * 1e-3
+    points = [max(3, math.ceil((float(path.knots[i + 1]) - float(path.knots[i])) / h_max)) for i in range(len(path.ell))]
+    if sum(points) > MAX_GRID_POINTS:
+        raise ModelError(f"the path is {float(path.knots[-1]) * 1e3:.6g} mm long: {sum(points)} grid points of step="
+                         f"{options.step:g} mm, more than {MAX_GRID_POINTS}; give a larger step (or a shorter path)")
     for i in range(len(path.ell)):
         s0, s1 = float(path.knots[i]), float(path.knots[i + 1])
-        n = max(3, math.ceil((s1 - s0) / h_max))
+        n = points[i]
         s = torch.linspace(s0, s1, n + 1, dtype=dtype)
         sol = follow_geometric(kin, path.poses_at, s, q, settings)
         q = sol.q[-1]
@@ -272,9 +278,24 @@ def _sample(laws: list[TimeLaw], splines: list, stretch: float, dt: float):
     return t, q, s, seg
 
 
+def between_samples_error_mm(kin: TcpKinematics, q: torch.Tensor, targets: torch.Tensor) -> np.ndarray:
+    """``(K-1,)`` mm: how far the TCP passes from the path halfway between two samples when a
+    controller interpolates the joints linearly: the distance of the TCP at the joints' midpoint from
+    the straight piece between the two samples' targets (the path between waypoints is straight)."""
+    if len(q) < 2:
+        return np.zeros(0)
+    mid = kin.pose(0.5 * (q[1:] + q[:-1]))[:, :3, 3]
+    a, b = targets[:-1, :3, 3], targets[1:, :3, 3]
+    chord = b - a
+    length2 = (chord * chord).sum(-1, keepdim=True)
+    lam = torch.where(length2 > 0, ((mid - a) * chord).sum(-1, keepdim=True) / length2.clamp_min(1e-300), 0.0).clamp(0.0, 1.0)
+    return ((mid - (a + lam * chord)).norm(dim=-1) * 1e3).numpy()
+
+
 def measure(kin: TcpKinematics, planned: PlannedMotion, settings: PrioritySettings) -> dict:
     """Figures of a planned motion (mm, deg, s), measured on its samples by forward kinematics and
-    finite differences: what a controller interpolating the joints every ``dt`` would get.
+    finite differences: what a controller interpolating the joints every ``dt`` would get (the path
+    error also halfway between samples, :func:`between_samples_error_mm`).
 
     The singular neighbourhoods are the samples where a task's smallest singular value is below its
     ``eps``: there the orientation (``Jo'``: wrist singularities, and shoulder or stretched-elbow
@@ -293,6 +314,8 @@ def measure(kin: TcpKinematics, planned: PlannedMotion, settings: PrioritySettin
     singular = wrist | arm
     regular = ~singular
 
+    between = between_samples_error_mm(kin, q, targets)
+
     def peak(values: np.ndarray, mask: np.ndarray | None = None) -> float:
         chosen = values if mask is None else values[mask]
         return float(np.max(chosen)) if chosen.size else float("nan")
@@ -304,6 +327,7 @@ def measure(kin: TcpKinematics, planned: PlannedMotion, settings: PrioritySettin
         "path_error_rms_mm": float(np.sqrt(np.mean(position**2))),
         "start_error_mm": float(position[0]),
         "end_error_mm": float(position[-1]),
+        "path_error_between_samples_max_mm": float(between.max()) if between.size else 0.0,
         "path_error_regular_max_mm": peak(position, regular),
         "path_error_singular_max_mm": peak(position, singular),
         "orientation_deviation_max_deg": peak(rotation),
@@ -322,6 +346,7 @@ def measure(kin: TcpKinematics, planned: PlannedMotion, settings: PrioritySettin
         "sigma_orientation_min": float(planned.sigma_orientation.min()),
         "sigma_position_min_mm": float(planned.sigma_position.min() * 1e3),
         "position_error_mm": position,
+        "between_samples_error_mm": between,
         "orientation_deviation_deg": rotation,
         "joint_speed_deg_s": speed / DEG,
         "joint_accel_deg_s2": accel / DEG,
