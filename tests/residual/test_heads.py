@@ -225,3 +225,68 @@ def test_gate_is_not_fooled_by_a_search_that_tuned_on_the_validation_poses():
     head = MayflyELM(hidden=80, population=20, iterations=50, seed=0)
     selection = select_head([head], x[:24], noise[:24], x[24:], noise[24:])
     assert selection.head is None, selection.decision
+
+
+def _saved_elm(tmp_path):
+    from torchcal.stages.residual_store import StoredResidual, save_residual
+
+    x, y = _smooth_problem(200)
+    head = HEADS["elm"](hidden=10).fit(x[:160], y[:160], x[160:], y[160:])
+    limits = torch.tensor([[-math.pi, math.pi]] * 6, dtype=torch.float64)
+    save_residual(tmp_path, StoredResidual(head, JointFeatures(limits), {"decision": "test"}))
+    return tmp_path
+
+
+@pytest.mark.parametrize("edit, message", [
+    (lambda t, i: t.update({"head.weights": t["head.weights"].reshape(t["head.weights"].shape[1], -1).contiguous()}),
+     "cannot be read"),
+    (lambda t, i: t.update({"head.output": t["head.output"][:, :2].contiguous()}), "cannot be read"),
+    (lambda t, i: t.update({"features.mid": t["features.mid"][:5].contiguous(),
+                            "features.half_span": t["features.half_span"][:5].contiguous()}), "cannot be read"),
+    (lambda t, i: t.update({"head.weights": t["head.weights"].to(torch.int64)}), "not floating point"),
+    (lambda t, i: i.update({"uses_temperature": True}), "takes temperature"),
+])
+def test_a_tampered_head_is_one_line_naming_its_file(tmp_path, edit, message):
+    """A head whose files were edited (checksums aside) is a ModelError naming the file, never a traceback
+    from the first product that meets it."""
+    import json
+
+    from safetensors.torch import load_file, save_file
+
+    from torchcal.core.errors import ModelError
+    from torchcal.stages.store import _load_residual_part
+
+    folder = _saved_elm(tmp_path)
+    tensors = dict(load_file(str(folder / "residual.safetensors")))
+    info = json.loads((folder / "residual.json").read_text())
+    edit(tensors, info)
+    save_file(tensors, str(folder / "residual.safetensors"))
+    (folder / "residual.json").write_text(json.dumps(info))
+    with pytest.raises(ModelError, match=message) as caught:
+        _load_residual_part(folder, "cpu")
+    assert "residual.json" in str(caught.value) and "\n" not in str(caught.value)
+
+
+def test_half_a_head_is_refused_not_dropped(tmp_path):
+    from torchcal.core.errors import ModelError
+    from torchcal.stages.store import _load_residual_part
+
+    folder = _saved_elm(tmp_path)
+    (folder / "residual.json").unlink()  # the head would otherwise vanish and the model be scored without it
+    with pytest.raises(ModelError, match=r"residual\.json is missing"):
+        _load_residual_part(folder, "cpu")
+
+
+def test_head_features_are_the_joints_only_whatever_the_file_holds():
+    """A file's temperature is not a head input: the compensator and monitor take joints only (a head
+    trained with it crashed every evaluation through the compensator)."""
+    from torchcal.model_selection.heads import make_features
+    from torchcal.sim.twin import Twin, TwinConfig
+
+    twin = Twin.create(TwinConfig(seed=1))
+    from dataclasses import replace
+
+    data = replace(twin.sample(20, torch.Generator().manual_seed(1)), temperature=torch.linspace(20.0, 21.0, 20, dtype=torch.float64))
+    features = make_features(twin.robot, data)
+    assert not features.uses_temperature and features.size == 3 * twin.robot.dof
+    assert torch.equal(features(data.q, data.temperature), features(data.q))

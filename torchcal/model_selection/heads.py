@@ -46,12 +46,10 @@ class HeadCV:
 
 
 def make_features(robot, data: Measurements) -> JointFeatures:
-    """Head features for ``data`` (temperature centred and scaled on ``data`` when it has any)."""
-    temperature = None
-    if data.temperature is not None:
-        t = data.temperature
-        temperature = (float(t.mean()), float(t.std().clamp_min(1e-6)))
-    return JointFeatures(robot.turn_limits.to(torch.float64), temperature)  # one turn for a continuous joint
+    """Head features of ``robot``'s joints: joints only, never a file's temperature, because the
+    compensator and monitor a controller runs take the joints alone (a head that needed temperature
+    could be scored here and then never served)."""
+    return JointFeatures(robot.turn_limits.to(torch.float64))  # one turn for a continuous joint
 
 
 def fit_and_predict(head: ResidualHead, x_train: np.ndarray, y_train: np.ndarray, x_test: np.ndarray, seed: int,

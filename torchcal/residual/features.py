@@ -1,7 +1,8 @@
 """Input features of residual heads: what the geometric model leaves is periodic in the joints.
 
-``phi(q) = [2 (q - mid) / span, sin q, cos q]`` per joint (``3 N`` features), plus the
-temperature centred and scaled when the data has it. Gear errors are harmonics of ``q`` (second harmonics given explicitly made the MLP stop earlier and fit worse on the twin);
+``phi(q) = [2 (q - mid) / span, sin q, cos q]`` per joint (``3 N`` features). (The module can
+append a centred, scaled temperature; the fit never asks for it: the compensator and monitor a
+controller runs take the joints alone, :func:`torchcal.model_selection.heads.make_features`.) Gear errors are harmonics of ``q`` (second harmonics given explicitly made the MLP stop earlier and fit worse on the twin);
 gravity torques are sums of sines and cosines of joint sums, which a hidden layer builds from
 these. The scaling constants are part of the head's stored state.
 """

@@ -57,17 +57,35 @@ def save_residual(folder: str | Path, residual: StoredResidual) -> None:
 
 
 def load_residual(folder: str | Path) -> StoredResidual:
+    """The head of a model folder, checked: floating-point tensors of the shapes its settings give, no
+    temperature input (the compensator and monitor take joints only), and one finite prediction.
+
+    Raises:
+        ValueError, KeyError, TypeError, RuntimeError: what does not hold (the store names the file).
+    """
     folder = Path(folder)
     info = read_json_member(folder / "residual.json")
     tensors = read_tensors(folder / "residual.safetensors", {})
+    for name, value in tensors.items():
+        if not value.is_floating_point():
+            raise ValueError(f"{name} is {value.dtype}, not floating point")
+    if info.get("uses_temperature"):
+        raise ValueError("the head takes temperature, which the compensator and the monitor cannot take (joints "
+                         "only); refit the model")
     head_state = {k.removeprefix("head."): v for k, v in tensors.items() if k.startswith("head.")}
     feat_state = {k.removeprefix("features."): v for k, v in tensors.items() if k.startswith("features.")}
     n = feat_state["mid"].shape[0]
     limits = torch.stack([feat_state["mid"] - feat_state["half_span"], feat_state["mid"] + feat_state["half_span"]], 1)
-    temperature = (float(feat_state["t_mean"]), float(feat_state["t_scale"])) if info["uses_temperature"] else None
-    features = JointFeatures(limits, temperature)
+    features = JointFeatures(limits)
     features.load_state_dict(feat_state)
     head_cls = HEADS[info["head"]]
     head = head_cls.from_state(info["settings"], head_state)
-    assert features.mid.shape[0] == n
-    return StoredResidual(head, features, {k: v for k, v in info.items() if k not in ("head", "settings", "uses_temperature", "output")})
+    if features.mid.shape != (n,) or features.half_span.shape != (n,):
+        raise ValueError(f"the feature ranges hold {tuple(features.mid.shape)} and {tuple(features.half_span.shape)} "
+                         f"entries for {n} joints")
+    stored = StoredResidual(head, features, {k: v for k, v in info.items() if k not in ("head", "settings", "uses_temperature", "output")})
+    probe = stored.predict_base_error(torch.zeros(1, n, dtype=torch.float64))  # shapes the settings do not give fail here
+    if probe.shape != (1, 3) or not bool(torch.isfinite(probe).all()):
+        raise ValueError(f"the head predicts {tuple(probe.shape)} values ({probe.flatten()[:3].tolist()}) for one pose, not a "
+                         "finite 3-D error")
+    return stored

@@ -136,19 +136,30 @@ class OptionalStage:
 
 
 def _load_residual_part(folder: Path, device: str | torch.device) -> StoredResidual | None:
-    if not (folder / "residual.json").is_file():
+    has_json, has_tensors = (folder / "residual.json").is_file(), (folder / "residual.safetensors").is_file()
+    if has_json != has_tensors:  # half a head: never scored as a model without one
+        present, absent = ("residual.json", "residual.safetensors") if has_json else ("residual.safetensors", "residual.json")
+        raise ModelError(f"{folder / present}: the residual head's {absent} is missing; the folder is incomplete")
+    if not has_json:
         return None
     try:
         return load_residual(folder)
-    except (KeyError, TypeError, ValueError, AssertionError) as exc:
-        raise ModelError(f"{folder / 'residual.json'}: the residual head cannot be read ({exc})") from None
+    except (KeyError, TypeError, ValueError, AssertionError, RuntimeError) as exc:
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise ModelError(f"{folder / 'residual.json'}: the residual head cannot be read ({first})") from None
+
+
+def _residual_stage(part: StoredResidual, stored) -> ResidualStage:
+    if part.features.mid.shape[0] != stored.robot.dof:
+        raise ModelError(f"the residual head takes {part.features.mid.shape[0]} joints, the model's robot "
+                         f"{stored.robot.name} has {stored.robot.dof}")
+    return ResidualStage(part, stored.model.T_reference[:3, :3])
 
 
 #: The optional stages in the order a prediction applies them: adding one is a module with its
 #: part's loader and stage class plus one line here.
 OPTIONAL_STAGES: dict[str, OptionalStage] = {
-    "residual": OptionalStage(_load_residual_part,
-                              lambda part, stored: ResidualStage(part, stored.model.T_reference[:3, :3])),
+    "residual": OptionalStage(_load_residual_part, _residual_stage),
     "stiffness": OptionalStage(lambda folder, device: load_stiffness_stage(folder, device=device),
                                lambda part, stored: StiffnessStage(part, stored.model, stored.x)),
 }
