@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 
 from torchcal.model_selection.leakage import leakage_report
@@ -18,3 +19,29 @@ def test_random_split_of_a_wrist_sweep_is_flagged_and_a_new_series_is_not(robot,
     assert fresh.twin_share == 0.0 and not fresh.warning
     assert fresh.scored_to_training_median_mm > 0.5 * fresh.training_spacing_median_mm
     assert "training twin" in leaky.summary()
+
+
+def test_poses_far_from_every_training_pose_are_named_extrapolation(robot, generator):
+    """Trained in one corner of the joint space and scored everywhere: most scored poses are further than
+    twice the training spacing from every training pose, which the report says; poses drawn like the
+    training poses are not."""
+    from torchcal.data.folds import joint_lever_arms, pose_embedding
+    from torchcal.model_selection.leakage import far_from_training
+
+    limits = robot.joint_limits
+    span = limits[:, 1] - limits[:, 0]
+    corner = limits[:, 0] + 0.2 * span * torch.rand(300, robot.dof, generator=generator, dtype=torch.float64)
+    corner[:, 3:] = robot.sample_joints(300, generator)[:, 3:]  # the wrist anywhere: the arm's corner is the region
+    everywhere = robot.sample_joints(300, generator, margin=0.1)
+    report = leakage_report(robot, corner, everywhere)
+    flags, radius = far_from_training(robot, corner, everywhere)
+    # the radius is what the grouped CV scored: beyond the training spacing, within the corner's extent
+    points = pose_embedding(robot, corner, joint_lever_arms(robot, corner)) * 1e3
+    extent = float(np.linalg.norm(points.max(0) - points.min(0)))
+    assert report.training_spacing_median_mm < radius < extent and radius == report.far_radius_mm
+    assert report.far_share == float(flags.mean()) > 0.5
+    assert "extrapolates" in report.warning and f"{100 * report.far_share:.0f} % of the scored poses" in report.warning
+    like = limits[:, 0] + 0.2 * span * torch.rand(200, robot.dof, generator=generator, dtype=torch.float64)
+    like[:, 3:] = robot.sample_joints(200, generator)[:, 3:]  # drawn as the training poses were
+    near = leakage_report(robot, corner, like)
+    assert near.far_share < 0.1 and "extrapolates" not in near.warning

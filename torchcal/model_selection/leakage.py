@@ -10,9 +10,17 @@ the training poses' lever arms. Two references:
 * ``twin_share``: share of scored poses with a training pose within ``twin_radius_mm``, i.e.
   the same configuration up to a joint that hardly moves the tool point.
 
+* ``far_share``: share of scored poses further than ``far_radius_mm`` from every training pose:
+  further than the grouped cross-validation ever scored a pose from its fit's poses (the 95th
+  percentile, over the training poses, of the distance to the nearest training pose of another
+  fold; :func:`validated_radius_mm`). There the model extrapolates, which that cross-validation
+  cannot see.
+
 A warning is raised when the scored poses are near-twins of training poses
-(``twin_share > 0.1``) or sit much closer to them than the training poses sit to each other
-(median below half of the ``training_spacing`` median: test poses interleaved in a sweep).
+(``twin_share > 0.1``), sit much closer to them than the training poses sit to each other
+(median below half of the ``training_spacing`` median: test poses interleaved in a sweep), or
+lie far from all of them (``far_share > 0.1``: the error there is extrapolation, and the predicted
+95 % regions, calibrated on poses like the training poses, promise nothing).
 """
 
 from __future__ import annotations
@@ -36,6 +44,8 @@ class LeakageReport:
     twin_share: float
     twin_radius_mm: float
     warning: str = ""
+    far_share: float = 0.0
+    far_radius_mm: float = float("nan")
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -43,7 +53,8 @@ class LeakageReport:
     def summary(self) -> str:
         text = (f"distance to the nearest training pose (median tool-point motion): scored {self.scored_to_training_median_mm:.1f} mm, "
                 f"training poses to each other {self.training_spacing_median_mm:.1f} mm; "
-                f"{100 * self.twin_share:.0f} % of scored poses have a training twin within {self.twin_radius_mm:g} mm")
+                f"{100 * self.twin_share:.0f} % of scored poses have a training twin within {self.twin_radius_mm:g} mm, "
+                f"{100 * self.far_share:.0f} % none within {self.far_radius_mm:.0f} mm")
         return text + (f". WARNING: {self.warning}" if self.warning else "")
 
 
@@ -58,16 +69,58 @@ def _nearest(train: np.ndarray, query: np.ndarray, *, exclude_self: bool = False
     return cKDTree(train).query(query, k=1)[0]
 
 
-def leakage_report(robot, train_q: torch.Tensor, scored_q: torch.Tensor, *, twin_radius_mm: float = 2.0) -> LeakageReport:
-    """Compare scored poses' distance to the training poses with the references above (joints in rad)."""
+#: Where the grouped folds cannot be made (a handful of configurations): a scored pose further from
+#: every training pose than this many times the training poses' median spacing is extrapolation.
+FAR_SPACINGS = 2.0
+#: Folds of the reference cross-validation (the fit's default).
+REFERENCE_FOLDS = 5
+
+
+def validated_radius_mm(robot, train_q: torch.Tensor, train: np.ndarray) -> float:
+    """How far from its fit's poses the grouped cross-validation scored poses: the 95th percentile,
+    over the training poses, of the distance (mm, in the embedding ``train`` of ``train_q``) to the
+    nearest training pose of another fold; NaN where the folds cannot be made."""
+    from torchcal.core.errors import DataError
+    from torchcal.data.folds import grouped_folds
+
+    try:
+        fold = grouped_folds(robot, train_q, k=REFERENCE_FOLDS).fold
+    except DataError:
+        return float("nan")
+    reach = np.empty(len(train))
+    for f in np.unique(fold):
+        held = fold == f
+        reach[held] = _nearest(train[~held], train[held])
+    return float(np.percentile(reach, 95)) * 1e3
+
+
+def distances(robot, train_q: torch.Tensor, scored_q: torch.Tensor) -> tuple[np.ndarray, np.ndarray, float]:
+    """Scored pose to nearest training pose, training pose to nearest other (mm of tool-point motion),
+    and the far radius (mm): :func:`validated_radius_mm`, else :data:`FAR_SPACINGS` median spacings."""
     arms = joint_lever_arms(robot, train_q)
     train = pose_embedding(robot, train_q, arms)
     scored = pose_embedding(robot, scored_q, arms)
     d_scored = _nearest(train, scored) * 1e3
     d_train = _nearest(train, train, exclude_self=True) * 1e3 if len(train) > 1 else np.array([np.nan])
+    radius = validated_radius_mm(robot, train_q, train) if len(train) > 1 else float("nan")
+    if not np.isfinite(radius):
+        radius = FAR_SPACINGS * float(np.median(d_train))
+    return d_scored, d_train, radius
+
+
+def far_from_training(robot, train_q: torch.Tensor, scored_q: torch.Tensor) -> tuple[np.ndarray, float]:
+    """``(B,)`` whether each scored pose lies further than the far radius from every training pose, and that radius (mm)."""
+    d_scored, _, radius = distances(robot, train_q, scored_q)
+    return (d_scored > radius) if np.isfinite(radius) else np.zeros(len(d_scored), bool), radius
+
+
+def leakage_report(robot, train_q: torch.Tensor, scored_q: torch.Tensor, *, twin_radius_mm: float = 2.0) -> LeakageReport:
+    """Compare scored poses' distance to the training poses with the references above (joints in rad)."""
+    d_scored, d_train, far_radius = distances(robot, train_q, scored_q)
     twin_share = float(np.mean(d_scored < twin_radius_mm))
-    report = LeakageReport(len(scored), len(train), float(np.median(d_scored)), float(np.median(d_train)),
-                           twin_share, twin_radius_mm)
+    far_share = float(np.mean(d_scored > far_radius)) if np.isfinite(far_radius) else 0.0
+    report = LeakageReport(len(scored_q), len(train_q), float(np.median(d_scored)), float(np.median(d_train)),
+                           twin_share, twin_radius_mm, far_share=far_share, far_radius_mm=far_radius)
     reasons = []
     if twin_share > 0.1:
         reasons.append(f"{100 * twin_share:.0f} % of the scored poses repeat a training configuration")
@@ -76,4 +129,9 @@ def leakage_report(robot, train_q: torch.Tensor, scored_q: torch.Tensor, *, twin
     if reasons:
         report.warning = ("; ".join(reasons) + ": this error says little about new poses; score a different "
                           "measurement series or use grouped folds")
+    if far_share > 0.1:
+        far = (f"{100 * far_share:.0f} % of the scored poses lie further than {far_radius:.0f} mm (tool-point motion) "
+               "from every training pose, further than the grouped cross-validation ever scored: there the model "
+               "extrapolates, which that cross-validation could not see, and the predicted 95 % regions promise nothing")
+        report.warning = f"{report.warning}; {far}" if report.warning else far
     return report

@@ -17,7 +17,7 @@ from torchcal.core.errors import DataError
 from torchcal.core.metrics import iso9283_repeated, position_metrics
 from torchcal.data.measurements import Measurements, count_configurations, load_measurements
 from torchcal.identify.joint_errors import JointSpaceErrors
-from torchcal.model_selection.leakage import leakage_report
+from torchcal.model_selection.leakage import far_from_training, leakage_report
 from torchcal.stages.foreign_data import refuse_foreign_file
 from torchcal.stages.geometry import NOMINAL_PROTOCOL, held_out_errors, nominal_fit
 from torchcal.stages.orientation import (
@@ -26,8 +26,8 @@ from torchcal.stages.orientation import (
     nominal_orientation_errors,
     refuse_implausible,
 )
+from torchcal.stages.prediction_uncertainty import load_uncertainty, stored_prediction
 from torchcal.stages.prediction_uncertainty import score as score_uncertainty
-from torchcal.stages.prediction_uncertainty import stored_prediction
 from torchcal.stages.store import StoredModel, load_model
 
 #: ``evaluate --register``: fewer distinct configurations are refused; fewer than the advised give a warning.
@@ -115,8 +115,11 @@ def score(stored: StoredModel, data: Measurements, *, register: bool = False, le
             warning = worse if warning is None else f"{warning}; {worse}"
     prediction = stored_prediction(stored, data.q)
     if prediction is not None:
-        uncertainty = score_uncertainty(prediction, errors,
-                                        f"{prediction.method}, calibrated on the fit's out-of-fold errors")
+        calibration = load_uncertainty(stored.folder)
+        uncertainty = score_uncertainty(prediction, errors, f"{prediction.method}, calibrated on the fit's out-of-fold "
+                                        f"errors ({calibration.protocol if calibration is not None else 'unknown'})")
+        if stored.training_q is not None:  # where the poses are far from the training ones, said apart
+            uncertainty.update(extrapolation_split(stored, data.q, errors, prediction.p95_mm))
         metrics.update({"coverage_95": uncertainty["coverage_95"], "predicted_p95_mm": uncertainty["predicted_p95_mm"],
                         "uncertainty": uncertainty})
     if warning is not None:
@@ -126,6 +129,23 @@ def score(stored: StoredModel, data: Measurements, *, register: bool = False, le
         metrics["leakage"] = leakage_report(stored.robot, stored.training_q, data.q).to_dict()
     metrics["compensator"] = compensator_summary(stored, data.q, errors, corrections=corrections)
     return Scored(stored, data, errors, metrics, nominal_errors, nominal_frame, angles)
+
+
+def extrapolation_split(stored: StoredModel, q: torch.Tensor, errors: torch.Tensor, p95_mm: torch.Tensor) -> dict:
+    """The predicted 95 % regions' coverage apart for the poses far from every training pose
+    (:func:`~torchcal.model_selection.leakage.far_from_training`) and the others: the regions are
+    calibrated on poses like the training poses, and far from them promise nothing."""
+    if stored.training_q is None:  # no training poses stored: nothing to tell apart
+        return {}
+    far, radius = far_from_training(stored.robot, stored.training_q, q)
+    far_t = torch.from_numpy(far)
+    inside = errors.norm(dim=-1).detach().cpu().double() * 1e3 <= p95_mm.detach().cpu().double()
+
+    def share(mask: torch.Tensor) -> float | None:
+        return float(inside[mask].double().mean()) if bool(mask.any()) else None
+
+    return {"far_radius_mm": radius, "n_far": int(far_t.sum()), "coverage_95_far": share(far_t),
+            "coverage_95_like_training": share(~far_t)}
 
 
 def orientation_errors(stored: StoredModel, data: Measurements, nominal_frame: torch.Tensor, *,

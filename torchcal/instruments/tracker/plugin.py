@@ -141,9 +141,14 @@ class TrackerInstrument(Instrument):
             lines.append(f"{'warning: ' if leakage.warning else ''}{leakage.summary()}")
         if "uncertainty" in metrics:
             u = metrics["uncertainty"]
-            lines.append(f"predicted 95 % error radius ({u['method']}, from the fit's grouped cross-validation) covers "
-                         f"{100 * u['coverage_95']:.1f} % of these poses; predicted p95 {u['predicted_p95_mm']:.4f} mm, "
-                         f"observed {u['observed_p95_mm']:.4f} mm")
+            split = ""
+            if u.get("n_far"):
+                like = u.get("coverage_95_like_training")
+                split = (f" ({100 * u['coverage_95_far']:.1f} % of the {u['n_far']} further than {u['far_radius_mm']:.0f} mm "
+                         "from every training pose, where the model extrapolates and the radius promises nothing"
+                         + (f"; {100 * like:.1f} % of the others" if like is not None else "") + ")")
+            lines.append(f"predicted 95 % error radius ({u['protocol']}) covers {100 * u['coverage_95']:.1f} % of these "
+                         f"poses{split}; predicted p95 {u['predicted_p95_mm']:.4f} mm, observed {u['observed_p95_mm']:.4f} mm")
         comp = metrics["compensator"]
         lines.append(
             f"the exported compensator ({comp['task']} first, {comp['iterations']} steps) solves "
