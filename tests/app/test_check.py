@@ -87,3 +87,51 @@ def test_a_long_new_tool_is_a_changed_tool_not_another_robot(calibrated):
     twin, stored = calibrated
     result = check_data(stored, twin.changed(tool_x=20 * MM, tool_z=100 * MM).sample(12, torch.Generator().manual_seed(5)))
     assert result.verdict == "changed" and result.changed == ["tool"]
+
+
+def _corner(twin, n, generator):
+    """Poses in a 40 deg box of every joint (a calibration measured in one small region)."""
+    from torchcal.data.measurements import Measurements
+
+    low = torch.tensor([-20.0, -100.0, 20.0, -30.0, 30.0, -30.0], dtype=torch.float64) * DEG
+    q = low + 40.0 * DEG * torch.rand(n, twin.robot.dof, generator=generator, dtype=torch.float64)
+    return Measurements(q=q, position=twin.measure(q, generator))
+
+
+@pytest.fixture(scope="module")
+def calibrated_in_a_corner(tmp_path_factory):
+    from torchcal.config.schema import FitConfig
+    from torchcal.sim.twin import Twin, TwinConfig
+    from torchcal.stages.pipeline import fit_model
+    from torchcal.stages.store import load_model
+
+    twin = Twin.create(TwinConfig(seed=3, gravity=False, gear=False))
+    folder = tmp_path_factory.mktemp("corner") / "model"
+    fit_model(folder, twin.robot, _corner(twin, 150, torch.Generator().manual_seed(11)),
+              FitConfig(residual="none", gravity_compliance="none", joint_harmonics="none", progress=False))
+    return twin, load_model(folder)
+
+
+def test_check_outside_the_fitted_region_says_extrapolating_not_changed(calibrated_in_a_corner, capsys):
+    """Nothing changed on the robot; the new poses lie across its whole range, the model was fitted in a
+    corner: the check must not name a part as changed (it did: link5, dBIC +21)."""
+    from torchcal.model_selection.leakage import far_from_training
+
+    twin, stored = calibrated_in_a_corner
+    wide = twin.sample(12, torch.Generator().manual_seed(32))
+    result = check_data(stored, wide)
+    far, radius = far_from_training(stored.robot, stored.training_q, wide.q)
+    assert result.n_far == int(far.sum()) >= 6 and result.far_radius_mm == radius
+    # the evidence that used to name a part as changed is there, and it is called what it is
+    assert result.best is not None and (result.best.delta_bic > 10 or result.exceedance_p < 0.01)
+    assert result.verdict == "extrapolating" and result.to_dict()["verdict"] == "extrapolating"
+    assert "a change of the robot cannot be told" in result.lines()[-1]
+    from torchcal.app.update import (
+        resolve_free,  # update extends the model to these poses and says so
+    )
+
+    names, how = resolve_free("auto", stored, result)
+    assert names == result.best.names and "no change of the robot is claimed" in how
+    # inside the corner the same model still names a real change
+    moved = check_data(stored, _corner(twin.changed(theta3=0.05 * DEG), 12, torch.Generator().manual_seed(33)))
+    assert moved.n_far < 6 and moved.verdict == "changed" and "theta3" in moved.changed

@@ -20,7 +20,12 @@ pose's per-coordinate sigma ``s_i`` and 95 % radius):
   with ``dBIC >`` :data:`BIC_CHANGED` ("very strong" on Kass and Raftery's scale) is named.
 
 Verdict: ``changed`` when either piece says so; ``changed`` lists the best group's names (or is
-empty when only the per-pose test fired), ``valid`` otherwise. A learned residual head is not
+empty when only the per-pose test fired), ``valid`` otherwise. ``extrapolating`` instead of
+``changed`` where at least :data:`EXTRAPOLATING_SHARE` of the poses lie further from every pose
+the model was fitted on than its grouped cross-validation scored
+(:func:`~torchcal.model_selection.leakage.far_from_training`): there a model misses by more than
+it predicted because it extrapolates, whether or not the robot changed (``changed`` still names
+the group the evidence points to, which ``update`` would free to extend the model). A learned residual head is not
 tested: the check scores the geometric stage with its joint-space terms, and says so.
 """
 
@@ -43,6 +48,7 @@ from torchcal.identify.lm import LevenbergMarquardt
 from torchcal.identify.problem import CalibrationProblem
 from torchcal.identify.term_scale import TermScaleProblem
 from torchcal.kinematics.error_model import ErrorModel
+from torchcal.model_selection.leakage import far_from_training
 from torchcal.report.document import Paragraph, Preformatted, Report, Section, Table
 from torchcal.stages.foreign_data import refuse_foreign_file
 from torchcal.stages.geometry import model_joints
@@ -53,6 +59,10 @@ from torchcal.stages.store import StoredModel, load_model
 EXCEEDANCE_ALPHA = 0.01
 #: BIC difference above which a group counts as changed.
 BIC_CHANGED = 10.0
+#: Share of the poses further from every training pose than the grouped CV scored
+#: (:func:`~torchcal.model_selection.leakage.far_from_training`) from which a model that misses them
+#: is said to extrapolate rather than the robot to have changed.
+EXTRAPOLATING_SHARE = 0.5
 PROTOCOL = ("instrument frame re-registered to the new poses (rigid refit from the old model); per-pose error against "
             "the model's predicted 95 % radius; groups by BIC of refits from the old model, residuals whitened by "
             "each pose's predicted sigma")
@@ -90,6 +100,8 @@ class CheckResult:
     chi2_null: float
     groups: list[GroupEvidence]
     source: str
+    n_far: int = 0
+    far_radius_mm: float = float("nan")
 
     @property
     def best(self) -> GroupEvidence | None:
@@ -111,6 +123,8 @@ class CheckResult:
             "poses": [{"row": r, "error_mm": float(e), "p95_mm": float(p), "beyond": bool(e > p)}
                       for r, e, p in zip(self.lines_in_file, self.errors_mm, self.p95_mm)],
             "not_tested": "a learned residual head (the geometric stage with its joint-space terms is scored)",
+            "extrapolation": {"n_far": self.n_far, "far_radius_mm": self.far_radius_mm,
+                              "extrapolating_above_share": EXTRAPOLATING_SHARE},
         }
 
     def lines(self) -> list[str]:
@@ -121,6 +135,15 @@ class CheckResult:
         if best is not None:
             out.append(f"most likely change: {best.group} ({', '.join(best.names)}): dBIC {best.delta_bic:+.1f}, "
                        f"likelihood ratio p {best.p_value:.2g} (named above dBIC {BIC_CHANGED:g})")
+        if self.n_far:
+            out.append(f"{self.n_far} of the {self.n_poses} poses lie further than {self.far_radius_mm:.0f} mm (tool-point "
+                       "motion) from every pose the model was fitted on, where it extrapolates")
+        if self.verdict == "extrapolating":
+            out.append(f"verdict: extrapolating: the model misses these poses, but most lie where it extrapolates, so a change "
+                       f"of the robot cannot be told from the model's own extrapolation (the evidence points to "
+                       f"{', '.join(self.changed) or 'no group'}); check with poses like the fitted ones, or update to "
+                       "extend the model to these")
+            return out
         out.append(f"verdict: {self.verdict}" + (f"; changed: {', '.join(self.changed)}" if self.changed else ""))
         return out
 
@@ -249,9 +272,16 @@ def check_data(stored: StoredModel, data: Measurements) -> CheckResult:
     if named and best is not None and best.group == "tool":
         changed = ["tool"]
     verdict = "changed" if named or tail < EXCEEDANCE_ALPHA else "valid"
+    n_far, far_radius = 0, float("nan")
+    if stored.training_q is not None:
+        far, far_radius = far_from_training(stored.robot, stored.training_q, data.q)
+        n_far = int(far.sum())
+        if verdict == "changed" and n_far >= EXTRAPOLATING_SHARE * n:
+            verdict = "extrapolating"
     return CheckResult(verdict=verdict, changed=changed, n_poses=n, errors_mm=errors, p95_mm=p95,
                        lines_in_file=list(data.line_numbers) or list(range(2, n + 2)), exceedances=beyond,
-                       exceedance_p=tail, chi2_null=chi2_null, groups=groups, source=data.source)
+                       exceedance_p=tail, chi2_null=chi2_null, groups=groups, source=data.source, n_far=n_far,
+                       far_radius_mm=far_radius)
 
 
 def check_model(model_dir: str | Path, data_file: str | Path, units: UnitOptions | None = None) -> CheckResult:

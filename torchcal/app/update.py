@@ -228,6 +228,11 @@ def resolve_free(spec: str, stored: StoredModel, check: CheckResult | None) -> t
             raise ModelError("free=auto needs the check's evidence")
         best = check.best
         if check.changed and best is not None:
+            if check.verdict == "extrapolating":  # an extension of the model to these poses, not a claim of a change
+                return list(best.names), (f"chosen by the check's evidence on poses where the old model extrapolates "
+                                          f"({check.n_far} of {check.n_poses}): group {best.group}, dBIC "
+                                          f"{best.delta_bic:+.1f} > {BIC_CHANGED:g}; the model is extended to them, no "
+                                          "change of the robot is claimed")
             return list(best.names), (f"chosen by the check's evidence: group {best.group}, dBIC {best.delta_bic:+.1f} "
                                       f"> {BIC_CHANGED:g}")
         return [], "chosen by the check's evidence: no group named (the robot moved or nothing changed)"
