@@ -60,3 +60,46 @@ def test_residual_kept_and_compensation_moves_the_real_tcp(tmp_path):
     real_gain = before - after
     relative = ((real_gain - predicted_gain) / predicted_gain.clamp_min(1e-6)).abs()
     assert float(relative[ok].median()) < 0.2
+
+
+def test_a_head_that_fails_on_time_blocks_hands_over_to_the_next_eligible_head(monkeypatch):
+    """Two eligible heads: the better one fails the check on time blocks, the next one passes it and is kept
+    (the structure used to be kept, with 'lowest CV RMS' said of a row that was not the lowest)."""
+    import numpy as np
+
+    import torchcal.stages.residual as stage
+    from torchcal.config.schema import FitConfig
+    from torchcal.model_selection.compare import Candidate
+    from torchcal.model_selection.heads import HeadCV
+    from torchcal.stages.geometry import fit_with_selection
+
+    twin = Twin.create(TwinConfig(seed=1, gravity=False, gear=False))
+    data = twin.sample(120, torch.Generator().manual_seed(2))
+    config = FitConfig(residual="mma-elm+elm", gravity_compliance="none", joint_harmonics="none", progress=False)
+    _, structure = fit_with_selection(twin.robot, data, config)
+    parent = structure.comparison.chosen
+    base = next(c for c in structure.candidates if c.name == parent).errors_mm
+    heads = HeadCV(candidates=[Candidate(f"{parent}+mma-elm", base * 0.70, parent=parent, min_gain=0.02, head="mma-elm"),
+                               Candidate(f"{parent}+elm", base * 0.80, parent=parent, min_gain=0.02, head="elm")])
+    checked = []
+
+    def on_blocks(robot, data_, structure_, head, config_, progress):
+        checked.append(head)
+        return "5-fold CV over contiguous blocks", [], head == "elm"
+
+    monkeypatch.setattr(stage, "cross_validate_heads", lambda *a, **k: heads)
+    monkeypatch.setattr(stage, "_check_on_time_blocks", on_blocks)
+    comparison = stage.select_with_heads(twin.robot, data, structure, config)
+    assert checked == ["mma-elm", "elm"]
+    assert comparison.chosen == f"{parent}+elm" and comparison.chosen_head == "elm"
+    rows = {r["name"]: r for r in comparison.rows}
+    assert rows[f"{parent}+mma-elm"]["verdict"].startswith("rejected: passed on configuration regions")
+    assert "head 'mma-elm' passed on configuration regions but not on blocks" in comparison.reason
+    assert "among the eligible candidates" in comparison.reason  # mma-elm's row is lower but ruled out
+    assert np.isclose(rows[f"{parent}+elm"]["cv_rms_mm"], float(np.sqrt(np.mean((base * 0.8) ** 2))))
+    # both fail: the structure is kept with its own reason and both heads named
+    checked.clear()
+    monkeypatch.setattr(stage, "_check_on_time_blocks", lambda *a, **k: (checked.append(a[3]), ("blocks", [], False))[1])
+    comparison = stage.select_with_heads(twin.robot, data, structure, config)
+    assert checked == ["mma-elm", "elm"] and comparison.chosen == parent and comparison.chosen_head is None
+    assert comparison.reason.startswith(structure.comparison.reason) and "'mma-elm', 'elm'" in comparison.reason

@@ -22,7 +22,10 @@ def test_optional_stages_are_parts_and_a_view_does_not_share_their_edits(tmp_pat
     assert [type(s) for s in stored.stages()] == [GeometryStage]
     assert list(OPTIONAL_STAGES) == ["residual", "stiffness"]  # the order a prediction applies them
 
-    head = object()  # a stand-in part: the stage list only needs it to exist
+    from types import SimpleNamespace
+
+    # a stand-in part: the stage list needs it to exist and to take the robot's joints
+    head = SimpleNamespace(features=SimpleNamespace(mid=torch.zeros(twin.robot.dof)))
     stored.residual = head
     assert stored.parts == {"residual": head} and stored.residual is head
     assert [type(s) for s in stored.stages()] == [GeometryStage, ResidualStage]

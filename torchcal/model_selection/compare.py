@@ -151,7 +151,8 @@ def compare_candidates(candidates: list[Candidate], units: np.ndarray, protocol:
     assert chosen is not None  # the best itself is always within noise of itself
     comparison.chosen = chosen.name
     if chosen is best:
-        comparison.reason = f"lowest CV RMS ({best.rms:.4f} mm)"
+        lower = [c.name for c in candidates if c.rms < best.rms and c not in pool]  # lower, but not eligible
+        comparison.reason = f"lowest CV RMS ({best.rms:.4f} mm)" + (" among the eligible candidates" if lower else "")
     else:
         comparison.reason = (f"simplest within noise of the best ({best.name} {best.rms:.4f} mm; "
                              f"{chosen.rms:.4f} mm here, difference below one standard error or {100 * tolerance:g} %)")

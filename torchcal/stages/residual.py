@@ -98,29 +98,26 @@ def select_with_heads(robot, data: Measurements, structure: StructureCV, config,
                                  jobs=resolve_jobs(config.jobs))
     candidates = structure.candidates + heads.candidates
     units, protocol = structure.folds.units(), structure.folds.description
-    comparison = compare_candidates(candidates, units, protocol, tolerance=structure_tolerance())
     head_rows = {c.name for c in heads.candidates}
     later: list[dict] = []
-    if comparison.chosen not in head_rows and comparison.chosen != parent:
-        # the structures were decided without heads; heads only add rows on top of that choice. The
-        # table is restated against the structures, so that its verdicts and the decision agree.
-        comparison = _restated(candidates, units, protocol, parent, structure, {
-            name: f"not kept: {comparison.chosen} is within noise of it, and the structure ({parent}) was chosen "
-                  "before the heads" for name in head_rows if _eligible(comparison, name)})
-    elif comparison.chosen == parent:
-        # the structure's own reason (a learned joint model's check on time blocks included)
-        comparison.reason = structure.comparison.reason
-    head = comparison.chosen_head
-    if head is not None and config.head_time_check and structure.folds.kind != "blocks":
-        timed_protocol, later, passed = _check_on_time_blocks(robot, data, structure, head, config, progress)
-        protocol = f"{protocol}; a kept head also checked by {timed_protocol}"
-        comparison.protocol = protocol
-        if not passed:
-            comparison = _restated(candidates, units, protocol, parent, structure, {
-                comparison.chosen: f"rejected: passed on configuration regions, not on {timed_protocol}"})
-            comparison.reason = (f"{structure.comparison.reason}; head '{head}' passed on configuration regions but "
-                                 "not on blocks of measurement order: it learned what changed while the series was "
-                                 "measured, not the robot")
+    excluded: dict[str, str] = {}  # heads that failed the check on time blocks, with why
+    timed_protocol = None
+    while True:  # the best head still in the running, checked on time blocks; the next one if it fails
+        comparison = _decided(candidates, units, protocol, parent, structure, head_rows, excluded)
+        head = comparison.chosen_head
+        if head is None or not config.head_time_check or structure.folds.kind == "blocks":
+            break
+        timed_protocol, rows, passed = _check_on_time_blocks(robot, data, structure, head, config, progress)
+        later += rows
+        if passed:
+            break
+        excluded[comparison.chosen] = f"rejected: passed on configuration regions, not on {timed_protocol}"
+    if timed_protocol is not None:
+        comparison.protocol = f"{protocol}; a kept head also checked by {timed_protocol}"
+    if excluded:
+        failed = ", ".join(f"'{comparison.heads.get(name, name)}'" for name in excluded)
+        comparison.reason = (f"{comparison.reason}; head {failed} passed on configuration regions but not on blocks of "
+                             "measurement order: it learned what changed while the series was measured, not the robot")
     for name, why in heads.stopped.items():
         comparison.rows.append(_stopped_row(f"{parent}+{name}", why))
         comparison.heads[f"{parent}+{name}"] = name
@@ -129,6 +126,24 @@ def select_with_heads(robot, data: Measurements, structure: StructureCV, config,
         if row.get("head") is not None:
             comparison.heads[row["name"]] = row.pop("head")
         row.pop("head", None)
+    return comparison
+
+
+def _decided(candidates, units, protocol: str, parent: str, structure: StructureCV, head_rows: set[str],
+             excluded: dict[str, str]) -> Comparison:
+    """The comparison of the structures and heads with ``excluded`` heads ruled out: a head is chosen
+    where it wins; otherwise the structure ``parent``, chosen before the heads, with its own reason."""
+    assert structure.comparison is not None
+    comparison = compare_candidates(candidates, units, protocol, tolerance=structure_tolerance(), excluded=excluded)
+    if comparison.chosen not in head_rows and comparison.chosen != parent:
+        # the structures were decided without heads; heads only add rows on top of that choice. The
+        # table is restated against the structures, so that its verdicts and the decision agree.
+        comparison = _restated(candidates, units, protocol, parent, structure, {**excluded, **{
+            name: f"not kept: {comparison.chosen} is within noise of it, and the structure ({parent}) was chosen "
+                  "before the heads" for name in head_rows if name not in excluded and _eligible(comparison, name)}})
+    elif comparison.chosen == parent:
+        # the structure's own reason (a learned joint model's check on time blocks included)
+        comparison.reason = structure.comparison.reason
     return comparison
 
 
