@@ -184,6 +184,12 @@ class Twin:
                 "translation_mm": (t[:3, 3] * 1e3).tolist(),
             },
             "tool_mm": (self.x_true[self.model.layout.tool_slice][:3] * 1e3).tolist(),
+            # a URDF robot's fixed transforms, without which the table and tool do not give the TCP
+            "T_base_0": {"rotation": self.robot.T_base_0[:3, :3].tolist(),
+                         "translation_mm": (self.robot.T_base_0[:3, 3] * 1e3).tolist()},
+            "T_n_flange": {"rotation": self.robot.T_n_flange[:3, :3].tolist(),
+                           "translation_mm": (self.robot.T_n_flange[:3, 3] * 1e3).tolist()},
+            "tcp_model": "T_instrument_base @ T_base_0 @ MDH(table, q) @ T_n_flange @ [tool_mm; 1]",
             "noise_floor_rms_mm": self.config.noise_floor_rms_mm,
             "non_geometric": {
                 "gravity": self.config.gravity,

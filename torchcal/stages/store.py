@@ -236,7 +236,10 @@ def save_model(
         **metadata,
     }
     write_member_json(folder, "calibration.json", meta)
-    tool = x[model.layout.tool_slice][:3].cpu()
+    # the contract's table ends in MDH frame N and its tool point is taken there: a fixed frame N -> flange
+    # (a URDF's) is folded into the point, exact for the TCP's position (it was dropped: 0.38 mm off)
+    tool = robot.T_n_flange.to(torch.float64)[:3, :3] @ x[model.layout.tool_slice][:3].cpu().to(torch.float64) \
+        + robot.T_n_flange.to(torch.float64)[:3, 3]
     write_member_text(folder, "calibrated_robot.yaml",
                       calibrated_yaml_header(robot, meta) + robot_to_yaml(robot, table=model.table(x.cpu()), tool=tool))
     urdf, _ = calibrated_urdf(robot, model.table(x.cpu()), model.flange_from_tool(x.cpu()).cpu(), urdf_notes(robot, meta))
@@ -337,9 +340,14 @@ def calibrated_yaml_header(robot: RobotModel, meta: dict) -> str:
     if dropped:
         lines.append(f"Not identified from the data, so at their nominal values: {', '.join(dropped)}.")
     eye = torch.eye(4, dtype=torch.float64)
-    if not (torch.allclose(robot.T_base_0, eye) and torch.allclose(robot.T_n_flange, eye)):
-        lines.append(f"The table runs from MDH frame 0 to frame N; the fixed transforms base -> frame 0 and frame N -> "
-                     f"flange of {meta.get('robot_file', 'the robot file')} have no field in this format and are not in it.")
+    if not torch.allclose(robot.T_n_flange, eye):
+        lines.append(f"The table runs from MDH frame 0 to frame N; the fixed transform frame N -> flange of "
+                     f"{meta.get('robot_file', 'the robot file')} has no field in this format: it is folded into the "
+                     "tool point, which is therefore given in frame N (the TCP's position is exact; the flange's "
+                     "orientation is not represented).")
+    if not torch.allclose(robot.T_base_0, eye):
+        lines.append(f"The fixed transform base -> frame 0 of {meta.get('robot_file', 'the robot file')} has no field "
+                     "in this format and is not in it: positions of this table are in MDH frame 0, not the base frame.")
     import textwrap
 
     wrapped = [w for line in lines for w in textwrap.wrap(line, 100)]
