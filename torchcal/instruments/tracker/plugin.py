@@ -243,6 +243,13 @@ def _write_fit_report(folder: Path, data: Any, structure: Any, lines: list[str],
     chosen_by = "set by the options (nothing to choose)"
     if structure is not None and len(structure.options) > 1:
         chosen_by = f"chosen by {structure.folds.label}"
+    selection = _selection(folder) or {}
+    kept = next((row for row in selection.get("candidates", []) if row.get("name") == selection.get("chosen")), None)
+    if stored.residual is not None and kept is not None and structure is not None:
+        # the kept head's own row: the structure's out-of-fold figure is not the model's
+        cv_text = (f"; cross-validated {kept['cv_rms_mm']:.4f} mm ({selection['chosen']}, {structure.folds.k}-fold, "
+                   "held out)")
+        chosen_by += f", the head kept by {structure.folds.label}"
     pose_set = score_pose_set(stored, data, held_out=False, extra=extra, focus_extra=bool(extra))
     figures = [f"{position_metrics(s.errors_m)['position_rms_mm']:.4f} mm ({s.name})" for s in pose_set.stages
                if not s.name.endswith("cross-validated")]
