@@ -106,6 +106,20 @@ def test_update_cli_writes_a_whole_folder_with_provenance(calibrated, tmp_path, 
     assert main(["update", "--model", str(stored.folder), "--data", str(tmp_path / "few.csv"), "--out",
                  str(tmp_path / "tool"), "free=tool"]) == 0
     assert json.loads((tmp_path / "tool" / "calibration.json").read_text())["update"]["freed"] == ["tool_x", "tool_y", "tool_z"]
+    # an update of the update: the 95 % region's shape still comes from the first fit's out-of-fold errors, and
+    # says so (it named the parent's 12 update poses); the export names which poses its training data are
+    first = json.loads((stored.folder / "uncertainty.json").read_text())
+    more = twin.changed(theta3=0.05 * DEG).sample(12, torch.Generator().manual_seed(8))
+    write_measurements_csv(tmp_path / "more.csv", more.q, more.position)
+    assert main(["update", "--model", str(out), "--data", str(tmp_path / "more.csv"), "--out", str(tmp_path / "again")]) == 0
+    again = json.loads((tmp_path / "again" / "uncertainty.json").read_text())
+    assert again["n_poses"] == 12 and again["shape_n_poses"] == first["n_poses"] == len(stored.training_q)
+    assert again["conformal_q"] == first["conformal_q"] and f"calibrated on {first['n_poses']} out-of-fold" in again["protocol"]
+    from torchcal.compensate.export import export_model
+
+    manifest = export_model(tmp_path / "again", tmp_path / "export")
+    assert manifest["training_data"]["n_poses"] == 12 and "update" in manifest["training_data"]["of"]
+    assert manifest["training_data"]["n_poses_all_fits"] == len(stored.training_q) + 24
 
 
 @pytest.mark.parametrize("argv, message", [

@@ -260,7 +260,10 @@ def _export_into(out_dir: Path, model_dir: Path, stored, *, wrench_frame: str, i
         "solver": _solver_description(compensator, portable),
         "runtime": "onnxruntime (the compensators use the contrib operator com.microsoft.Inverse, domain version 1)"
                    if uses_contrib_inverse(compensator) else f"any ONNX runtime (standard operators, opset {OPSET})",
-        "training_data": {"sha256": meta.get("data", {}).get("sha256"), "n_poses": meta.get("data", {}).get("n_poses")},
+        "training_data": {"sha256": meta.get("data", {}).get("sha256"), "n_poses": meta.get("data", {}).get("n_poses"),
+                          "of": ("the new poses of the update that wrote the model" if meta.get("method") == "update"
+                                 else "the poses of the fit that wrote the model"),
+                          "n_poses_all_fits": None if stored.training_q is None else len(stored.training_q)},
         "calibration": {"method": meta.get("method"), "residual_sigma_mm": meta.get("residual_sigma_mm")},
         "held_out_metrics": _held_out_metrics(model_dir, meta),
         "expected_accuracy_95": _expected_accuracy(stored),

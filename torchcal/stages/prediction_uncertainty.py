@@ -64,6 +64,8 @@ class ErrorCalibration:
         cv_rms_mm: RMS of the out-of-fold 3-D errors it was calibrated on.
         n_poses: how many out-of-fold errors.
         protocol: the cross-validation that produced them.
+        shape_n_poses: how many out-of-fold errors the scores' shape (``conformal_q``,
+            ``score_quantiles``) was calibrated on: ``n_poses``, or an ancestor's where an update kept it.
     """
 
     method: str
@@ -73,12 +75,14 @@ class ErrorCalibration:
     cv_rms_mm: float
     n_poses: int
     protocol: str
+    shape_n_poses: int | None = None
 
     def to_dict(self) -> dict:
         return {"format": FORMAT, "method": self.method, "level": LEVEL,
                 "discrepancy_sigma_mm": self.discrepancy_sigma_mm, "conformal_q": self.conformal_q,
                 "score_quantiles": list(self.score_quantiles), "cv_rms_mm": self.cv_rms_mm,
-                "n_poses": self.n_poses, "protocol": self.protocol}
+                "n_poses": self.n_poses, "protocol": self.protocol,
+                "shape_n_poses": self.n_poses if self.shape_n_poses is None else self.shape_n_poses}
 
     @classmethod
     def from_dict(cls, d: dict, path: Path) -> ErrorCalibration:
@@ -94,9 +98,10 @@ class ErrorCalibration:
         if (not isinstance(quantiles, list) or len(quantiles) < 2
                 or not all(isinstance(v, (int, float)) and math.isfinite(v) and v >= 0 for v in quantiles)):
             raise ModelError(f"{path}: score_quantiles must be a list of finite numbers >= 0")
+        shape = d.get("shape_n_poses")
         return cls(d["method"], float(d["discrepancy_sigma_mm"]), float(d["conformal_q"]),
                    tuple(float(v) for v in quantiles), float(d["cv_rms_mm"]), int(d.get("n_poses", 0)),
-                   str(d.get("protocol", "")))
+                   str(d.get("protocol", "")), int(shape) if isinstance(shape, int) else None)
 
 
 @dataclass(frozen=True)
