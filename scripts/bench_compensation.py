@@ -5,8 +5,10 @@ parallel axes, a 7-joint iiwa-like arm), ``torchcal run`` with the default confi
 (gravity sag and gear errors in the truth, default fit and model selection, export): the
 calibrated model's held-out RMS against the tracker, and the true robot driven by the
 compensator's commands at the same held-out poses (noise-free truth, nominal targets in the
-calibrated tracker frame), for torch and both exported files. The acceptance ratio is the
-compensated RMS over the held-out RMS.
+calibrated tracker frame), for torch and both exported files. The export serves the flange (its
+default production TCP), which is not the point the tracker measured: the compensated RMS is
+compared with the model's own error at the flange (true minus predicted position there, at the
+same poses), what no compensator removes; the held-out RMS at the measured point is shown beside it.
 
     python scripts/bench_compensation.py [--out docs/bench_compensation] [--task position|pose]
 
@@ -65,6 +67,8 @@ def run_twin(robot: str, folder: Path, task: str) -> dict:
         "onnx_float32_rms_mm": check["onnx_float32"]["position_rms_mm"],
         "onnx_float32_max_mm": check["onnx_float32"]["position_max_mm"],
         "solved_share": check["solved_share"],
+        "model_own_rms_mm": check["model_own_error"]["position_rms_mm"],
+        "ratio_float64_over_own": check["onnx_float64"]["position_rms_mm"] / check["model_own_error"]["position_rms_mm"],
         "ratio_torch_over_held_out": check["torch"]["position_rms_mm"] / held_out["position_rms_mm"],
         "ratio_float64_over_held_out": check["onnx_float64"]["position_rms_mm"] / held_out["position_rms_mm"],
         "elapsed_s": elapsed,
@@ -77,19 +81,23 @@ def markdown(report: dict) -> str:
         "",
         f"`python scripts/bench_compensation.py` ({report['machine']}, task `{report['task']}`). For each twin: "
         "`torchcal run` with the default configuration (truth with gravity sag and gear errors, default fit, export). "
-        "*held-out*: the calibrated model against the simulated tracker at the held-out poses (the number `run` prints). "
-        "*compensated*: the noise-free true robot driven by the compensator's commands at the same poses, against the "
-        "nominal targets. Ratio: compensated float64 RMS over held-out RMS (acceptance: <= 1.10, max <= 0.5 mm).",
+        "*held-out*: the calibrated model against the simulated tracker at the held-out poses, at the measured point (the "
+        "number `run` prints). *compensated*: the noise-free true robot's flange (the export's default TCP) driven by the "
+        "compensator's commands at the same poses, against the nominal targets. *own error*: the true flange minus where "
+        "the model puts it at the same joints, what no compensator removes (the flange is not what the tracker measured: "
+        "the split of d6 and the tool point, and the flange's roll, stay at their prior). Ratio: compensated float64 RMS "
+        "over the own error (acceptance: <= 1.10).",
         "",
-        "| robot | model chosen | held-out RMS (mm) | uncompensated RMS | torch RMS / max | ORT float64 RMS / max | ORT float32 RMS / max | solved to 1 um | ratio |",
-        "| --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+        "| robot | model chosen | held-out RMS at the measured point (mm) | uncompensated flange RMS | own error at the flange | torch RMS / max | ORT float64 RMS / max | ORT float32 RMS / max | solved to 1 um | ratio |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
     for r in report["robots"]:
         lines.append(
             f"| {r['robot']} ({r['description']}) | {r['model']} | {r['held_out_rms_mm']:.4f} | {r['uncompensated_rms_mm']:.4f} | "
+            f"{r['model_own_rms_mm']:.4f} | "
             f"{r['torch_rms_mm']:.4f} / {r['torch_max_mm']:.4f} | {r['onnx_float64_rms_mm']:.4f} / {r['onnx_float64_max_mm']:.4f} | "
             f"{r['onnx_float32_rms_mm']:.4f} / {r['onnx_float32_max_mm']:.4f} | {100 * r['solved_share']:.1f} % | "
-            f"{r['ratio_float64_over_held_out']:.3f} |"
+            f"{r['ratio_float64_over_own']:.3f} |"
         )
     return "\n".join(lines) + "\n"
 
@@ -110,7 +118,8 @@ def main(argv: list[str] | None = None) -> int:
             rows.append(run_twin(robot, Path(tmp) / robot, args.task))
             r = rows[-1]
             print(f"  held-out {r['held_out_rms_mm']:.4f} mm; compensated float64 {r['onnx_float64_rms_mm']:.4f} mm "
-                  f"(max {r['onnx_float64_max_mm']:.4f}); ratio {r['ratio_float64_over_held_out']:.3f}", flush=True)
+                  f"(max {r['onnx_float64_max_mm']:.4f}); own error {r['model_own_rms_mm']:.4f} mm; ratio "
+                  f"{r['ratio_float64_over_own']:.3f}", flush=True)
     report = {"machine": f"{platform.machine()}, {os.cpu_count()} cores", "task": args.task, "robots": rows}
     atomic_write_json(Path(args.out).with_suffix(".json"), report)
     atomic_write_text(Path(args.out).with_suffix(".md"), markdown(report))
