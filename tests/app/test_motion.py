@@ -245,11 +245,11 @@ def test_a_coarse_interpolation_period_is_judged_between_its_samples(tmp_path, l
     out = tmp_path / "t.csv"
     assert main(["motion", "--robot", ROBOT, "--path", str(path), "--out", str(out), _start_arg()]) == 0
     fine = capsys.readouterr().out
-    assert "halfway between them (joints interpolated linearly)" in fine
+    assert "halfway between them (joints interpolated linearly; tolerance 0.02 mm)" in fine
     assert main(["motion", "--robot", ROBOT, "--path", str(path), "--out", str(tmp_path / "c.csv"), _start_arg(),
                  "dt=0.2"]) == 2
     err = capsys.readouterr().err
-    assert "halfway between the samples" in err and "give a shorter interpolation period dt" in err
+    assert "halfway between the samples" in err and "beyond between_tolerance=0.02 mm: give dt=" in err
     # the measure itself, against a hand computation: two joint vectors whose midpoint's TCP is off the chord
     model = ErrorModel(load_robot(default_robot_path()))
     x = model.nominal_vector()

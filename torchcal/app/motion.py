@@ -191,11 +191,14 @@ def run_motion(robot_file: Path, path_file: Path, out: Path, overrides: list[str
         failures.append(f"path error {metrics['path_error_max_mm']:.3g} mm at t = {planned.t[k]:.3f} s (between rows "
                         f"{waypoints.lines[seg]} and {waypoints.lines[seg + 1]} of {waypoints.path}) exceeds the "
                         f"tolerance {options.tolerance:g} mm")
-    if metrics["path_error_between_samples_max_mm"] > options.tolerance:
+    between = metrics["path_error_between_samples_max_mm"]
+    if between > options.between_tolerance:
         k = int(np.argmax(measured["between_samples_error_mm"]))
+        # the error halfway falls with dt^2: the period that would meet the tolerance, with a margin
+        shorter = 0.9 * options.dt * math.sqrt(options.between_tolerance / between)
         failures.append(f"halfway between the samples at t = {planned.t[k]:.3f} and {planned.t[k + 1]:.3f} s (joints "
-                        f"interpolated linearly) the TCP passes {metrics['path_error_between_samples_max_mm']:.3g} mm from "
-                        f"the path, beyond the tolerance {options.tolerance:g} mm: give a shorter interpolation period dt")
+                        f"interpolated linearly) the TCP passes {between:.3g} mm from the path, beyond "
+                        f"between_tolerance={options.between_tolerance:g} mm: give dt={shorter:.2g} or less")
     over_v = np.array(metrics["joint_speed_max_deg_s"]) / np.array(metrics["joint_speed_limit_deg_s"])
     over_a = np.array(metrics["joint_accel_max_deg_s2"]) / np.array(metrics["joint_accel_limit_deg_s2"])
     for name, ratio in (("speed", over_v), ("acceleration", over_a)):
@@ -207,6 +210,7 @@ def run_motion(robot_file: Path, path_file: Path, out: Path, overrides: list[str
         failures.append(f"q{j + 1} = {planned.q[k, j] / DEG:.3f} deg at t = {planned.t[k]:.3f} s is outside its range "
                         f"[{limits[j, 0] / DEG:g}, {limits[j, 1] / DEG:g}] deg")
     metrics.update({"within_tolerance": not failures, "tolerance_mm": options.tolerance,
+                    "between_tolerance_mm": options.between_tolerance,
                     "limit_source": planned.limit_source, "kinematics": source})
 
     inputs = (f"Path {waypoints.path} ({len(waypoints.lines)} waypoints, base frame), {source}; speed "
@@ -236,7 +240,8 @@ def run_motion(robot_file: Path, path_file: Path, out: Path, overrides: list[str
     from torchcal.report.motion import motion_report
 
     report = motion_report(f"Motion along {waypoints.path.name}", summary, metrics, series,
-                           {"tolerance": options.tolerance, "orientation_eps": options.orientation_eps,
+                           {"tolerance": options.tolerance, "between_tolerance": options.between_tolerance,
+                            "orientation_eps": options.orientation_eps,
                             "position_eps": options.position_eps})
     if failures and out.exists():
         # an earlier run's trajectory stays, and so does the report that describes it
@@ -264,9 +269,9 @@ def summary_lines(metrics: dict, out: Path, report_dir: Path) -> list[str]:
     accel = peak_a / np.array(metrics["joint_accel_limit_deg_s2"])
     trajectory = f"trajectory: {out} ({metrics['n_samples']} samples, {metrics['duration_s']:.3f} s)"
     path_error = (f"path error: max {metrics['path_error_max_mm']:.2g} mm over the samples (start "
-                  f"{metrics['start_error_mm']:.2g}, end {metrics['end_error_mm']:.2g}), "
-                  f"{metrics['path_error_between_samples_max_mm']:.2g} mm halfway between them (joints interpolated "
-                  f"linearly); tolerance {metrics['tolerance_mm']:g} mm")
+                  f"{metrics['start_error_mm']:.2g}, end {metrics['end_error_mm']:.2g}; tolerance "
+                  f"{metrics['tolerance_mm']:g} mm), {metrics['path_error_between_samples_max_mm']:.2g} mm halfway "
+                  f"between them (joints interpolated linearly; tolerance {metrics['between_tolerance_mm']:g} mm)")
     orientation = (f"orientation deviation: max {metrics['orientation_deviation_max_deg']:.3g} deg "
                    f"({_outside(metrics['orientation_deviation_regular_max_deg'])}; "
                    f"{metrics['samples_orientation_yielding']} samples where the orientation task is near-singular "

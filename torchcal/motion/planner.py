@@ -68,6 +68,10 @@ class PlanOptions:
         gain: orientation-error feedback per mm of path, 1/mm (recovers a yielded orientation over about 1/gain mm).
         tolerance: largest path error accepted at a sample, mm; beyond it the command writes the
             report but no trajectory.
+        between_tolerance: largest path error accepted halfway between two samples, where a
+            controller interpolating the joints linearly puts the TCP, mm (default 0.02: below the
+            0.03 mm an arm repeats to; near a singularity the joints turn fast and 4 ms samples
+            leave about 0.01 mm there).
     """
 
     start: list[float] = field(default_factory=list)
@@ -84,13 +88,14 @@ class PlanOptions:
     position_damping: float = 10.0
     gain: float = 1.0
     tolerance: float = 0.005
+    between_tolerance: float = 0.02
 
     def check(self, robot: RobotModel) -> None:
         """Refuse a value out of range, with one line naming the option."""
         from torchcal.core.overrides import check_range
 
         for name in ("speed", "accel", "angular_speed", "dt", "step", "orientation_eps", "position_eps", "gain",
-                     "tolerance"):
+                     "tolerance", "between_tolerance"):
             check_range(self, name, low=0.0, low_open=True)
         check_range(self, "orientation_damping", low=0.0)
         check_range(self, "position_damping", low=0.0)
