@@ -45,3 +45,27 @@ def test_poses_far_from_every_training_pose_are_named_extrapolation(robot, gener
     like[:, 3:] = robot.sample_joints(200, generator)[:, 3:]  # drawn as the training poses were
     near = leakage_report(robot, corner, like)
     assert near.far_share < 0.1 and "extrapolates" not in near.warning
+
+
+def test_no_far_radius_where_the_poses_cannot_be_split_and_never_below_the_floor(robot, generator):
+    """A handful of configurations (repeats) cannot be split into groups: nothing is called far (a radius of
+    a micron called every pose far); a dense sweep's radius is at least the floor, above the twin radius."""
+    import json
+    import math
+
+    from torchcal.model_selection.leakage import FAR_FLOOR_MM, LeakageReport, far_from_training
+
+    few = robot.sample_joints(3, generator).repeat_interleave(10, 0)
+    report = leakage_report(robot, few, robot.sample_joints(20, generator))
+    assert math.isnan(report.far_radius_mm) and report.far_share == 0.0 and "extrapolates" not in report.warning
+    assert "none within" not in report.summary()
+    stored = json.loads(json.dumps(report.to_dict(), allow_nan=False))  # strict JSON: no NaN written
+    assert stored["far_radius_mm"] is None and math.isnan(LeakageReport(**stored).far_radius_mm)
+    flags, radius = far_from_training(robot, few[:4], robot.sample_joints(5, generator))  # 4 poses: no split at all
+    assert math.isnan(radius) and not flags.any()
+    # a dense sweep is one chain of twins, one group: no split either, nothing far
+    sweep = robot.sample_joints(1, generator).repeat(3000, 1)
+    sweep[:, 0] += torch.linspace(0.0, 1.5, 3000, dtype=torch.float64)
+    assert math.isnan(leakage_report(robot, sweep, robot.sample_joints(20, generator)).far_radius_mm)
+    spread = leakage_report(robot, robot.sample_joints(200, generator), robot.sample_joints(20, generator))
+    assert spread.far_radius_mm >= FAR_FLOOR_MM and spread.far_radius_mm > spread.training_spacing_median_mm

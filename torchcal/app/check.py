@@ -22,7 +22,7 @@ pose's per-coordinate sigma ``s_i`` and 95 % radius):
 Verdict: ``changed`` when either piece says so; ``changed`` lists the best group's names (or is
 empty when only the per-pose test fired), ``valid`` otherwise. ``extrapolating`` instead of
 ``changed`` where at least :data:`EXTRAPOLATING_SHARE` of the poses lie further from every pose
-the model was fitted on than its grouped cross-validation scored
+the model was fitted on than a grouped cross-validation of those poses holds any out
 (:func:`~torchcal.model_selection.leakage.far_from_training`): there a model misses by more than
 it predicted because it extrapolates, whether or not the robot changed (``changed`` still names
 the group the evidence points to, which ``update`` would free to extend the model). A learned residual head is not
@@ -59,7 +59,7 @@ from torchcal.stages.store import StoredModel, load_model
 EXCEEDANCE_ALPHA = 0.01
 #: BIC difference above which a group counts as changed.
 BIC_CHANGED = 10.0
-#: Share of the poses further from every training pose than the grouped CV scored
+#: Share of the poses further from every training pose than a grouped CV of those holds any out
 #: (:func:`~torchcal.model_selection.leakage.far_from_training`) from which a model that misses them
 #: is said to extrapolate rather than the robot to have changed.
 EXTRAPOLATING_SHARE = 0.5
@@ -123,7 +123,8 @@ class CheckResult:
             "poses": [{"row": r, "error_mm": float(e), "p95_mm": float(p), "beyond": bool(e > p)}
                       for r, e, p in zip(self.lines_in_file, self.errors_mm, self.p95_mm)],
             "not_tested": "a learned residual head (the geometric stage with its joint-space terms is scored)",
-            "extrapolation": {"n_far": self.n_far, "far_radius_mm": self.far_radius_mm,
+            "extrapolation": {"n_far": self.n_far,
+                              "far_radius_mm": self.far_radius_mm if math.isfinite(self.far_radius_mm) else None,
                               "extrapolating_above_share": EXTRAPOLATING_SHARE},
         }
 
@@ -272,7 +273,7 @@ def check_data(stored: StoredModel, data: Measurements) -> CheckResult:
     if named and best is not None and best.group == "tool":
         changed = ["tool"]
     verdict = "changed" if named or tail < EXCEEDANCE_ALPHA else "valid"
-    n_far, far_radius = 0, float("nan")
+    n_far, far_radius = 0, float("nan")  # no radius (a handful of fitted configurations): nothing is called far
     if stored.training_q is not None:
         far, far_radius = far_from_training(stored.robot, stored.training_q, data.q)
         n_far = int(far.sum())

@@ -11,10 +11,12 @@ the training poses' lever arms. Two references:
   the same configuration up to a joint that hardly moves the tool point.
 
 * ``far_share``: share of scored poses further than ``far_radius_mm`` from every training pose:
-  further than the grouped cross-validation ever scored a pose from its fit's poses (the 95th
-  percentile, over the training poses, of the distance to the nearest training pose of another
-  fold; :func:`validated_radius_mm`). There the model extrapolates, which that cross-validation
-  cannot see.
+  further than a grouped cross-validation of the training poses holds a pose out from the poses
+  it is predicted from (a reference grouped 5-fold split: the 95th percentile, over the training
+  poses, of the distance to the nearest training pose of another fold, at least
+  :data:`FAR_FLOOR_MM`; :func:`validated_radius_mm`). There the model extrapolates, which a
+  cross-validation inside the measured region cannot see. No radius (NaN, nothing called far)
+  where the poses cannot be split so (a handful of configurations).
 
 A warning is raised when the scored poses are near-twins of training poses
 (``twin_share > 0.1``), sit much closer to them than the training poses sit to each other
@@ -25,6 +27,7 @@ lie far from all of them (``far_share > 0.1``: the error there is extrapolation,
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass
 
 import numpy as np
@@ -47,14 +50,21 @@ class LeakageReport:
     far_share: float = 0.0
     far_radius_mm: float = float("nan")
 
+    def __post_init__(self) -> None:
+        if self.far_radius_mm is None:  # as to_dict writes "none"
+            self.far_radius_mm = float("nan")
+
     def to_dict(self) -> dict:
-        return asdict(self)
+        d = asdict(self)
+        d["far_radius_mm"] = self.far_radius_mm if math.isfinite(self.far_radius_mm) else None  # strict JSON
+        return d
 
     def summary(self) -> str:
         text = (f"distance to the nearest training pose (median tool-point motion): scored {self.scored_to_training_median_mm:.1f} mm, "
                 f"training poses to each other {self.training_spacing_median_mm:.1f} mm; "
-                f"{100 * self.twin_share:.0f} % of scored poses have a training twin within {self.twin_radius_mm:g} mm, "
-                f"{100 * self.far_share:.0f} % none within {self.far_radius_mm:.0f} mm")
+                f"{100 * self.twin_share:.0f} % of scored poses have a training twin within {self.twin_radius_mm:g} mm"
+                + (f", {100 * self.far_share:.0f} % none within {self.far_radius_mm:.0f} mm"
+                   if math.isfinite(self.far_radius_mm) else ""))
         return text + (f". WARNING: {self.warning}" if self.warning else "")
 
 
@@ -69,43 +79,43 @@ def _nearest(train: np.ndarray, query: np.ndarray, *, exclude_self: bool = False
     return cKDTree(train).query(query, k=1)[0]
 
 
-#: Where the grouped folds cannot be made (a handful of configurations): a scored pose further from
-#: every training pose than this many times the training poses' median spacing is extrapolation.
-FAR_SPACINGS = 2.0
-#: Folds of the reference cross-validation (the fit's default).
+#: Folds of the reference split (the fit's default count).
 REFERENCE_FOLDS = 5
+#: The far radius is never below this (mm): five times the twin radius, so that a dense sweep's
+#: poses are not called far from their neighbours.
+FAR_FLOOR_MM = 10.0
 
 
 def validated_radius_mm(robot, train_q: torch.Tensor, train: np.ndarray) -> float:
-    """How far from its fit's poses the grouped cross-validation scored poses: the 95th percentile,
-    over the training poses, of the distance (mm, in the embedding ``train`` of ``train_q``) to the
-    nearest training pose of another fold; NaN where the folds cannot be made."""
+    """How far a grouped cross-validation of ``train_q`` holds poses out: the 95th percentile, over
+    the training poses, of the distance (mm, in the embedding ``train`` of ``train_q``) to the
+    nearest training pose of another fold of a reference grouped split (at least
+    :data:`FAR_FLOOR_MM`); NaN where the poses cannot be split so."""
     from torchcal.core.errors import DataError
     from torchcal.data.folds import grouped_folds
 
+    if len(train_q) < 2 * REFERENCE_FOLDS:
+        return float("nan")
     try:
         fold = grouped_folds(robot, train_q, k=REFERENCE_FOLDS).fold
-    except DataError:
+    except (DataError, ValueError):  # too few distinct configurations for the groups
         return float("nan")
     reach = np.empty(len(train))
     for f in np.unique(fold):
         held = fold == f
         reach[held] = _nearest(train[~held], train[held])
-    return float(np.percentile(reach, 95)) * 1e3
+    return max(float(np.percentile(reach, 95)) * 1e3, FAR_FLOOR_MM)
 
 
 def distances(robot, train_q: torch.Tensor, scored_q: torch.Tensor) -> tuple[np.ndarray, np.ndarray, float]:
     """Scored pose to nearest training pose, training pose to nearest other (mm of tool-point motion),
-    and the far radius (mm): :func:`validated_radius_mm`, else :data:`FAR_SPACINGS` median spacings."""
+    and the far radius (mm, :func:`validated_radius_mm`; NaN: none)."""
     arms = joint_lever_arms(robot, train_q)
     train = pose_embedding(robot, train_q, arms)
     scored = pose_embedding(robot, scored_q, arms)
     d_scored = _nearest(train, scored) * 1e3
     d_train = _nearest(train, train, exclude_self=True) * 1e3 if len(train) > 1 else np.array([np.nan])
-    radius = validated_radius_mm(robot, train_q, train) if len(train) > 1 else float("nan")
-    if not np.isfinite(radius):
-        radius = FAR_SPACINGS * float(np.median(d_train))
-    return d_scored, d_train, radius
+    return d_scored, d_train, validated_radius_mm(robot, train_q, train)
 
 
 def far_from_training(robot, train_q: torch.Tensor, scored_q: torch.Tensor) -> tuple[np.ndarray, float]:
@@ -131,7 +141,8 @@ def leakage_report(robot, train_q: torch.Tensor, scored_q: torch.Tensor, *, twin
                           "measurement series or use grouped folds")
     if far_share > 0.1:
         far = (f"{100 * far_share:.0f} % of the scored poses lie further than {far_radius:.0f} mm (tool-point motion) "
-               "from every training pose, further than the grouped cross-validation ever scored: there the model "
-               "extrapolates, which that cross-validation could not see, and the predicted 95 % regions promise nothing")
+               "from every training pose, further than a grouped cross-validation of those poses holds any out: there "
+               "the model extrapolates, which cross-validation inside the measured region cannot see, and the "
+               "predicted 95 % regions promise nothing")
         report.warning = f"{report.warning}; {far}" if report.warning else far
     return report

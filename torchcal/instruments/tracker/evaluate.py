@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -144,7 +145,7 @@ def extrapolation_split(stored: StoredModel, q: torch.Tensor, errors: torch.Tens
     def share(mask: torch.Tensor) -> float | None:
         return float(inside[mask].double().mean()) if bool(mask.any()) else None
 
-    return {"far_radius_mm": radius, "n_far": int(far_t.sum()), "coverage_95_far": share(far_t),
+    return {"far_radius_mm": radius if math.isfinite(radius) else None, "n_far": int(far_t.sum()), "coverage_95_far": share(far_t),
             "coverage_95_like_training": share(~far_t)}
 
 
