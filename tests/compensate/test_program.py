@@ -190,7 +190,10 @@ def test_tcp_poses_with_a_start_give_the_joint_programs_result(twin, model_dir, 
 
 
 def test_tcp_poses_need_a_start_and_name_an_unreachable_row(model_dir, tmp_path, capsys):
-    (tmp_path / "poses.csv").write_text("x,y,z\n500,0,600\n9000,0,0\n")
+    stored = production_view(load_model(model_dir), tcp_transform(None, None))
+    near = torch.deg2rad(torch.tensor([[5.0, -65.0, 95.0, 5.0, 35.0, 5.0]], dtype=torch.float64))  # near the start below
+    x, y, z = (stored.robot.tcp_position(near)[0] * 1e3).tolist()
+    (tmp_path / "poses.csv").write_text(f"x,y,z\n{x},{y},{z}\n9000,0,0\n")
     assert main(["compensate", "--model", str(model_dir), "--targets", str(tmp_path / "poses.csv"),
                  "--out", str(tmp_path / "o.csv")]) == 2
     assert "--start" in capsys.readouterr().err
@@ -198,6 +201,12 @@ def test_tcp_poses_need_a_start_and_name_an_unreachable_row(model_dir, tmp_path,
                  "--out", str(tmp_path / "o.csv"), "--start", "0", "-60", "90", "0", "30", "0"]) == 2
     err = capsys.readouterr().err
     assert "row 3" in err and "not reachable" in err and len(err.strip().splitlines()) == 1
+    # a pose whose inverse kinematics from the start ends outside a joint's range at every whole turn
+    (tmp_path / "far.csv").write_text("x,y,z\n500,0,600\n")
+    assert main(["compensate", "--model", str(model_dir), "--targets", str(tmp_path / "far.csv"),
+                 "--out", str(tmp_path / "o.csv"), "--start", "0", "-60", "90", "0", "30", "0"]) == 2
+    err = capsys.readouterr().err
+    assert "row 2" in err and "outside its limits" in err and "give a start nearer" in err
 
 
 def test_a_programs_other_columns_reach_the_corrected_file_as_written(program):
@@ -240,7 +249,7 @@ def test_tcp_pose_joints_take_the_turn_nearest_the_previous_target_within_the_li
     solved = torch.tensor([470.0, -330.0, 100.0, 725.0], dtype=torch.float64) * deg  # 110, 30, 100, 5 deg a turn away
     got = within_limits(solved, previous, limits, tmp_path / "p.csv", 7) / deg
     assert torch.allclose(got, torch.tensor([110.0, 30.0, 100.0, 5.0], dtype=torch.float64), atol=1e-9)
-    with pytest.raises(DataError, match=r"row 7.*joint 3 at 175 deg, outside its limits \[-170, 170\] deg"):
+    with pytest.raises(DataError, match=r"row 7.*joint 3 at 175 deg, outside its limits \[-170, 170\] deg at every whole turn"):
         within_limits(torch.tensor([0.0, 0.0, 175.0, 0.0], dtype=torch.float64) * deg, previous, limits, tmp_path / "p.csv", 7)
 
 

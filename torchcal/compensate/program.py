@@ -251,9 +251,10 @@ def within_limits(q: torch.Tensor, previous: torch.Tensor, limits: torch.Tensor,
             continue
         options = [value + k * turn for k in range(math.ceil((low - tol - value) / turn), math.floor((high + tol - value) / turn) + 1)]
         if not options:
-            raise DataError(f"the nominal robot reaches this TCP pose from the previous target's joints only with joint "
-                            f"{j + 1} at {math.degrees(value):.6g} deg, outside its limits [{math.degrees(low):.6g}, "
-                            f"{math.degrees(high):.6g}] deg, whatever whole turn it takes", path=str(path), row=line)
+            raise DataError(f"the inverse kinematics from the previous target's joints ends with joint {j + 1} at "
+                            f"{math.degrees(value):.6g} deg, outside its limits [{math.degrees(low):.6g}, "
+                            f"{math.degrees(high):.6g}] deg at every whole turn: give a start nearer this pose's "
+                            "configuration (or a program that reaches it in smaller steps)", path=str(path), row=line)
         out[j] = min(options, key=lambda v: abs(v - float(previous[j])))
     return out
 
