@@ -83,15 +83,20 @@ def test_a_head_that_fails_on_time_blocks_hands_over_to_the_next_eligible_head(m
                                Candidate(f"{parent}+elm", base * 0.80, parent=parent, min_gain=0.02, head="elm")])
     checked = []
 
-    def on_blocks(robot, data_, structure_, head, config_, progress):
+    def on_blocks(robot, data_, structure_, head, config_, progress, cache=None):
         checked.append(head)
-        return "5-fold CV over contiguous blocks", [], head == "elm"
+        row = {"cv_rms_mm": 0.1, "vs_best_pct": 0.0, "se_pct": 0.0, "verdict": "", "detail": ""}
+        rows = [{**row, "name": f"{parent} [time blocks]", "head": None},  # the structure's: the same for every head
+                {**row, "name": f"{parent}+{head} [time blocks]", "head": head}]
+        return "5-fold CV over contiguous blocks", rows, head == "elm"
 
     monkeypatch.setattr(stage, "cross_validate_heads", lambda *a, **k: heads)
     monkeypatch.setattr(stage, "_check_on_time_blocks", on_blocks)
     comparison = stage.select_with_heads(twin.robot, data, structure, config)
     assert checked == ["mma-elm", "elm"]
     assert comparison.chosen == f"{parent}+elm" and comparison.chosen_head == "elm"
+    names = [r["name"] for r in comparison.rows]
+    assert len(names) == len(set(names)) and f"{parent}+mma-elm [time blocks]" in names  # the structure's row once
     rows = {r["name"]: r for r in comparison.rows}
     assert rows[f"{parent}+mma-elm"]["verdict"].startswith("rejected: passed on configuration regions")
     assert "head 'mma-elm' passed on configuration regions but not on blocks" in comparison.reason

@@ -102,18 +102,21 @@ def select_with_heads(robot, data: Measurements, structure: StructureCV, config,
     later: list[dict] = []
     excluded: dict[str, str] = {}  # heads that failed the check on time blocks, with why
     timed_protocol = None
+    timed: dict = {}  # the structure's fits on the time blocks, made once for every head checked
     while True:  # the best head still in the running, checked on time blocks; the next one if it fails
         comparison = _decided(candidates, units, protocol, parent, structure, head_rows, excluded)
         head = comparison.chosen_head
         if head is None or not config.head_time_check or structure.folds.kind == "blocks":
             break
-        timed_protocol, rows, passed = _check_on_time_blocks(robot, data, structure, head, config, progress)
-        later += rows
+        timed_protocol, rows, passed = _check_on_time_blocks(robot, data, structure, head, config, progress, timed)
+        seen = {row["name"] for row in later}
+        later += [row for row in rows if row["name"] not in seen]  # the structure's rows once
         if passed:
             break
         excluded[comparison.chosen] = f"rejected: passed on configuration regions, not on {timed_protocol}"
     if timed_protocol is not None:
-        comparison.protocol = f"{protocol}; a kept head also checked by {timed_protocol}"
+        checked = "a kept head" if comparison.chosen_head is not None else "each head that passed"
+        comparison.protocol = f"{protocol}; {checked} also checked by {timed_protocol}"
     if excluded:
         failed = ", ".join(f"'{comparison.heads.get(name, name)}'" for name in excluded)
         comparison.reason = (f"{comparison.reason}; head {failed} passed on configuration regions but not on blocks of "
@@ -168,19 +171,24 @@ def _stopped_row(name: str, why: str) -> dict:
 
 
 def _check_on_time_blocks(robot, data: Measurements, structure: StructureCV, head_name: str,
-                          config, progress) -> tuple[str, list[dict], bool]:
+                          config, progress, cache: dict | None = None) -> tuple[str, list[dict], bool]:
     """Repeat the chosen head's CV on blocks of row order.
 
     Returns the blocks' protocol, the rows of that check (named ``... [time blocks]``, each with
-    its ``head`` or ``None``) and whether the head is kept there too.
+    its ``head`` or ``None``) and whether the head is kept there too. ``cache``: where the
+    structure's own fits on the blocks are kept between the heads checked (they do not depend on the head).
     """
     assert structure.comparison is not None
     parent = structure.comparison.chosen
-    order = torch.as_tensor(data.line_numbers).numpy() if data.line_numbers else None
-    blocks = make_folds("blocks", robot, data.q, k=config.cv_folds, order=order, series=data.series)
-    timed = cross_validate_structures(robot, data, geometry_fitter(robot, config, structure.prior, start=structure.prior_start), [structure.chosen], blocks,
-                                      harmonic_min_range_deg=config.harmonic_min_range_deg,
-                                      progress=progress, jobs=resolve_jobs(config.jobs))
+    cache = {} if cache is None else cache
+    if "timed" not in cache:
+        order = torch.as_tensor(data.line_numbers).numpy() if data.line_numbers else None
+        cache["blocks"] = make_folds("blocks", robot, data.q, k=config.cv_folds, order=order, series=data.series)
+        cache["timed"] = cross_validate_structures(
+            robot, data, geometry_fitter(robot, config, structure.prior, start=structure.prior_start), [structure.chosen],
+            cache["blocks"], harmonic_min_range_deg=config.harmonic_min_range_deg, progress=progress,
+            jobs=resolve_jobs(config.jobs))
+    blocks, timed = cache["blocks"], cache["timed"]
     heads = cross_validate_heads(robot, data, timed, parent,
                                  lambda: [h for h in _candidates(config) if h.name == head_name],
                                  margin=config.residual_margin, seed=config.seed, progress=progress)
