@@ -108,3 +108,16 @@ def test_gaussian_radius_of_a_singular_covariance():
     cov[0, 2, 2] = 0.01**2
     p95 = float(torch.quantile(gaussian_radius_samples(cov, draws=256), 0.95))
     assert p95 == pytest.approx(1.96 * 0.01, rel=0.15)  # 256 draws: about 6 % standard error here
+
+
+def test_a_file_without_the_shapes_count_reads_as_its_own_or_as_unknown_after_an_update(tmp_path):
+    """uncertainty.json of the version before shape_n_poses: a fit's own shape is its n_poses; an update's
+    was kept from an ancestor whose count that file does not hold (it named the update's own poses)."""
+    from torchcal.stages.prediction_uncertainty import ErrorCalibration
+
+    base = {"format": "torchcal-uncertainty/1", "method": "conformal", "discrepancy_sigma_mm": 0.02, "conformal_q": 2.1,
+            "score_quantiles": [0.0, 1.0, 3.0], "cv_rms_mm": 0.05, "n_poses": 150, "protocol": "5-fold CV"}
+    assert ErrorCalibration.from_dict(base, tmp_path).shape_n_poses == 150
+    updated = {**base, "n_poses": 12, "protocol": "leave-one-out; shape kept from the parent (its 150 out-of-fold errors)"}
+    assert ErrorCalibration.from_dict(updated, tmp_path).shape_n_poses is None
+    assert ErrorCalibration.from_dict({**updated, "shape_n_poses": 150}, tmp_path).shape_n_poses == 150

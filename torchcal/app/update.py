@@ -477,10 +477,11 @@ def _uncertainty(stored: StoredModel, data: Measurements, fit: CalibrationResult
         return calibrate_errors(jac, cov, norms, UNCERTAINTY_PROTOCOL.format(
             shape=f"from these {len(norms)} poses too (the parent has no uncertainty.json): coarse"), method)
     fresh = calibrate_errors(jac, cov, norms, "", method)
-    shape_n = old.n_poses if old.shape_n_poses is None else old.shape_n_poses  # an updated parent kept it from its own
+    shape_n = old.shape_n_poses  # an updated parent kept it from its own; None: an earlier version did not say
+    origin = (f"calibrated on {shape_n} out-of-fold errors" if shape_n is not None else
+              "calibrated on an earlier fit's out-of-fold errors, how many the parent's file does not record")
     return ErrorCalibration(method, fresh.discrepancy_sigma_mm, old.conformal_q, old.score_quantiles, fresh.cv_rms_mm,
-                            len(norms), UNCERTAINTY_PROTOCOL.format(
-                                shape=f"kept from the parent (calibrated on {shape_n} out-of-fold errors)"),
+                            len(norms), UNCERTAINTY_PROTOCOL.format(shape=f"kept from the parent ({origin})"),
                             shape_n_poses=shape_n)
 
 

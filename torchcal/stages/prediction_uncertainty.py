@@ -65,7 +65,8 @@ class ErrorCalibration:
         n_poses: how many out-of-fold errors.
         protocol: the cross-validation that produced them.
         shape_n_poses: how many out-of-fold errors the scores' shape (``conformal_q``,
-            ``score_quantiles``) was calibrated on: ``n_poses``, or an ancestor's where an update kept it.
+            ``score_quantiles``) was calibrated on: ``n_poses``, or an ancestor's where an update kept
+            it; ``None`` where a file of an earlier version did not record an ancestor's count.
     """
 
     method: str
@@ -81,8 +82,7 @@ class ErrorCalibration:
         return {"format": FORMAT, "method": self.method, "level": LEVEL,
                 "discrepancy_sigma_mm": self.discrepancy_sigma_mm, "conformal_q": self.conformal_q,
                 "score_quantiles": list(self.score_quantiles), "cv_rms_mm": self.cv_rms_mm,
-                "n_poses": self.n_poses, "protocol": self.protocol,
-                "shape_n_poses": self.n_poses if self.shape_n_poses is None else self.shape_n_poses}
+                "n_poses": self.n_poses, "protocol": self.protocol, "shape_n_poses": self.shape_n_poses}
 
     @classmethod
     def from_dict(cls, d: dict, path: Path) -> ErrorCalibration:
@@ -98,7 +98,7 @@ class ErrorCalibration:
         if (not isinstance(quantiles, list) or len(quantiles) < 2
                 or not all(isinstance(v, (int, float)) and math.isfinite(v) and v >= 0 for v in quantiles)):
             raise ModelError(f"{path}: score_quantiles must be a list of finite numbers >= 0")
-        shape = d.get("shape_n_poses")
+        shape = d.get("shape_n_poses", None if "kept from the parent" in str(d.get("protocol", "")) else d.get("n_poses"))
         return cls(d["method"], float(d["discrepancy_sigma_mm"]), float(d["conformal_q"]),
                    tuple(float(v) for v in quantiles), float(d["cv_rms_mm"]), int(d.get("n_poses", 0)),
                    str(d.get("protocol", "")), int(shape) if isinstance(shape, int) else None)
@@ -149,7 +149,8 @@ def calibrate_errors(point_jac: torch.Tensor, covariance: torch.Tensor, cv_error
     levels = torch.linspace(0, 1, 101, dtype=torch.float64)
     quantiles = torch.quantile(scores, levels)
     return ErrorCalibration(method, discrepancy_var**0.5, conformal_factor(scores, LEVEL),
-                            tuple(float(v) for v in quantiles), float(e.pow(2).mean().sqrt()), len(e), protocol)
+                            tuple(float(v) for v in quantiles), float(e.pow(2).mean().sqrt()), len(e), protocol,
+                            shape_n_poses=len(e))
 
 
 def _parameter_var_mm2(point_jac: torch.Tensor, covariance: torch.Tensor) -> torch.Tensor:

@@ -150,7 +150,7 @@ def _announce_lock(path: Path) -> None:
         return
     if held:
         warnings.warn(f"study storage {path} is locked by another process (a program holding it open, or a worker "
-                      f"writing); waiting up to {SQLITE_LOCK_WAIT_S:.0f} s for it", stacklevel=3)
+                      f"writing); the study may wait up to {SQLITE_LOCK_WAIT_S:.0f} s for it", stacklevel=3)
 
 
 def _storage_class():
