@@ -124,9 +124,11 @@ def far_from_training(robot, train_q: torch.Tensor, scored_q: torch.Tensor) -> t
     return (d_scored > radius) if np.isfinite(radius) else np.zeros(len(d_scored), bool), radius
 
 
-def leakage_report(robot, train_q: torch.Tensor, scored_q: torch.Tensor, *, twin_radius_mm: float = 2.0) -> LeakageReport:
-    """Compare scored poses' distance to the training poses with the references above (joints in rad)."""
-    d_scored, d_train, far_radius = distances(robot, train_q, scored_q)
+def leakage_report(robot, train_q: torch.Tensor, scored_q: torch.Tensor, *, twin_radius_mm: float = 2.0,
+                   measured: tuple[np.ndarray, np.ndarray, float] | None = None) -> LeakageReport:
+    """Compare scored poses' distance to the training poses with the references above (joints in rad);
+    ``measured``: :func:`distances` of the same poses, where the caller has them."""
+    d_scored, d_train, far_radius = distances(robot, train_q, scored_q) if measured is None else measured
     twin_share = float(np.mean(d_scored < twin_radius_mm))
     far_share = float(np.mean(d_scored > far_radius)) if np.isfinite(far_radius) else 0.0
     report = LeakageReport(len(scored_q), len(train_q), float(np.median(d_scored)), float(np.median(d_train)),

@@ -18,7 +18,7 @@ from torchcal.core.errors import DataError
 from torchcal.core.metrics import iso9283_repeated, position_metrics
 from torchcal.data.measurements import Measurements, count_configurations, load_measurements
 from torchcal.identify.joint_errors import JointSpaceErrors
-from torchcal.model_selection.leakage import far_from_training, leakage_report
+from torchcal.model_selection.leakage import distances, leakage_report
 from torchcal.stages.foreign_data import refuse_foreign_file
 from torchcal.stages.geometry import NOMINAL_PROTOCOL, held_out_errors, nominal_fit
 from torchcal.stages.orientation import (
@@ -114,32 +114,32 @@ def score(stored: StoredModel, data: Measurements, *, register: bool = False, le
         if worse is not None:
             warnings.warn(worse, stacklevel=2)
             warning = worse if warning is None else f"{warning}; {worse}"
+    # distances to the training poses, once for the coverage split and the leakage report
+    measured = distances(stored.robot, stored.training_q, data.q) if stored.training_q is not None else None
     prediction = stored_prediction(stored, data.q)
     if prediction is not None:
         calibration = load_uncertainty(stored.folder)
         uncertainty = score_uncertainty(prediction, errors, f"{prediction.method}, calibrated on the fit's out-of-fold "
                                         f"errors ({calibration.protocol if calibration is not None else 'unknown'})")
-        if stored.training_q is not None:  # where the poses are far from the training ones, said apart
-            uncertainty.update(extrapolation_split(stored, data.q, errors, prediction.p95_mm))
+        if measured is not None:  # where the poses are far from the training ones, said apart
+            uncertainty.update(extrapolation_split(measured, errors, prediction.p95_mm))
         metrics.update({"coverage_95": uncertainty["coverage_95"], "predicted_p95_mm": uncertainty["predicted_p95_mm"],
                         "uncertainty": uncertainty})
     if warning is not None:
         metrics["warnings"] = [warning]
     metrics["iso9283"] = iso9283_repeated(errors, data.q, rows=data.line_numbers)
     if leakage and stored.training_q is not None:
-        metrics["leakage"] = leakage_report(stored.robot, stored.training_q, data.q).to_dict()
+        metrics["leakage"] = leakage_report(stored.robot, stored.training_q, data.q, measured=measured).to_dict()
     metrics["compensator"] = compensator_summary(stored, data.q, errors, corrections=corrections)
     return Scored(stored, data, errors, metrics, nominal_errors, nominal_frame, angles)
 
 
-def extrapolation_split(stored: StoredModel, q: torch.Tensor, errors: torch.Tensor, p95_mm: torch.Tensor) -> dict:
-    """The predicted 95 % regions' coverage apart for the poses far from every training pose
-    (:func:`~torchcal.model_selection.leakage.far_from_training`) and the others: the regions are
-    calibrated on poses like the training poses, and far from them promise nothing."""
-    if stored.training_q is None:  # no training poses stored: nothing to tell apart
-        return {}
-    far, radius = far_from_training(stored.robot, stored.training_q, q)
-    far_t = torch.from_numpy(far)
+def extrapolation_split(measured: tuple, errors: torch.Tensor, p95_mm: torch.Tensor) -> dict:
+    """The predicted 95 % regions' coverage apart for the poses far from every training pose and the
+    others (``measured``: :func:`~torchcal.model_selection.leakage.distances` of the scored poses):
+    the regions are calibrated on poses like the training poses, and far from them promise nothing."""
+    d_scored, _, radius = measured
+    far_t = torch.from_numpy(d_scored > radius) if math.isfinite(radius) else torch.zeros(len(d_scored), dtype=torch.bool)
     inside = errors.norm(dim=-1).detach().cpu().double() * 1e3 <= p95_mm.detach().cpu().double()
 
     def share(mask: torch.Tensor) -> float | None:
