@@ -257,3 +257,21 @@ def test_a_tcp_program_with_part_of_an_orientation_is_refused(model_dir, tmp_pat
     (tmp_path / "poses.csv").write_text("x,y,z,rx,ry\n500,0,600,0,90\n")
     with pytest.raises(TorchcalError, match="rx, ry given without rz"):
         compensate_program(model_dir, tmp_path / "poses.csv", tmp_path / "o.csv", start_deg=[0.0, -90.0, 90.0, 0.0, 30.0, 0.0])
+
+
+def test_a_jump_between_targets_is_named_as_a_possible_change_of_configuration():
+    """The program keeps one arm configuration from --start: a joint turning by more than 90 deg between
+    targets (a wrist flip: q4 + 180, q5 -> -q5, q6 + 180 reaches the same flange pose) is named."""
+    import math
+
+    from torchcal.compensate.program import configuration_jumps
+
+    deg = math.pi / 180
+    start = torch.tensor([0.0, -60.0, 90.0, -40.0, 40.0, 30.0], dtype=torch.float64) * deg
+    q = torch.tensor([[2.0, -61.0, 91.0, -39.0, 41.0, 31.0],      # a small step: nothing
+                      [2.0, -61.0, 91.0, 141.0, -41.0, 211.0],    # the same pose, the wrist flipped
+                      [3.0, -62.0, 92.0, 142.0, -42.0, 212.0]], dtype=torch.float64) * deg
+    lines = configuration_jumps(q, start, [2, 3, 4])
+    assert len(lines) == 1 and lines[0].startswith("row 3: joint 4 turns 180.0 deg from row 2")
+    first = configuration_jumps(q[1:], start, [3, 4])
+    assert len(first) == 1 and "from --start" in first[0]

@@ -229,7 +229,33 @@ def read_tcp_targets(path: Path, robot, start_deg: list[float]) -> tuple[torch.T
                             f"{math.degrees(float(result.rotation_error[0])):.3g} deg)", path=str(path), row=line)
         q = within_limits(result.q[0], q, robot.joint_limits.to(torch.float64), path, line)
         solved.append(q)
-    return torch.stack(solved), list(table.line_numbers), other
+    q_all = torch.stack(solved)
+    for message in configuration_jumps(q_all, torch.from_numpy(np.radians(start[0])), list(table.line_numbers)):
+        import warnings
+
+        warnings.warn(f"{path}: {message}", stacklevel=2)
+    return q_all, list(table.line_numbers), other
+
+
+#: A joint turning further than this between consecutive targets (or from ``--start`` to the first)
+#: suggests that the inverse kinematics took another arm configuration (a wrist or elbow flip).
+CONFIGURATION_JUMP_DEG = 90.0
+
+
+def configuration_jumps(q: torch.Tensor, start: torch.Tensor, lines: list[int]) -> list[str]:
+    """One line per target whose joints ``q`` ``(B, N)`` rad turn a joint by more than
+    :data:`CONFIGURATION_JUMP_DEG` from the previous target's (the first from ``start``): the program
+    is meant to keep one arm configuration, and such a jump usually means it did not."""
+    previous = torch.cat([start.to(q).unsqueeze(0), q[:-1]])
+    moved = torch.rad2deg((q - previous).abs())
+    out = []
+    for k in torch.nonzero(moved.amax(-1) > CONFIGURATION_JUMP_DEG).flatten().tolist():
+        j = int(moved[k].argmax())
+        origin = "--start" if k == 0 else f"row {lines[k - 1]}"
+        out.append(f"row {lines[k]}: joint {j + 1} turns {float(moved[k, j]):.1f} deg from {origin}: the inverse "
+                   "kinematics may have taken another arm configuration (a wrist or elbow flip); check the "
+                   "row's joints, or give --start in the configuration the program should keep")
+    return out
 
 
 def within_limits(q: torch.Tensor, previous: torch.Tensor, limits: torch.Tensor, path: Path, line: int) -> torch.Tensor:
