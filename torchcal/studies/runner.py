@@ -241,7 +241,7 @@ def run_study(base, config: StudyConfig, *, workers: int = 1, console=None) -> S
     claim_folder(study_dir, "study", "study.name")
     study_dir.mkdir(parents=True, exist_ok=True)
     stamp_folder(study_dir, "study")
-    study = open_study(config, study_dir)
+    study = open_study(config, study_dir, checked=True)  # check_storage ran above, before anything was created
     _check_same_space(study, config)
     _check_same_data(study, base, config)
     save_resolved_config(study_dir / "config.yaml", base, study=config)

@@ -192,8 +192,9 @@ def _storage_class():
     return Storage
 
 
-def open_storage(config: StudyConfig, study_dir: Path):
-    """An Optuna RDB storage with heartbeats and retry of stale trials."""
+def open_storage(config: StudyConfig, study_dir: Path, checked: bool = False):
+    """An Optuna RDB storage with heartbeats and retry of stale trials (``checked``: the caller ran
+    :func:`check_storage` on it already, as :func:`torchcal.studies.runner.run_study` does first)."""
     import warnings
 
     import optuna
@@ -203,7 +204,8 @@ def open_storage(config: StudyConfig, study_dir: Path):
     warnings.filterwarnings("ignore", category=optuna.exceptions.ExperimentalWarning)
     optuna.logging.set_verbosity(optuna.logging.WARNING)
     url = storage_url(config, study_dir)
-    check_storage(url, configured=bool(config.storage))
+    if not checked:
+        check_storage(url, configured=bool(config.storage))
     if url.startswith("sqlite"):
         study_dir.mkdir(parents=True, exist_ok=True)
         # Several local workers share the file; wait for its lock instead of failing at once.
@@ -257,11 +259,12 @@ def make_sampler(config: StudyConfig, number: int):
     return optuna.samplers.RandomSampler(seed=seed)
 
 
-def open_study(config: StudyConfig, study_dir: Path):
-    """Create the study or load it when it exists (this is what makes a restart resume)."""
+def open_study(config: StudyConfig, study_dir: Path, checked: bool = False):
+    """Create the study or load it when it exists (this is what makes a restart resume); ``checked``
+    as for :func:`open_storage`."""
     import optuna
 
-    storage = open_storage(config, study_dir)
+    storage = open_storage(config, study_dir, checked)
     try:
         return optuna.create_study(
             storage=storage,
