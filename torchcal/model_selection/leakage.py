@@ -118,10 +118,16 @@ def distances(robot, train_q: torch.Tensor, scored_q: torch.Tensor) -> tuple[np.
     return d_scored, d_train, validated_radius_mm(robot, train_q, train)
 
 
+def far_mask(d_scored: np.ndarray, radius: float) -> np.ndarray:
+    """``(B,)`` whether each scored pose (its distance to the nearest training pose, mm) lies beyond the
+    far ``radius`` (mm; NaN: no radius, none is far)."""
+    return d_scored > radius if np.isfinite(radius) else np.zeros(len(d_scored), bool)
+
+
 def far_from_training(robot, train_q: torch.Tensor, scored_q: torch.Tensor) -> tuple[np.ndarray, float]:
     """``(B,)`` whether each scored pose lies further than the far radius from every training pose, and that radius (mm)."""
     d_scored, _, radius = distances(robot, train_q, scored_q)
-    return (d_scored > radius) if np.isfinite(radius) else np.zeros(len(d_scored), bool), radius
+    return far_mask(d_scored, radius), radius
 
 
 def leakage_report(robot, train_q: torch.Tensor, scored_q: torch.Tensor, *, twin_radius_mm: float = 2.0,
@@ -130,7 +136,7 @@ def leakage_report(robot, train_q: torch.Tensor, scored_q: torch.Tensor, *, twin
     ``measured``: :func:`distances` of the same poses, where the caller has them."""
     d_scored, d_train, far_radius = distances(robot, train_q, scored_q) if measured is None else measured
     twin_share = float(np.mean(d_scored < twin_radius_mm))
-    far_share = float(np.mean(d_scored > far_radius)) if np.isfinite(far_radius) else 0.0
+    far_share = float(np.mean(far_mask(d_scored, far_radius))) if np.isfinite(far_radius) else 0.0
     report = LeakageReport(len(scored_q), len(train_q), float(np.median(d_scored)), float(np.median(d_train)),
                            twin_share, twin_radius_mm, far_share=far_share, far_radius_mm=far_radius)
     reasons = []

@@ -115,6 +115,7 @@ class PosePrediction:
         sigma_mm: ``(B,)`` per-coordinate sigma of each pose's predicted error.
         method: which calibration produced them.
         pooled_mm: draws of the set's predicted 3-D error distribution (to pool sets).
+        protocol: the cross-validation the calibration was made on (its :attr:`ErrorCalibration.protocol`).
     """
 
     p95_mm: torch.Tensor
@@ -122,6 +123,7 @@ class PosePrediction:
     sigma_mm: torch.Tensor
     method: str
     pooled_mm: torch.Tensor
+    protocol: str = ""
 
 
 def point_jacobian(model, x: torch.Tensor, free: torch.Tensor, joints: torch.Tensor) -> torch.Tensor:
@@ -178,7 +180,7 @@ def predict(calibration: ErrorCalibration, point_jac: torch.Tensor, covariance: 
         raise ValueError(f"uncertainty method must be one of {', '.join(METHODS)}, got {method!r}")
     pooled = subsample(pooled)
     set_p95 = float(torch.quantile(pooled, LEVEL)) if len(pooled) else float("nan")
-    return PosePrediction(p95, set_p95, sigma, method, pooled)
+    return PosePrediction(p95, set_p95, sigma, method, pooled, calibration.protocol)
 
 
 def subsample(values: torch.Tensor, limit: int = 1_000_000) -> torch.Tensor:

@@ -18,7 +18,7 @@ from torchcal.core.errors import DataError
 from torchcal.core.metrics import iso9283_repeated, position_metrics
 from torchcal.data.measurements import Measurements, count_configurations, load_measurements
 from torchcal.identify.joint_errors import JointSpaceErrors
-from torchcal.model_selection.leakage import distances, leakage_report
+from torchcal.model_selection.leakage import distances, far_mask, leakage_report
 from torchcal.stages.foreign_data import refuse_foreign_file
 from torchcal.stages.geometry import NOMINAL_PROTOCOL, held_out_errors, nominal_fit
 from torchcal.stages.orientation import (
@@ -27,8 +27,8 @@ from torchcal.stages.orientation import (
     nominal_orientation_errors,
     refuse_implausible,
 )
-from torchcal.stages.prediction_uncertainty import load_uncertainty, stored_prediction
 from torchcal.stages.prediction_uncertainty import score as score_uncertainty
+from torchcal.stages.prediction_uncertainty import stored_prediction
 from torchcal.stages.store import StoredModel, load_model
 
 #: ``evaluate --register``: fewer distinct configurations are refused; fewer than the advised give a warning.
@@ -118,9 +118,8 @@ def score(stored: StoredModel, data: Measurements, *, register: bool = False, le
     measured = distances(stored.robot, stored.training_q, data.q) if stored.training_q is not None else None
     prediction = stored_prediction(stored, data.q)
     if prediction is not None:
-        calibration = load_uncertainty(stored.folder)
         uncertainty = score_uncertainty(prediction, errors, f"{prediction.method}, calibrated on the fit's out-of-fold "
-                                        f"errors ({calibration.protocol if calibration is not None else 'unknown'})")
+                                        f"errors ({prediction.protocol or 'unknown'})")
         if measured is not None:  # where the poses are far from the training ones, said apart
             uncertainty.update(extrapolation_split(measured, errors, prediction.p95_mm))
         metrics.update({"coverage_95": uncertainty["coverage_95"], "predicted_p95_mm": uncertainty["predicted_p95_mm"],
@@ -139,7 +138,7 @@ def extrapolation_split(measured: tuple, errors: torch.Tensor, p95_mm: torch.Ten
     others (``measured``: :func:`~torchcal.model_selection.leakage.distances` of the scored poses):
     the regions are calibrated on poses like the training poses, and far from them promise nothing."""
     d_scored, _, radius = measured
-    far_t = torch.from_numpy(d_scored > radius) if math.isfinite(radius) else torch.zeros(len(d_scored), dtype=torch.bool)
+    far_t = torch.from_numpy(far_mask(d_scored, radius))
     inside = errors.norm(dim=-1).detach().cpu().double() * 1e3 <= p95_mm.detach().cpu().double()
 
     def share(mask: torch.Tensor) -> float | None:
