@@ -162,7 +162,7 @@ class CompensatorRuntime:
             rows = np.flatnonzero(~np.isfinite(array).all(axis=1))
             raise CompensatorError(f"joint input has NaN or infinite values (rows {rows[:5].tolist()}); refusing to compensate")
         low, high = self._limits
-        outside = (array < low - JOINT_LIMIT_TOLERANCE_RAD) | (array > high + JOINT_LIMIT_TOLERANCE_RAD)
+        outside = (array < self._low_ok) | (array > self._high_ok)
         if outside.any():
             row, joint = (int(v) for v in np.argwhere(outside)[0])
             raise CompensatorError(
