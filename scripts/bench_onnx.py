@@ -60,6 +60,16 @@ def _throughput(fn, batch: int, repeats: int) -> dict:
     return {"median_poses_per_s": float(np.median(rates)), "batch": batch, "repeats": repeats}
 
 
+def machine_info(load_before: float) -> dict:
+    """The machine and versions a benchmark ran on, with the 1-minute load before (``load_before``) and now."""
+    import onnxruntime as ort
+    import torch
+
+    return {"cpu": platform.processor() or platform.machine(), "cores": os.cpu_count(), "python": platform.python_version(),
+            "onnxruntime": ort.__version__, "torch": torch.__version__,
+            "load_average_1min": {"before": load_before, "after": os.getloadavg()[0]}}
+
+
 def _session(path: Path, threads: int | None, **config):
     """A CPU session; ``config``: ``spinning`` (bool), ``mem_pattern`` (bool)."""
     import onnxruntime as ort
@@ -323,7 +333,6 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--quick", action="store_true", help="fewer calls (smoke run)")
     args = parser.parse_args(argv)
 
-    import onnxruntime as ort
     import torch
     from rich.console import Console
 
@@ -446,9 +455,7 @@ def main(argv: list[str] | None = None) -> int:
             n_conv = 1000 if args.quick else 4000
             conv = convergence(stored, n_conv, "position") + convergence(stored, n_conv, "pose", max_iterations=5)
     report = {
-        "machine": {"cpu": platform.processor() or platform.machine(), "cores": os.cpu_count(), "python": platform.python_version(),
-                    "onnxruntime": ort.__version__, "torch": torch.__version__,
-                    "load_average_1min": {"before": load_before[0], "after": os.getloadavg()[0]}},
+        "machine": machine_info(load_before[0]),
         "model": {"folder": str(model_dir) if args.model else "twin seed 0, 300 poses, geometry only",
                   "residual_head": stored.residual is not None, "stiffness": getattr(stored, "stiffness", None) is not None},
         "targets": {"floor_multiple_median": 4.0, "floor_multiple_p99": 8.0,

@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import platform
 import tempfile
 import warnings
 from pathlib import Path
@@ -41,6 +40,7 @@ from bench_onnx import (
     _model_dir,
     _session,
     executed_nodes,
+    machine_info,
 )
 
 STEPS = {"chain": (1, 2, 3), "monomials": (1, 2)}
@@ -156,7 +156,6 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--quick", action="store_true", help="fewer calls (smoke run)")
     args = parser.parse_args(argv)
 
-    import onnxruntime as ort
     from rich.console import Console
 
     from torchcal.compensate.compensator import CompensatorGraph
@@ -207,9 +206,7 @@ def main(argv: list[str] | None = None) -> int:
         blocks = _block_latency(calls, 300 if args.quick else 3000)
         default_nodes = executed_nodes(default_path, GRAPHS["compensator"][2], q_one)
     report = {
-        "machine": {"cpu": platform.processor() or platform.machine(), "cores": os.cpu_count(), "python": platform.python_version(),
-                    "onnxruntime": ort.__version__, "torch": torch.__version__,
-                    "load_average_1min": {"before": load_before[0], "after": os.getloadavg()[0]}},
+        "machine": machine_info(load_before[0]),
         "model": str(model_dir) if args.model else "twin seed 0, 300 poses, geometry only (as bench_onnx.py)",
         "targets": {"floor_multiple_median": TARGET_MEDIAN, "floor_multiple_p99": TARGET_P99},
         "monomial_fit_max_error": coef_error,
