@@ -150,6 +150,13 @@ def check_output_folder(dest: str | Path, what: str = "--out", purpose: str = "m
                               f"{'it' if len(foreign) == 1 else 'them'} out or give another folder")
 
 
+def overlapping(a: str | Path, b: str | Path) -> bool:
+    """Whether folders ``a`` and ``b`` are the same or one lies inside the other (resolved): writing
+    one whole would replace or swallow the other."""
+    a, b = Path(a).resolve(), Path(b).resolve()
+    return a == b or a.is_relative_to(b) or b.is_relative_to(a)
+
+
 def _unlisted(folder: Path) -> list[Path]:
     """The entries of a sealed ``folder`` its ``checksums.json`` does not list (its figures folder
     aside), sorted: a sealed folder lists every file torchcal wrote, so these are the user's own.

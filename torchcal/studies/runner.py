@@ -20,7 +20,7 @@ from typing import Any
 from torchcal.compensate.export import export_model
 from torchcal.config import save_resolved_config
 from torchcal.core.errors import TorchcalError
-from torchcal.core.folder import check_output_folder
+from torchcal.core.folder import check_output_folder, overlapping
 from torchcal.core.hashing import sha256_file
 from torchcal.core.outputs import claim_folder, stamp_folder
 from torchcal.core.shutdown import skip_collection_at_exit
@@ -230,9 +230,8 @@ def run_study(base, config: StudyConfig, *, workers: int = 1, console=None) -> S
     study_dir = study_folder(base, config)
     if config.refit_best and base.export:
         # the best refit's run (study folder / best) and export must not coincide: found now, not after every trial
-        run_at = (study_dir / "best").resolve()
         export_at = (Path(base.export_dir) / "studies" / config.name / "best").resolve()
-        if run_at == export_at or run_at.is_relative_to(export_at) or export_at.is_relative_to(run_at):
+        if overlapping(study_dir / "best", export_at):
             raise TorchcalError(f"export_dir ({base.export_dir}) puts the best refit's export at {export_at}, its run "
                                 "folder: give export_dir another place than out")
         # a file or a foreign folder where the export goes is found now, not after the trials

@@ -22,6 +22,7 @@ from torchcal.core.folder import (
     FolderError,
     check_output_folder,
     deferred_folder,
+    overlapping,
     refuse_foreign_entries,
     staged_folder,
     write_member_json,
@@ -102,8 +103,7 @@ def _run(config: RunConfig, console=None) -> dict:
     within = ("study",)  # a study refits its best run inside its own folder
     exported = Path(config.export_dir) / config.name
     if config.export:
-        a, b = final.resolve(), exported.resolve()
-        if a == b or a.is_relative_to(b) or b.is_relative_to(a):  # one would replace or swallow the other
+        if overlapping(final, exported):  # one would replace or swallow the other
             raise FolderError(f"{exported}: export_dir/name and out/name ({final}) are the same folder or one lies in the "
                               "other; give them separate places")
         check_output_folder(exported, "export_dir/name", purpose="export")
