@@ -240,17 +240,17 @@ def test_a_program_in_the_wrong_units_or_a_tool_out_of_reach_is_refused(program,
 def test_tcp_pose_joints_take_the_turn_nearest_the_previous_target_within_the_limits(tmp_path):
     import math
 
-    from torchcal.compensate.program import within_limits
+    from torchcal.compensate.program import nearest_turn_within_limits
     from torchcal.core.errors import DataError
 
     deg = math.pi / 180
     limits = torch.tensor([[-185.0, 185.0], [-350.0, 350.0], [-170.0, 170.0], [-math.inf, math.inf]], dtype=torch.float64) * deg
     previous = torch.tensor([20.0, 30.0, 0.0, 10.0], dtype=torch.float64) * deg
     solved = torch.tensor([470.0, -330.0, 100.0, 725.0], dtype=torch.float64) * deg  # 110, 30, 100, 5 deg a turn away
-    got = within_limits(solved, previous, limits, tmp_path / "p.csv", 7) / deg
+    got = nearest_turn_within_limits(solved, previous, limits, tmp_path / "p.csv", 7) / deg
     assert torch.allclose(got, torch.tensor([110.0, 30.0, 100.0, 5.0], dtype=torch.float64), atol=1e-9)
     with pytest.raises(DataError, match=r"row 7.*joint 3 at 175 deg, outside its limits \[-170, 170\] deg at every whole turn"):
-        within_limits(torch.tensor([0.0, 0.0, 175.0, 0.0], dtype=torch.float64) * deg, previous, limits, tmp_path / "p.csv", 7)
+        nearest_turn_within_limits(torch.tensor([0.0, 0.0, 175.0, 0.0], dtype=torch.float64) * deg, previous, limits, tmp_path / "p.csv", 7)
 
 
 def test_a_tcp_program_with_part_of_an_orientation_is_refused(model_dir, tmp_path):

@@ -227,7 +227,7 @@ def read_tcp_targets(path: Path, robot, start_deg: list[float]) -> tuple[torch.T
             raise DataError(f"the TCP pose is not reachable by the nominal robot from the previous target's joints "
                             f"(inverse kinematics leaves {float(result.position_error[0]) * 1e3:.3g} mm, "
                             f"{math.degrees(float(result.rotation_error[0])):.3g} deg)", path=str(path), row=line)
-        q = within_limits(result.q[0], q, robot.joint_limits.to(torch.float64), path, line)
+        q = nearest_turn_within_limits(result.q[0], q, robot.joint_limits.to(torch.float64), path, line)
         solved.append(q)
     q_all = torch.stack(solved)
     for message in configuration_jumps(q_all, torch.from_numpy(np.radians(start[0])), list(table.line_numbers)):
@@ -258,7 +258,7 @@ def configuration_jumps(q: torch.Tensor, start: torch.Tensor, lines: list[int]) 
     return out
 
 
-def within_limits(q: torch.Tensor, previous: torch.Tensor, limits: torch.Tensor, path: Path, line: int) -> torch.Tensor:
+def nearest_turn_within_limits(q: torch.Tensor, previous: torch.Tensor, limits: torch.Tensor, path: Path, line: int) -> torch.Tensor:
     """``q`` ``(N,)`` rad with each joint at the whole turn, within its limits, nearest ``previous``: the
     program keeps its configuration (the inverse kinematics may end a joint a turn away: 470 deg for
     110 deg outside the limits, or -330 deg for 30 deg inside them).
@@ -354,13 +354,12 @@ def compensate_program(
             q_c.append(a)
             residual.append(b)
     seconds = time.perf_counter() - start
-    commands, rest = torch.cat(q_c), torch.cat(residual)
     # the compensator's own command everywhere (the exported runtime's): it returns the nominal one
     # itself where its steps end further off; a command that is better but not solved to 1 um is kept
-    written = commands
+    written, rest = torch.cat(q_c), torch.cat(residual)
     corrected = rest[:, 0] <= SOLVED_WITHIN_M
     remaining_mm = rest[:, 0] * 1e3  # the model's remaining error at the written command (the graph's residual)
-    kept = (commands == q).all(-1)
+    kept = (written == q).all(-1)
     unsolved = torch.nonzero(~corrected).flatten().tolist()
     if unsolved:
         with torch.no_grad():
