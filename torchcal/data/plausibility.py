@@ -60,6 +60,24 @@ def check_joint_unit(q_file: np.ndarray, joint_unit: str, limits_rad: np.ndarray
             path=path, row=lines[row], column=f"q{col + 1}")
 
 
+def distances_from_median(points: np.ndarray) -> np.ndarray:
+    """``(B,)`` each point's distance from the points' coordinate-wise median (``points`` ``(B, 3)``):
+    the size of a set of TCP points that a few wrong ones do not change."""
+    with np.errstate(over="ignore", invalid="ignore"):  # a typo of 1e300 must reach the message, not warn
+        return np.linalg.norm(points - np.median(points, 0), axis=1)
+
+
+def length_unit_hint(ratio: float, length_unit: str, what: str, robot_name: str) -> str:
+    """The likely cause of a file's lengths ``ratio`` times the nominal robot's size: metres read as
+    mm (about 1e-3), mm read as metres (about 1e3), else the robot file or the file's units.
+    ``what`` names the lengths (``points``, ``lengths``)."""
+    if ratio < 0.01 and length_unit == "mm":
+        return f"the {what} look like metres; set length_unit=m"
+    if ratio > 100 and length_unit == "m":
+        return f"the {what} look like millimetres; set length_unit=mm"
+    return f"check the robot file ({robot_name}) and the units of the file (length_unit={length_unit})"
+
+
 def check_point_spread(robot: RobotModel, q: torch.Tensor, position: torch.Tensor, length_unit: str, *, path: str,
                        lines: tuple[int, ...] | list[int]) -> None:
     """Refuse TCP points whose size does not match the nominal robot at the same joints.
@@ -74,9 +92,7 @@ def check_point_spread(robot: RobotModel, q: torch.Tensor, position: torch.Tenso
     with torch.no_grad():
         nominal = robot.tcp_position(q.to(torch.float64)).cpu().numpy()
     measured = position.cpu().numpy()
-    dist_nominal = np.linalg.norm(nominal - np.median(nominal, 0), axis=1)
-    with np.errstate(over="ignore", invalid="ignore"):
-        dist_measured = np.linalg.norm(measured - np.median(measured, 0), axis=1)
+    dist_nominal, dist_measured = distances_from_median(nominal), distances_from_median(measured)
     reach = float(dist_nominal.max())
     far = dist_measured > OUTLIER_REACH_FACTOR * reach + 0.2
     if far.any() and far.mean() < 0.5:
@@ -94,15 +110,10 @@ def check_point_spread(robot: RobotModel, q: torch.Tensor, position: torch.Tenso
     low, high = SPREAD_RATIO_RANGE
     if low <= ratio <= high:
         return
-    if ratio < 0.01 and length_unit == "mm":
-        hint = "the points look like metres; set length_unit=m"
-    elif ratio > 100 and length_unit == "m":
-        hint = "the points look like millimetres; set length_unit=mm"
-    else:
-        hint = f"check the robot file ({robot.name}) and the units of the file (length_unit={length_unit})"
     raise DataError(
         f"the measured points spread {got * 1e3:.4g} mm around their median, the nominal robot's TCP at the same "
-        f"joints {ref * 1e3:.4g} mm (ratio {ratio:.3g}): {hint}", path=path, column="x")
+        f"joints {ref * 1e3:.4g} mm (ratio {ratio:.3g}): {length_unit_hint(ratio, length_unit, 'points', robot.name)}",
+        path=path, column="x")
 
 
 def check_targets_not_metres(points_m: torch.Tensor, reach_m: float, *, what: str, advice: str, path: str,

@@ -32,6 +32,7 @@ import torch
 from torchcal.core.errors import DataError
 from torchcal.core.hashing import sha256_file
 from torchcal.data.csv_table import check_joint_limits, check_units, joint_columns, read_csv_table
+from torchcal.data.plausibility import distances_from_median, length_unit_hint
 from torchcal.instruments.tracer.locate import MIN_STATIONS_PER_POSE
 from torchcal.kinematics.robot import RobotModel
 
@@ -225,7 +226,7 @@ def check_length_spread(data: TracerData, robot: RobotModel, length_unit: str) -
         return
     with torch.no_grad():
         tcp = robot.tcp_position(data.q.to(torch.float64)).cpu().numpy()
-    reference = float(np.median(np.linalg.norm(tcp - np.median(tcp, 0), axis=1)))
+    reference = float(np.median(distances_from_median(tcp)))
     if reference <= 1e-4:  # the robot hardly moved: nothing to compare with
         return
     lengths = data.lengths.cpu().numpy()
@@ -251,12 +252,7 @@ def check_length_spread(data: TracerData, robot: RobotModel, length_unit: str) -
     low, high = LENGTH_SPREAD_RATIO_RANGE
     if low <= ratio <= high:
         return
-    if ratio < low and length_unit == "mm":
-        hint = "the lengths look like metres; set length_unit=m"
-    elif ratio > high and length_unit == "m":
-        hint = "the lengths look like millimetres; set length_unit=mm"
-    else:
-        hint = f"check the robot file ({robot.name}) and the units of the file (length_unit={length_unit})"
+    hint = length_unit_hint(ratio, length_unit, "lengths", robot.name)
     widest = "" if data.n_stations == 1 else " (the widest of any station)"
     raise DataError(
         f"the readings of l{j + 1} spread {spread[j] * 1e3:.4g} mm around their median{widest}, the nominal robot's "
