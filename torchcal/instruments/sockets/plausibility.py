@@ -55,6 +55,12 @@ def equations(data: SocketData) -> int:
     return 3 * len(data) + len(data.pairs())
 
 
+def configurations_needed(data: SocketData, n_unknowns: int) -> int:
+    """Configurations that give :data:`MIN_EQUATIONS_PER_UNKNOWN` equations per unknown: each new
+    configuration of an existing socket adds 3 equations and no unknown."""
+    return math.ceil((MIN_EQUATIONS_PER_UNKNOWN * n_unknowns - len(data.pairs())) / 3)
+
+
 def refuse_too_few(data: SocketData, n_points: int, n_robot: int, n_terms: int = 0) -> None:
     """Refuse data with no more equations than unknowns (nothing left to check the fit, no covariance).
 
@@ -66,8 +72,7 @@ def refuse_too_few(data: SocketData, n_points: int, n_robot: int, n_terms: int =
     if e > m:
         return
     terms = f" + {n_terms} joint-space terms" if n_terms else ""
-    # each new configuration of an existing socket adds 3 equations and no unknown
-    need = math.ceil((MIN_EQUATIONS_PER_UNKNOWN * m - len(data.pairs())) / 3)
+    need = configurations_needed(data, m)
     raise DataError(f"{len(data)} configurations give {e} equations (3 per configuration + 1 per two-socket placement) "
                     f"for {m} unknowns ({n_points} point coordinates + {n_robot} robot parameters{terms}): too few to "
                     f"fit them; record at least {need} configurations", path=data.source)
@@ -79,7 +84,7 @@ def few_equations_warning(data: SocketData, n_unknowns: int) -> str | None:
     ratio = e / max(n_unknowns, 1)
     if ratio >= MIN_EQUATIONS_PER_UNKNOWN:
         return None
-    need = math.ceil((MIN_EQUATIONS_PER_UNKNOWN * n_unknowns - len(data.pairs())) / 3)
+    need = configurations_needed(data, n_unknowns)
     return (f"{len(data)} configurations give {e} equations for {n_unknowns} unknowns ({ratio:.2f} per unknown): "
             f"the fit follows the noise; record at least {need} configurations")
 
