@@ -89,14 +89,46 @@ def test_monitor_graph_predicts_the_chain_at_the_deflected_joints(calibrated, ki
     assert torch.allclose(got, real - base.tcp_position(q, base.nominal_vector()), rtol=0, atol=1e-13)
 
 
-def _solve_residual(model, x, errors, q, iterations: int | None, task: str = "pose") -> torch.Tensor:
-    """Pose error (m, rad) of the real chain at the compensator's command against the nominal target."""
+def _solve_residual(model, x, errors, q, iterations: int | None, task: str = "pose", source: str = "model") -> torch.Tensor:
+    """Pose error (m, rad) of the real chain at the compensator's command against the nominal target
+    (``source="geometry"``: the orientation rows are the geometric chain's, without the joint-space errors)."""
     with torch.no_grad():
-        q_c = CompensatorGraph(model, x, joint_errors=errors, iterations=iterations, task=task)(q)
+        q_c = CompensatorGraph(model, x, joint_errors=errors, iterations=iterations, task=task, orientation_source=source)(q)
     real = model.base_flange_pose(errors.effective_joints(model.robot, q_c), x) @ model.flange_from_tool(x)
     base = ErrorModel(model.robot)
     target = base.base_flange_pose(q, base.nominal_vector()) @ base.flange_from_tool(base.nominal_vector())
-    return pose_error(target, real)
+    error = pose_error(target, real)
+    if source == "geometry":
+        geometric = model.base_flange_pose(q_c, x) @ model.flange_from_tool(x)
+        error[:, 3:] = pose_error(target, geometric)[:, 3:]
+    return error
+
+
+def test_a_position_only_model_orients_by_its_geometry_and_places_by_the_whole_model(calibrated):
+    """By default a model fitted to positions turns the tool by its geometry alone: the joint-space terms
+    move the position (solved to the tolerance) and not the orientation, which is the MDH chain's to
+    second order in the terms (below ``(sum |dq_i|)^2``)."""
+    model, x = calibrated
+    assert not model.with_orientation
+    errors = _errors("both", model.robot.dof)
+    q = model.robot.sample_joints(2000, torch.Generator().manual_seed(5), margin=math.radians(5))
+    _, jac = geometric_jacobian(ErrorModel(model.robot), q, x)
+    regular = torch.linalg.svdvals(jac)[:, -1] > 0.05
+    assert CompensatorGraph(model, x, joint_errors=errors).orientation_source == "geometry"
+    dq = (errors.effective_joints(model.robot, q) - q).abs().sum(-1)  # the terms' whole turn, at most
+    assert 1e-3 < float(dq.max()) < 2e-2  # terms of the size a fit finds
+    geometric = _solve_residual(model, x, errors, q, 5, source="geometry")[regular]
+    assert float(geometric[:, :3].norm(dim=-1).max()) < 2 * CONVERGED_POSITION_M
+    assert bool((geometric[:, 3:].norm(dim=-1) <= dq[regular] ** 2 + 2 * CONVERGED_ORIENTATION_RAD).all())
+    # the model source solves the whole chain's orientation instead; the geometry source leaves it turned by the terms
+    whole = _solve_residual(model, x, errors, q, 5, source="model")[regular]
+    assert float(whole[:, 3:].norm(dim=-1).max()) < math.hypot(CONVERGED_POSITION_M, CONVERGED_ORIENTATION_RAD)
+    with torch.no_grad():
+        q_c = CompensatorGraph(model, x, joint_errors=errors, iterations=5, task="pose")(q[regular])
+    base = ErrorModel(model.robot)
+    turned = pose_error(base.base_flange_pose(q[regular], base.nominal_vector()),
+                        model.base_flange_pose(errors.effective_joints(model.robot, q_c), x))[:, 3:].norm(dim=-1)
+    assert float(turned.median()) > 100 * CONVERGED_ORIENTATION_RAD
 
 
 def test_compensator_solves_the_deflected_chain_and_needs_the_harmonic_slope(calibrated, monkeypatch):
@@ -108,7 +140,7 @@ def test_compensator_solves_the_deflected_chain_and_needs_the_harmonic_slope(cal
     _, jac = geometric_jacobian(ErrorModel(model.robot), q, x)
     regular = torch.linalg.svdvals(jac)[:, -1] > 0.05
     assert regular.double().mean() > 0.5
-    solved = _solve_residual(model, x, errors, q, 5)[regular].norm(dim=-1)
+    solved = _solve_residual(model, x, errors, q, 5)[regular].norm(dim=-1)  # the model source: the whole chain's pose
     # each pose steps until its position and rotation errors are below the graph's tolerance
     assert float(solved.max()) < math.hypot(CONVERGED_POSITION_M, CONVERGED_ORIENTATION_RAD)
     position_first = _solve_residual(model, x, errors, q, None, task="position")[regular]

@@ -164,8 +164,9 @@ def test_a_fit_without_a_finite_covariance_claims_no_sigma(flange_view):
 
 @pytest.mark.parametrize("joint", [1, 5])
 def test_a_harmonic_known_to_sigma_moves_its_joints_correction_by_its_basis(flange_view, joint):
-    # dq_j = a sin(q_j): the command q_c solves q_c + a sin(q_c) = the geometry's solution, so
-    # d q_c / d a = -sin(q_c) (a = 0) and the correction's sigma on joint j is s |sin q_c|, none elsewhere
+    # dq_j = a sin(q_j): oriented by the whole chain (a 6-D fit's source), the command q_c solves
+    # q_c + a sin(q_c) = the geometry's solution, so d q_c / d a = -sin(q_c) (a = 0) and the correction's
+    # sigma on joint j is s |sin q_c|, none elsewhere
     from torchcal.identify.harmonics import JointHarmonics
     from torchcal.identify.joint_errors import JointSpaceErrors
 
@@ -177,10 +178,10 @@ def test_a_harmonic_known_to_sigma_moves_its_joints_correction_by_its_basis(flan
     covariance[n, n] = s * s
     model = replace(view, metadata={**view.metadata, **harmonics.to_metadata()}, joint_covariance=covariance,
                     joint_coefficients=torch.tensor([[0, joint - 1]]), covariance=torch.zeros(n, n, dtype=torch.float64))
-    graph = CompensatorGraph.from_stored(model)
+    graph = CompensatorGraph.from_stored(model, orientation_source="model")
     with torch.no_grad():
         q_c, _ = graph.solve(q)
-    sigma = correction_sigma(model, graph, q)
+    sigma = correction_sigma(model, graph, q)  # differences graphs of the same source
     torch.testing.assert_close(sigma[:, joint - 1], s * q_c[:, joint - 1].sin().abs(), rtol=1e-3, atol=1e-6 * s)
     others = [j for j in range(6) if j != joint - 1]
     assert float(sigma[:, others].max()) < 1e-4 * s

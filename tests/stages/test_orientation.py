@@ -16,7 +16,9 @@ from torchcal.stages.geometry import nominal_fit
 from torchcal.stages.orientation import (
     PROBE_FITTED,
     angles_to_measured,
+    model_orientation_errors,
     nominal_orientation_errors,
+    orientation_source_of,
     refuse_implausible,
 )
 
@@ -95,3 +97,54 @@ def test_orientation_columns_of_another_convention_are_refused():
     inverted = replace(data, rotation=data.rotation.transpose(-1, -2))
     with pytest.raises(DataError, match="convention"):
         refuse_implausible(nominal_orientation_errors(robot, inverted, frame), inverted)
+
+
+def test_a_position_only_model_is_scored_by_the_orientation_its_compensator_acts_on(tmp_path):
+    # a position-only fit's joint-space terms correct positions and not the tool's orientation (the compensator's
+    # default source, docs/prior.md): a 0.5 deg harmonic on joint 5 leaves the scored orientation as it was
+    import warnings
+
+    from torchcal.identify.calibrate import calibrate
+    from torchcal.identify.harmonics import JointHarmonics
+    from torchcal.identify.joint_errors import JointSpaceErrors
+    from torchcal.identify.prior import PriorSpec
+    from torchcal.stages.geometry import save_fit
+    from torchcal.stages.store import load_model
+
+    twin = _geometric_twin(alpha4=math.radians(0.3))
+    data = _measured(twin)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        result = calibrate(twin.robot, replace(data, rotation=None), prior=PriorSpec())
+    stored = load_model(save_fit(tmp_path / "m", twin.robot, replace(data, rotation=None), result, {}))
+    assert orientation_source_of(stored.model) == "geometry"
+    coefficients = torch.zeros(2, 6, dtype=torch.float64)
+    coefficients[0, 4] = math.radians(0.5)
+    terms = JointSpaceErrors(harmonics=JointHarmonics(coefficients))
+    with_terms = replace(stored, metadata={**stored.metadata, **terms.to_metadata()})
+    plain = model_orientation_errors(stored, data).angles_rad
+    torch.testing.assert_close(model_orientation_errors(with_terms, data).angles_rad, plain, rtol=0, atol=1e-12)
+    # scored by the whole chain (a 6-D fit's source) the harmonic would turn the tool by up to its amplitude
+    whole = replace(with_terms, model=replace_orientation(with_terms.model))
+    assert orientation_source_of(whole.model) == "model"
+    turned = model_orientation_errors(whole, data).angles_rad
+    assert float((turned - plain).abs().max()) > math.radians(0.2)
+
+
+def replace_orientation(model):
+    """The same error model, marked as fitted to measured orientations."""
+    from torchcal.kinematics.error_model import ErrorModel
+
+    return ErrorModel(model.robot, with_orientation=True, parallel_threshold_deg=model.parallel_threshold_deg,
+                      T_instrument_base=model.T_reference, device=model.device)
+
+
+def test_the_orientation_source_is_the_measured_ones_or_the_one_asked_for():
+    from torchcal.kinematics.error_model import ErrorModel
+
+    robot = _geometric_twin().robot
+    assert orientation_source_of(ErrorModel(robot)) == "geometry"
+    assert orientation_source_of(ErrorModel(robot, with_orientation=True)) == "model"
+    assert orientation_source_of(ErrorModel(robot), "model") == "model"
+    with pytest.raises(ValueError, match="orientation_source"):
+        orientation_source_of(ErrorModel(robot), "tool")

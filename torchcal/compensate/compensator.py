@@ -86,6 +86,7 @@ from torchcal.compensate.steps import pose_step, position_first_step
 from torchcal.identify.joint_errors import JointSpaceErrors
 from torchcal.kinematics.error_model import ErrorModel
 from torchcal.kinematics.robot import RobotModel
+from torchcal.stages.orientation import orientation_source_of
 
 if TYPE_CHECKING:  # annotations only
     from torchcal.stages.base import ModelStage
@@ -176,8 +177,10 @@ class _TwoModels(nn.Module):
     by ``q + dq(q)``; without them every method reduces to the plain chains, node for node.
     """
 
+    turn_selector: torch.Tensor  # a buffer (with joint-space errors): declared for the type checker
+
     def __init__(self, model: ErrorModel, x: torch.Tensor, residual: nn.Module | None, dtype: torch.dtype, device,
-                 joint_errors: JointSpaceErrors | None = None) -> None:
+                 joint_errors: JointSpaceErrors | None = None, orient_by_geometry: bool = False) -> None:
         super().__init__()
         robot = model.robot
         x = x.detach().cpu().to(torch.float64)
@@ -189,33 +192,56 @@ class _TwoModels(nn.Module):
         self.residual = _residual_copy(residual, dtype, device)
         self.n_joints = robot.dof
         self.joint_errors = None
+        self.orient_by_geometry = False
         if joint_errors is not None and not joint_errors.empty:
             self.joint_errors = JointErrorGraph(joint_errors, robot.dof, dtype=dtype, device=device)
             self.nominal = ChainGraph(tables[:1], t0, end_nominal.unsqueeze(0), dtype=dtype, device=device)
+            self.orient_by_geometry = bool(orient_by_geometry)
+            # picks the joint axes z_i (entries 2, 6, 10 of a row-major frame) into the orientation rows of an error
+            selector = torch.zeros(16, 6, dtype=dtype, device=device)
+            for r in range(3):
+                selector[4 * r + 2, 3 + r] = 1.0
+            self.register_buffer("turn_selector", selector)
 
-    def nominal_and_calibrated(self, q: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor | None]:
+    def nominal_and_calibrated(self, q: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor | None,
+                                                              torch.Tensor | None]:
         """Nominal TCP pose ``(B, 4, 4)`` at ``q``, the calibrated TCP pose and joint frames
-        ``(B, N, 4, 4)`` at ``q + dq(q)``, and the joint errors' slope ``(B, N)`` (or ``None``); ``base``, m."""
+        ``(B, N, 4, 4)`` at ``q + dq(q)``, the joint errors' slope ``(B, N)`` and the tool's turn by
+        them (:meth:`turn`), each ``None`` where it does not apply; ``base``, m."""
         if self.joint_errors is None:
             poses, frames = self.both(q, with_frames=True)
-            return poses[:, 0], poses[:, 1], frames[:, 1], None
+            return poses[:, 0], poses[:, 1], frames[:, 1], None, None
         nominal, nominal_frames = self.nominal(q, with_frames=True)
         nominal = nominal[:, 0]
         dq, slope = self.joint_errors(q, nominal_frames[:, 0], nominal[:, :3, 3])
         pose, frames = self.calibrated.single(q + dq)
-        return nominal, pose.reshape(-1, 4, 4), frames, slope
+        return nominal, pose.reshape(-1, 4, 4), frames, slope, self.turn(frames, dq)
 
-    def calibrated_at(self, q: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+    def calibrated_at(self, q: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None, torch.Tensor | None]:
         """Calibrated TCP pose ``(B, 4, 4)`` or ``(B, 1, 4, 4)`` (the Jacobian and the error read
-        it flattened: no node spent on the axis) and joint frames at ``q + dq(q)``, and the slope (or ``None``)."""
+        it flattened: no node spent on the axis) and joint frames at ``q + dq(q)``, the slope and the turn (or ``None``)."""
         if self.joint_errors is not None and self.joint_errors.needs_frames:
             return self.nominal_and_calibrated(q)[1:]
-        slope = None
+        slope = turn = None
         if self.joint_errors is not None:
             dq, slope = self.joint_errors(q)
             q = q + dq
         pose, frames = self.calibrated.single(q)
-        return pose, frames, slope
+        if self.joint_errors is not None:
+            turn = self.turn(frames, dq)
+        return pose, frames, slope, turn
+
+    def turn(self, frames: torch.Tensor, dq: torch.Tensor) -> torch.Tensor | None:
+        """``(B, 6, 1)``: zeros and the rotation ``sum_i z_i dq_i`` (rad, ``base``) by which the joint-space
+        errors ``dq`` ``(B, N)`` turn the tool, where the graph orients by the geometry alone (else ``None``).
+
+        Added to an orientation error of the full chain it gives the geometric chain's, to first
+        order in ``dq`` (the remainder is below ``|dq|^2``: 1e-6 rad for 1e-3 rad of joint-space error).
+        """
+        if not self.orient_by_geometry:  # structural, fixed at construction
+            return None
+        n = frames.shape[-3]
+        return (dq.unsqueeze(1) @ frames.reshape(-1, n, 16) @ self.turn_selector).reshape(-1, 6, 1)
 
     def add_residual(self, p: torch.Tensor, q: torch.Tensor, sign: float = 1.0) -> torch.Tensor:
         """``p + sign * r(q)`` ``(B, 3)`` (m, ``base``); ``p`` itself without a residual head."""
@@ -262,6 +288,9 @@ class CompensatorGraph(nn.Module):
         converged_position_m, converged_orientation_rad: the tolerances of the convergence test
             (default :data:`CONVERGED_POSITION_M`, :data:`CONVERGED_ORIENTATION_RAD`); tighter ones
             serve finite differences of the solved command (:func:`~torchcal.compensate.production_tcp.correction_sigma`).
+        orientation_source: ``"model"`` (the whole calibrated chain) or ``"geometry"`` (its MDH table
+            alone: the joint-space errors correct the position, not the tool's orientation); ``None``
+            (default): :func:`~torchcal.stages.orientation.orientation_source_of`. Without joint-space errors the two are the same.
         device: where the constants live (CPU by default).
     """
 
@@ -304,6 +333,7 @@ class CompensatorGraph(nn.Module):
         tool_length: float = 0.0,
         converged_position_m: float = CONVERGED_POSITION_M,
         converged_orientation_rad: float = CONVERGED_ORIENTATION_RAD,
+        orientation_source: str | None = None,
         device: str | torch.device = "cpu",
     ) -> None:
         super().__init__()
@@ -321,8 +351,10 @@ class CompensatorGraph(nn.Module):
         if not (math.isfinite(tool_length) and tool_length >= 0):
             raise ValueError(f"tool_length must be a finite length >= 0 m, got {tool_length}")
         self.tool_length = float(tool_length)
+        self.orientation_source = orientation_source_of(model, orientation_source)
         # float64 inside whatever the interface (see ``dtype`` above)
-        self.models = _TwoModels(model, x, residual, torch.float64, device, joint_errors)
+        self.models = _TwoModels(model, x, residual, torch.float64, device, joint_errors,
+                                 orient_by_geometry=self.orientation_source == "geometry")
         self.task = task
         self.iterations = iterations
         # position task: orientation on the first steps, position alone on the last ones (at least one mixed step)
@@ -421,9 +453,9 @@ class CompensatorGraph(nn.Module):
     def start(self, q_nominal: torch.Tensor, wrench: torch.Tensor | None):
         """Before the first step: the target's error weights ``(B, 6, 16)``, the error of the
         nominal command ``(B, 6, 1)`` (``before``), and the iterate: ``q``, ``J^T`` ``(B, N, 6)``, error."""
-        target, pose, joint_frames, slope = self.models.nominal_and_calibrated(q_nominal)
+        target, pose, joint_frames, slope, turn = self.models.nominal_and_calibrated(q_nominal)
         weights = (target.reshape(-1, 16) @ self.target_weights).reshape(-1, 6, 16)
-        error = self.loaded_error(weights, pose, joint_frames, q_nominal, wrench)
+        error = self.loaded_error(weights, pose, joint_frames, q_nominal, wrench, turn)
         return weights, error, q_nominal, command_jacobian_t(pose, joint_frames, slope), error
 
     def score(self, error: torch.Tensor, orientation: bool) -> torch.Tensor:
@@ -445,8 +477,8 @@ class CompensatorGraph(nn.Module):
         dq = self.step(jac_t, error, orientation=orientation)
         stepped = torch.minimum(torch.maximum(q + dq, self.lower), self.upper)
         q = torch.where(score < self.one, q, stepped)
-        pose, joint_frames, slope = self.models.calibrated_at(q)
-        error = self.loaded_error(weights, pose, joint_frames, q, wrench)
+        pose, joint_frames, slope, turn = self.models.calibrated_at(q)
+        error = self.loaded_error(weights, pose, joint_frames, q, wrench, turn)
         score = self.score(error, orientation)
         return self.pending(score), q, command_jacobian_t(pose, joint_frames, slope), error, score
 
@@ -480,11 +512,14 @@ class CompensatorGraph(nn.Module):
         return torch.where(self.is_position_row, norms, turn)
 
     def loaded_error(self, weights: torch.Tensor, pose: torch.Tensor, joint_frames: torch.Tensor, q: torch.Tensor,
-                     wrench: torch.Tensor | None) -> torch.Tensor:
+                     wrench: torch.Tensor | None, turn: torch.Tensor | None = None) -> torch.Tensor:
         """``[p_t - p - r(q), vee(R_t R^T)]`` ``(B, 6, 1)`` (m, rad, ``base``) of the calibrated TCP
         ``pose`` ``(B, 4, 4)``: linear in the pose, ``weights @ vec(pose)`` with the target's
-        ``weights`` (:func:`_target_weights`), one product per iterate."""
+        ``weights`` (:func:`_target_weights`), one product per iterate. With the joint-space errors'
+        ``turn`` (:meth:`_TwoModels.turn`) the orientation rows are the geometric chain's."""
         error = weights @ pose.reshape(-1, 16, 1)
+        if turn is not None:  # structural, fixed at construction
+            error = error + turn
         if self.models.residual is None:  # structural, fixed at construction
             return error
         return error - torch.nn.functional.pad(self.models.residual(q), (0, 3)).unsqueeze(-1)
@@ -549,7 +584,7 @@ class MonitorGraph(nn.Module):
         if self.models.joint_errors is None:  # the fast path: positions only, no link tensors
             p = self.models.both.positions(q)
             return self.models.add_residual(p[:, 1] - p[:, 0], q)
-        nominal, pose, _, _ = self.models.nominal_and_calibrated(q)
+        nominal, pose, _, _, _ = self.models.nominal_and_calibrated(q)
         return self.models.add_residual(pose[:, :3, 3] - nominal[:, :3, 3], q)
 
 
@@ -590,14 +625,14 @@ class LoadedCompensatorGraph(CompensatorGraph):
         return self.solve(q_nominal, wrench)[0]
 
     def loaded_error(self, weights: torch.Tensor, pose: torch.Tensor, joint_frames: torch.Tensor, q: torch.Tensor,
-                     wrench: torch.Tensor | None) -> torch.Tensor:
+                     wrench: torch.Tensor | None, turn: torch.Tensor | None = None) -> torch.Tensor:
         """The error measured at the loaded TCP (the Jacobian stays rigid)."""
         if wrench is None:
             raise ValueError("a loaded compensator needs the wrench")
         pose = pose.reshape(-1, 4, 4)
         position, rotation = self.deflection.loaded_pose(pose, joint_frames, wrench)
         loaded = torch.cat([torch.cat([rotation, position.unsqueeze(-1)], -1), pose[:, 3:]], 1)
-        return super().loaded_error(weights, loaded, joint_frames, q, wrench)
+        return super().loaded_error(weights, loaded, joint_frames, q, wrench, turn)
 
 
 class LoadedMonitorGraph(MonitorGraph):
@@ -625,7 +660,7 @@ class LoadedMonitorGraph(MonitorGraph):
         self.deflection = DeflectionGraph(compliance, wrench_frame=wrench_frame, dtype=dtype, device=device)
 
     def forward(self, q: torch.Tensor, wrench: torch.Tensor) -> torch.Tensor:  # type: ignore[override]  # wrench: 2nd graph input
-        nominal, pose, frames, _ = self.models.nominal_and_calibrated(q)
+        nominal, pose, frames, _, _ = self.models.nominal_and_calibrated(q)
         dp, _ = self.deflection(pose, frames, wrench)
         return self.models.add_residual(pose[:, :3, 3] - nominal[:, :3, 3] + dp, q)
 

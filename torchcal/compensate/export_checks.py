@@ -183,8 +183,13 @@ def convergence_report(graphs: dict[str, torch.nn.Module], stored, n_poses: int 
     }
 
 
-def regular_poses(robot, q: torch.Tensor) -> torch.Tensor:
-    """``q`` less the poses near a singularity (the convergence report's strata): there any
-    compensator's step is large by the geometry, not by the model."""
+def regular_mask(robot, q: torch.Tensor) -> torch.Tensor:
+    """``(n,)`` bool: the poses of ``q`` not near a singularity (outside the convergence report's
+    singular strata): near one any compensator's step is large by the geometry, not by the model."""
     sigma_p, sigma_w = singular_values(robot, q.to(torch.float64))
-    return q[(sigma_p >= POSITION_SINGULAR_BELOW_M) & (sigma_w >= WRIST_SINGULAR_BELOW)]
+    return (sigma_p >= POSITION_SINGULAR_BELOW_M) & (sigma_w >= WRIST_SINGULAR_BELOW)
+
+
+def regular_poses(robot, q: torch.Tensor) -> torch.Tensor:
+    """``q`` less the poses near a singularity (:func:`regular_mask`)."""
+    return q[regular_mask(robot, q)]

@@ -189,6 +189,7 @@ def correction_sigma(stored, graph, q: torch.Tensor, step: float = 0.01) -> torc
                 metadata = {**metadata, **terms.shifted(coefficients, shift[len(table_rows):]).to_metadata()}
             changed = replace(stored, x=x, metadata=metadata)
         return type(graph).from_stored(changed, task=graph.task, iterations=graph.iterations, tool_length=graph.tool_length,
+                                       orientation_source=graph.orientation_source,
                                        converged_position_m=DIFFERENCE_TOLERANCE[0],
                                        converged_orientation_rad=DIFFERENCE_TOLERANCE[1]).solve(q)[0]
 

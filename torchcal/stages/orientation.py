@@ -1,9 +1,11 @@
 """The tool's orientation scored where a file measures it (``rx, ry, rz``): the model's and the nominal robot's.
 
-What is scored is the orientation a compensator would act on: the calibrated chain's flange
-orientation (with its joint-space terms; a learned residual head corrects positions only, and a
-stiffness stage's deflection under a file's wrench is not turned into a rotation here) in the
-instrument frame, against the measured one, as the angle of ``R_predicted^T R_measured`` (deg).
+What is scored is the orientation a compensator acts on (:func:`orientation_source_of`): the
+calibrated chain's flange orientation, with its joint-space terms where the fit measured the
+orientation and by the geometry alone (the MDH table at the commanded joints) where it measured
+positions only (a learned residual head corrects positions only, and a stiffness stage's deflection
+under a file's wrench is not turned into a rotation here), in the instrument frame, against the
+measured one, as the angle of ``R_predicted^T R_measured`` (deg).
 
 **Protocols.** The instrument frame is the model's (``--register``: re-fitted to the file's
 positions, as for the position errors). The probe's rotation on the flange is a constant the fit
@@ -35,6 +37,34 @@ PROBE_FITTED = "probe rotation on the flange fitted to these orientations"
 #: where rx and rz nearly coincide, at some poses only: hence the RMS, not the median).
 IMPLAUSIBLE_RMS_DEG = 2.0
 PROBE_IDENTIFIED = "probe rotation as the fit identified it from measured orientations"
+
+
+ORIENTATION_SOURCES = ("model", "geometry")
+"""What a compensator orients the tool by: the whole calibrated chain (joint-space errors included),
+or its geometry alone (the MDH table at the commanded joints)."""
+
+
+def orientation_source_of(model: ErrorModel, requested: str | None = None) -> str:
+    """``requested``, or by default ``model`` where the calibration measured the tool's orientation and
+    ``geometry`` where it measured positions only.
+
+    Joint-space errors fitted to positions alone move the measured point through the lever of the
+    joints after them, and may stand for errors that are not rotations of those joints: measured on
+    the IRB 120's three SMRs, such terms turn the tool five times further from the truth than the
+    nominal robot does, while the calibrated geometry alone stays closer than the nominal robot
+    (``scripts/orientation_real.py``, docs/prior.md).
+    """
+    if requested is None:
+        return "model" if model.with_orientation else "geometry"
+    if requested not in ORIENTATION_SOURCES:
+        raise ValueError(f"orientation_source must be one of {list(ORIENTATION_SOURCES)}, got {requested!r}")
+    return requested
+
+
+def oriented_joints(stored: StoredModel, q: torch.Tensor) -> torch.Tensor:
+    """Joints (rad) at which the calibrated chain gives the orientation a compensator acts on: ``q``
+    plus the joint-space errors for a ``model`` source, ``q`` itself for ``geometry``."""
+    return model_joints(stored, q) if orientation_source_of(stored.model) == "model" else q
 
 
 @dataclass(frozen=True)
@@ -73,7 +103,7 @@ def model_orientation_errors(stored: StoredModel, data: Measurements, *, registe
         if register:  # the frame the position errors are scored in: re-fitted to the file's points
             frame = tf.rigid_registration(predict_positions(stored, data.q, data.temperature, data.wrench),
                                           data.position) @ frame
-        flange = model.base_flange_pose(model_joints(stored, data.q), x)
+        flange = model.base_flange_pose(oriented_joints(stored, data.q), x)
         predicted = frame[:3, :3] @ flange[..., :3, :3] @ model.flange_from_tool(x)[:3, :3]
         angles = angles_to_measured(predicted, data.rotation.to(predicted), fit_probe=not model.with_orientation)
     frame_text = "instrument frame re-fitted to the file's positions (--register)" if register else "the model's instrument frame"

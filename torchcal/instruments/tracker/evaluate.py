@@ -25,6 +25,7 @@ from torchcal.stages.orientation import (
     OrientationErrors,
     model_orientation_errors,
     nominal_orientation_errors,
+    orientation_source_of,
     refuse_implausible,
 )
 from torchcal.stages.prediction_uncertainty import score as score_uncertainty
@@ -170,10 +171,10 @@ def orientation_metrics(model: OrientationErrors, nominal: OrientationErrors, st
     model_rms, nominal_rms = orientation["orientation_rms_deg"], orientation["nominal"]["orientation_rms_deg"]
     if model_rms <= nominal_rms:
         return orientation, None
-    cause = ("its joint-space terms, fitted to positions, may stand for errors that are not rotations of those joints "
-             "(docs/prior.md); compare a geometry-only fit on this file"
-             if not JointSpaceErrors.from_metadata(stored.metadata).empty else
-             "check that the file's robot, tool and set-up are the fitted ones")
+    cause = ("its joint-space terms may stand for errors that are not rotations of those joints (docs/prior.md); "
+             "compare a geometry-only fit on this file"
+             if orientation_source_of(stored.model) == "model" and not JointSpaceErrors.from_metadata(stored.metadata).empty
+             else "check that the file's robot, tool and set-up are the fitted ones")
     return orientation, (f"on these poses the model predicts the tool's orientation worse than the nominal robot "
                          f"({model_rms:.4f} against {nominal_rms:.4f} deg RMS), and its compensator turns the tool by "
                          f"what the model predicts: {cause}")
