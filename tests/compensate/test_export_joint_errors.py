@@ -170,6 +170,9 @@ def served(folder):
 def test_export_carries_the_joint_space_errors_with_onnxruntime_parity(sagging):
     _twin, folder, manifest, out = sagging
     assert manifest["stages"]["gravity_compliance"] and manifest["stages"]["joint_harmonics"]
+    # fitted to positions: the terms correct the position, the geometry orients the tool, and the files say so
+    assert manifest["solver"]["orientation_source"] == "geometry"
+    assert "MDH table alone" in (out / "README.md").read_text()
     stored = served(folder)
     q = stored.robot.sample_joints(2000, torch.Generator().manual_seed(8))
     graphs = build_graphs(stored)

@@ -287,6 +287,16 @@ def _export_into(out_dir: Path, model_dir: Path, stored, *, wrench_frame: str, i
     return manifest
 
 
+#: What the compensator orients the tool by (``solver.orientation_source``), in the manifest's words.
+ORIENTATION_SOURCE_NOTES = {
+    "geometry": ("the tool's orientation target is met by the calibrated MDH table alone (to second order in the "
+                 "joint-space terms): the calibration measured positions only, and joint-space terms fitted to positions "
+                 "correct the position without claiming the tool's turn (measured on the IRB 120's three SMRs: such "
+                 "terms turn the tool 5x further from the truth than the nominal robot; docs/prior.md)"),
+    "model": "the tool's orientation target is met by the whole calibrated chain, joint-space terms included",
+}
+
+
 def _correction_limits() -> dict:
     return {"median_joint_correction_deg": MAX_JOINT_CORRECTION_DEG, "median_tool_rotation_deg": MAX_TOOL_ROTATION_DEG,
             "judged": ("the median over the training poses (over the joint range for a model that keeps none; the "
@@ -310,6 +320,11 @@ def _solver_description(compensator: CompensatorGraph, portable: bool) -> dict:
             if compensator.tool_length > 0 else
             "the nominal command is sent wherever the corrected one would leave the TCP position further off (by the model)"),
         "tool_length_m": compensator.tool_length,
+        "orientation_source": compensator.orientation_source,
+        "orientation_source_note": (ORIENTATION_SOURCE_NOTES[compensator.orientation_source]
+                                    if compensator.models.joint_errors is not None else
+                                    "the tool's orientation target is met by the calibrated chain (the model has no "
+                                    "joint-space terms, so both sources are the same)"),
     }
     if compensator.task == "pose":
         return {

@@ -23,9 +23,11 @@ def _convergence_text(manifest: dict) -> str:
     else:
         what = ("It solves the full 6-D pose; near singular poses the damping keeps the correction small instead of exact, "
                 "for the position too.")
+    source = manifest["solver"].get("orientation_source")
+    oriented = "" if source is None else f" Orientation: {manifest['solver']['orientation_source_note']}."
     lines = [(f"The compensator runs at most {conv['iterations']} Newton steps, each pose until it has converged (task "
               f"`{conv['task']}`). {what} Every step moves a joint by at most "
-              f"{manifest['solver']['max_step_rad']:.2f} rad and every iterate stays within the joint limits."), "",
+              f"{manifest['solver']['max_step_rad']:.2f} rad and every iterate stays within the joint limits.{oriented}"), "",
              ("| poses | n | within 1 um | within 1 um where solvable | unsolved p99 / max (mm) | orientation deviation p99 / max (rad) "
               "| turned beyond the nominal command's: > 1 deg, max (deg) |"),
              "| --- | --- | --- | --- | --- | --- | --- |"]
