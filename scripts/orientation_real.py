@@ -17,11 +17,12 @@ model and the nominal robot alike).
 
 **Replay table** (:mod:`torchcal.compensate.replay`): what commands leave on the robot, replayed from
 the measured poses to first order, with the measured point as the TCP: no compensation, the
-compensator, the same graph correcting the position only (orientation left), and the compensator's
+compensator, the same graph correcting the position only (the orientation not targeted), and the compensator's
 corrections capped at 0.3 deg per joint. Poses near a singularity are left out (there any command's
 wrist swing is large by the geometry). ``confirmed`` is the least-squares multiple of the
 compensator's orientation change that the measured orientations call for (1: the change is what the
-robot needed). Writes ``<out>.json`` and ``<out>.md``.
+robot needed), over the poses whose orientation the compensator reaches in its steps. Writes
+``<out>.json`` and ``<out>.md``.
 """
 
 from __future__ import annotations
@@ -38,7 +39,14 @@ import torch
 
 from torchcal.app.validation import UR10
 from torchcal.compensate.export_checks import regular_mask
-from torchcal.compensate.replay import PROTOCOL, command_sets, confirmed_share, replay
+from torchcal.compensate.replay import (
+    PROTOCOL,
+    Replayed,
+    command_sets,
+    confirmed_share,
+    replay,
+    solved_mask,
+)
 from torchcal.config.schema import FitConfig
 from torchcal.core.errors import IdentifiabilityWarning
 from torchcal.core.io import atomic_write_json, atomic_write_text
@@ -162,15 +170,19 @@ def _pooled(scores: list[dict]) -> dict:
 
 
 def _replayed(pairs: list[tuple]) -> dict:
-    """Each command set replayed on the regular poses of every ``(model, scored poses)`` pair, pooled."""
+    """Each command set replayed on the regular poses of every ``(model, scored poses)`` pair, pooled; the
+    confirmed share over the poses whose orientation the compensator reaches (:func:`solved_mask`)."""
     pooled: dict[str, list] = {name: [] for name in SETS}
+    solved: list[torch.Tensor] = []
     total = 0
     for stored, data in pairs:
         total += len(data)
         data = data.subset(torch.nonzero(regular_mask(stored.robot, data.q))[:, 0])
+        solved.append(solved_mask(stored, data.q))
         for name, replayed in replay(stored, data, command_sets(stored, data.q, CAP_DEG)).items():
             pooled[name].append(replayed)
-    out: dict = {"n_regular": sum(len(r.position_error) for r in pooled["compensator"]), "n_poses": total}
+    out: dict = {"n_regular": sum(len(r.position_error) for r in pooled["compensator"]), "n_poses": total,
+                 "n_solved": int(sum(int(m.sum()) for m in solved))}
     for name, parts in pooled.items():
         rotation = torch.cat([r.rotation_error for r in parts])
         position = torch.cat([r.position_error for r in parts])
@@ -179,21 +191,17 @@ def _replayed(pairs: list[tuple]) -> dict:
                      "position_rms_mm": float(position.norm(dim=-1).pow(2).mean().sqrt()) * 1e3,
                      "share_above_cap": float((largest > math.radians(CAP_DEG) + 1e-12).double().mean()),
                      "median_joint_correction_deg": math.degrees(float(largest.median()))}
-    # the confirmed share over the pooled poses: rotation errors before and after, pose by pose
-    out["confirmed"] = float(sum(_dot(b, a) for b, a in zip(pooled["uncompensated"], pooled["compensator"]))
-                             / sum(_dot_change(b, a) for b, a in zip(pooled["uncompensated"], pooled["compensator"])))
-    out["confirmed_per_part"] = [confirmed_share(b, a) for b, a in zip(pooled["uncompensated"], pooled["compensator"])]
+    before, after = (_solved_part(pooled[name], solved) for name in ("uncompensated", "compensator"))
+    out["confirmed"] = confirmed_share(before, after)
     return out
 
 
-def _dot(before, after) -> float:
-    change = before.rotation_error - after.rotation_error
-    return float((before.rotation_error * change).sum())
+def _solved_part(parts: list[Replayed], masks: list[torch.Tensor]) -> Replayed:
+    """The pooled replay of the poses the masks keep."""
+    def cat(key: str) -> torch.Tensor:
+        return torch.cat([getattr(p, key)[m] for p, m in zip(parts, masks)])
 
-
-def _dot_change(before, after) -> float:
-    change = before.rotation_error - after.rotation_error
-    return float((change * change).sum())
+    return Replayed(cat("rotation_error"), cat("position_error"), cat("largest_correction"))
 
 
 def _whole_chain_rms_deg(stored, data) -> float:
@@ -249,18 +257,20 @@ def _tables(orientation_rows: list[dict], replay_rows: list[dict]) -> str:
               "compensator (position and orientation); the same graph correcting the position only; the compensator's",
               f"corrections scaled per pose so that no joint moves more than {CAP_DEG:g} deg. `> {CAP_DEG:g} deg`: share of poses",
               "whose largest joint correction exceeds it. `confirmed`: the least-squares multiple of the compensator's",
-              "orientation change that the measured orientations call for (1: what the robot needed).", "",
+              "orientation change that the measured orientations call for (1: what the robot needed), over the poses whose",
+              "orientation the compensator reaches in its steps (`solved`; near the wrist singularity its bounded swing",
+              "leaves some short).", "",
               "| robot | fitted | structure | scored | poses | orientation RMS [deg]: none / compensator / position only / "
               f"capped {CAP_DEG:g} | position RMS [mm]: none / compensator / position only / capped | compensator: "
-              f"median largest correction [deg], > {CAP_DEG:g} deg | confirmed |",
-              "|---|---|---|---|---|---|---|---|---|"]
+              f"median largest correction [deg], > {CAP_DEG:g} deg | solved | confirmed |",
+              "|---|---|---|---|---|---|---|---|---|---|"]
     for r in replay_rows:
         o = " / ".join(f"{r[s]['orientation_rms_deg']:.4f}" for s in SETS)
         p = " / ".join(f"{r[s]['position_rms_mm']:.3f}" for s in SETS)
         c = r["compensator"]
         lines.append(f"| {r['robot']} | {r['fitted']} | {r['structure']} | {r['scored']} | {r['n_regular']} of "
                      f"{r['n_poses']} | {o} | {p} | {c['median_joint_correction_deg']:.3f}, {100 * c['share_above_cap']:.0f} % | "
-                     f"{r['confirmed']:.2f} |")
+                     f"{r['n_solved']} | {r['confirmed']:.2f} |")
     return "\n".join(lines) + "\n"
 
 

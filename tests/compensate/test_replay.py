@@ -8,15 +8,13 @@ import warnings
 import pytest
 import torch
 
-from torchcal.compensate.compensator import CompensatorGraph
 from torchcal.compensate.export_checks import regular_poses
-from torchcal.compensate.production_tcp import production_view
 from torchcal.compensate.replay import (
     command_sets,
     confirmed_share,
     errors_of_true_poses,
-    measured_point,
     replay,
+    solved_mask,
 )
 from torchcal.data.measurements import Measurements
 from torchcal.identify.calibrate import calibrate
@@ -72,10 +70,7 @@ def test_the_replay_is_the_truth_at_the_commands_to_first_order(case):
 def _solved(stored, data: Measurements) -> Measurements:
     """The poses whose orientation the compensator reaches in its steps (the bounded wrist swing leaves a few
     poses near the wrist singularity short of it, as its residual output says)."""
-    graph = CompensatorGraph.from_stored(production_view(stored, measured_point(stored)))
-    with torch.no_grad():
-        _, residual = graph.solve(data.q)
-    return data.subset(torch.nonzero(residual[:, 1] < 1e-6)[:, 0])
+    return data.subset(torch.nonzero(solved_mask(stored, data.q))[:, 0])
 
 
 def test_the_compensator_leaves_what_the_model_misses_and_the_command_sets_differ_as_designed(case):
@@ -102,12 +97,23 @@ def test_the_compensator_leaves_what_the_model_misses_and_the_command_sets_diffe
 
 
 def test_the_confirmed_share_is_one_for_a_right_change_and_zero_for_an_unrelated_one(case):
-    twin, stored, data = case
+    _twin, stored, data = case
     data = _solved(stored, data)
-    replayed = replay(stored, data, command_sets(stored, data.q))
+    commands = command_sets(stored, data.q)
+    replayed = replay(stored, data, commands)
     assert confirmed_share(replayed["uncompensated"], replayed["compensator"]) == pytest.approx(1.0, abs=0.1)
-    # commands that turn the tool although the robot needs no turn: a twin equal to the model measures
-    exact = _measured(twin, data.q)
-    scrambled = replay(stored, exact, {"uncompensated": data.q, "compensator": data.q.flip(0)})
-    share = confirmed_share(scrambled["uncompensated"], scrambled["compensator"])
-    assert abs(share) < 0.3
+    # the same corrections handed to other poses: a change of the same size, unrelated to what each pose needs
+    correction = commands["compensator"] - data.q
+    shuffled = data.q + correction[torch.randperm(len(data), generator=torch.Generator().manual_seed(1))]
+    unrelated = replay(stored, data, {"uncompensated": data.q, "shuffled": shuffled})
+    assert abs(confirmed_share(unrelated["uncompensated"], unrelated["shuffled"])) < 0.3
+    # commands that do not turn the tool have nothing to confirm
+    with pytest.raises(ValueError, match="do not turn"):
+        confirmed_share(unrelated["uncompensated"], unrelated["uncompensated"])
+
+
+def test_replaying_no_poses_is_refused_by_the_metrics(case):
+    _twin, stored, data = case
+    empty = data.subset([])
+    with pytest.raises(ValueError, match="no poses"):
+        replay(stored, empty, {"uncompensated": empty.q})["uncompensated"].metrics()

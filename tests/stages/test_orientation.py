@@ -19,6 +19,7 @@ from torchcal.stages.orientation import (
     model_orientation_errors,
     nominal_orientation_errors,
     orientation_source_of,
+    oriented_joints,
     refuse_implausible,
 )
 
@@ -124,11 +125,12 @@ def test_a_position_only_model_is_scored_by_the_orientation_its_compensator_acts
     with_terms = replace(stored, metadata={**stored.metadata, **terms.to_metadata()})
     plain = model_orientation_errors(stored, data).angles_rad
     torch.testing.assert_close(model_orientation_errors(with_terms, data).angles_rad, plain, rtol=0, atol=1e-12)
-    # scored by the whole chain (a 6-D fit's source) the harmonic would turn the tool by up to its amplitude
+    assert torch.equal(oriented_joints(with_terms, data.q), data.q)
+    # a 6-D fit's model is oriented by the whole chain: the joints it turns carry the harmonic
     whole = replace(with_terms, model=replace_orientation(with_terms.model))
     assert orientation_source_of(whole.model) == "model"
-    turned = model_orientation_errors(whole, data).angles_rad
-    assert float((turned - plain).abs().max()) > math.radians(0.2)
+    turned = oriented_joints(whole, data.q)[:, 4] - data.q[:, 4]
+    torch.testing.assert_close(turned, math.radians(0.5) * data.q[:, 4].sin(), rtol=0, atol=1e-15)
 
 
 def replace_orientation(model):

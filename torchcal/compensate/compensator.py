@@ -235,8 +235,10 @@ class _TwoModels(nn.Module):
         """``(B, 6, 1)``: zeros and the rotation ``sum_i z_i dq_i`` (rad, ``base``) by which the joint-space
         errors ``dq`` ``(B, N)`` turn the tool, where the graph orients by the geometry alone (else ``None``).
 
-        Added to an orientation error of the full chain it gives the geometric chain's, to first
-        order in ``dq`` (the remainder is below ``|dq|^2``: 1e-6 rad for 1e-3 rad of joint-space error).
+        Added to an orientation error of the full chain it gives the geometric chain's to first
+        order in ``dq``: at the solution (the error near zero) the remainder is of order ``|dq|^2``
+        (1e-6 rad for 1e-3 rad of joint-space error); further from it a cross term of order
+        ``|e| |dq|`` joins it, which the steps remove as ``e`` vanishes.
         """
         if not self.orient_by_geometry:  # structural, fixed at construction
             return None

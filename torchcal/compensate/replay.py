@@ -20,8 +20,11 @@ tool's orientation once, for whichever commands the controller runs.
 
 **Command sets** (:func:`command_sets`): ``uncompensated`` (``q``), ``compensator`` (the default
 export's commands), ``position only`` (the same graph with its orientation task damped away: the
-position is corrected with the smallest joint motion and the tool's orientation is left as it is), and
-``capped at C deg`` (the compensator's corrections scaled per pose so that none exceeds ``C``).
+position is corrected with the smallest joint motion, and the tool turns however that motion turns
+it), and ``capped at C deg`` (the compensator's corrections scaled per pose so that none exceeds ``C``).
+:func:`solved_mask` marks the poses whose orientation the compensator reaches in its steps (near the
+wrist singularity its bounded wrist swing leaves some short of it): :func:`confirmed_share` judges
+the model's orientation change there, not the graph's step budget.
 """
 
 from __future__ import annotations
@@ -65,12 +68,22 @@ class Replayed:
 
     def metrics(self) -> dict:
         """RMS orientation (deg, ``None`` without orientation) and position (mm), joint corrections (deg)."""
+        if not len(self.position_error):
+            raise ValueError("no poses replayed")
         out: dict[str, float | None] = {"position_rms_mm": float(self.position_error.norm(dim=-1).pow(2).mean().sqrt()) * 1e3,
                "largest_joint_correction_deg": math.degrees(float(self.largest_correction.max())),
                "median_joint_correction_deg": math.degrees(float(self.largest_correction.median()))}
         angles = None if self.rotation_error is None else self.rotation_error.norm(dim=-1)
         out["orientation_rms_deg"] = None if angles is None else math.degrees(float(angles.pow(2).mean().sqrt()))
         return out
+
+
+def solved_mask(stored: StoredModel, q: torch.Tensor, tolerance_rad: float = 1e-6) -> torch.Tensor:
+    """``(n,)`` bool: the poses of ``q`` whose orientation :func:`command_sets`' compensator reaches within
+    ``tolerance_rad`` (its ``residual`` output), the position being solved everywhere but at a singularity."""
+    with torch.no_grad():
+        _, residual = CompensatorGraph.from_stored(production_view(stored, measured_point(stored))).solve(q.to(torch.float64))
+    return residual[:, 1] < tolerance_rad
 
 
 def command_sets(stored: StoredModel, q: torch.Tensor, cap_deg: float = 0.3) -> dict[str, torch.Tensor]:
@@ -156,4 +169,7 @@ def confirmed_share(uncompensated: Replayed, compensated: Replayed) -> float:
     if uncompensated.rotation_error is None or compensated.rotation_error is None:
         raise ValueError("the file measures no orientation")
     change = uncompensated.rotation_error - compensated.rotation_error
-    return float((uncompensated.rotation_error * change).sum() / (change * change).sum())
+    size = float((change * change).sum())
+    if size == 0.0:
+        raise ValueError("the commands do not turn the tool: there is no change to confirm")
+    return float((uncompensated.rotation_error * change).sum()) / size

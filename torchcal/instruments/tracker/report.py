@@ -276,8 +276,10 @@ def _accuracy(pose_sets: list[PoseSet]) -> Section:
     if oriented:
         blocks += [
             Paragraph("Where a file measures the tool's orientation (rx, ry, rz): the angle between the measured and the "
-                      "predicted orientation (deg). A learned residual head corrects positions only, so the model's "
-                      "row is its kinematic chain with its joint-space terms."),
+                      "predicted orientation (deg): the orientation the model's compensator acts on. A learned residual "
+                      "head corrects positions only; joint-space terms fitted to positions alone correct positions only "
+                      "too, so such a model's row is its MDH chain at the commanded joints (with the terms where the fit "
+                      "measured orientations)."),
             Table("orientation", ["file", "model stage", "protocol", "poses", "RMS [deg]", "mean [deg]", "p95 [deg]",
                                   "max [deg]"],
                   [[p.label, name, m["protocol"], str(m["n_poses"]), _f(m["orientation_rms_deg"]),
