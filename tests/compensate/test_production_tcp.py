@@ -191,6 +191,28 @@ def test_a_harmonic_known_to_sigma_moves_its_joints_correction_by_its_basis(flan
     assert "joint-space terms carry no covariance" in correction_extent(graph, q, without)["sigma_from"]
 
 
+def test_the_corrections_sigma_differences_graphs_of_the_graph_s_own_orientation_source(flange_view):
+    # a position-only model orients by its geometry: a harmonic's uncertainty then moves the command differently
+    # than under the whole chain, and each sigma must come from graphs of the source it describes
+    from torchcal.identify.harmonics import JointHarmonics
+    from torchcal.identify.joint_errors import JointSpaceErrors
+
+    view, q = flange_view
+    harmonics = JointSpaceErrors(harmonics=JointHarmonics(torch.zeros(2, 6, dtype=torch.float64)))
+    n = len(view.free)
+    covariance = torch.zeros(n + 1, n + 1, dtype=torch.float64)
+    covariance[n, n] = math.radians(0.2) ** 2
+    model = replace(view, metadata={**view.metadata, **harmonics.to_metadata()}, joint_covariance=covariance,
+                    joint_coefficients=torch.tensor([[0, 4]]), covariance=torch.zeros(n, n, dtype=torch.float64))
+    default = CompensatorGraph.from_stored(model)
+    assert default.orientation_source == "geometry"
+    by_geometry = correction_sigma(model, default, q)
+    by_model = correction_sigma(model, CompensatorGraph.from_stored(model, orientation_source="model"), q)
+    # under the whole chain joint 5 absorbs its own harmonic; under the geometry the other joints hold the position
+    assert float(by_model[:, [0, 1, 2, 3, 5]].max()) < 1e-4 * math.radians(0.2)
+    assert float(by_geometry[:, [0, 1, 2, 3, 5]].max()) > 0.05 * math.radians(0.2)
+
+
 def test_a_model_without_training_poses_is_judged_over_the_joint_range():
     # a tracer fit keeps no training poses: its corrections over the joint range are what the limits judge
     large = {"median_joint_correction_deg": 5.0, "largest_joint_correction_deg": 37.0, "joint": 3,
