@@ -262,3 +262,23 @@ def test_near_twins_are_left_out_together():
     q[3, 0] = 30 * DEG
     q[4, 0] = 31.5 * DEG  # 1.5 deg from pose 3 in joint 1: its own pose
     assert sorted(map(sorted, near_twin_groups(q))) == [[0, 1, 2], [3], [4]]
+
+
+def test_an_update_of_a_parent_that_measured_orientations_says_its_compensator_orients_by_the_geometry(tmp_path):
+    """An update measures positions only: where the parent's joint-space terms were fitted with measured
+    orientations, the updated model's compensator no longer orients by them, and the update says so."""
+    from torchcal.app.update import ORIENTATION_SOURCE_NOTE
+    from torchcal.kinematics.error_model import ErrorModel
+
+    twin = Twin.create(TwinConfig(seed=3, gravity=True))
+    fit_model(tmp_path / "old", twin.robot, twin.sample(150, torch.Generator().manual_seed(11)),
+              FitConfig(residual="none", progress=False))
+    old = load_model(tmp_path / "old")
+    assert old.metadata.get("gravity_compliance") and not old.model.with_orientation
+    new_poses = twin.sample(12, torch.Generator().manual_seed(300))
+    assert ORIENTATION_SOURCE_NOTE not in update_data(old, new_poses).notes
+    model = old.model
+    measured_orientations = dataclasses.replace(old, model=ErrorModel(
+        model.robot, with_orientation=True, parallel_threshold_deg=model.parallel_threshold_deg,
+        T_instrument_base=model.T_reference))
+    assert ORIENTATION_SOURCE_NOTE in update_data(measured_orientations, new_poses).notes

@@ -258,6 +258,13 @@ def resolve_free(spec: str, stored: StoredModel, check: CheckResult | None) -> t
     return chosen, f"free={text}"
 
 
+#: An update measures positions only: its model's compensator orients the tool by the geometry, also where the
+#: parent's joint-space terms were fitted with measured orientations (``stages.orientation.orientation_source_of``).
+ORIENTATION_SOURCE_NOTE = ("the parent measured the tool's orientation and this update positions only: the updated model's "
+                           "compensator orients the tool by its geometry, not by the joint-space terms (docs/prior.md); "
+                           "measure orientations again (rx, ry, rz) and refit to orient by them")
+
+
 def _fit(stored: StoredModel, data: Measurements, names: list[str]) -> CalibrationResult:
     """MAP fit of the frame and ``names`` from the old model, every other parameter fixed at its old value.
 
@@ -539,6 +546,8 @@ def update_data(stored: StoredModel, data: Measurements, free: str = "auto") -> 
     uncertainty = _uncertainty(used, data, fit, union_free, cov, loo)
     for key, scale in scales.items():
         notes.append(f"{key} refitted as a whole: scaled by {1.0 + scale:.3f} (with the frame and the freed geometry)")
+    if stored.model.with_orientation and not JointSpaceErrors.from_metadata(used.metadata).empty:
+        notes.append(ORIENTATION_SOURCE_NOTE)
     return UpdateResult(stored=stored, data=data, freed=names, how=how, check=check, fit=fit, free=union_free,
                         covariance=cov, loo_errors_mm=loo, uncertainty=uncertainty, head_kept=head_kept,
                         head_line=head_line, parent_sha256=parent_sha256(stored.folder), notes=notes, scales=scales,
