@@ -265,3 +265,30 @@ def test_learned_joint_model_is_saved_loaded_and_exported_with_onnxruntime_parit
     converged = (tcp(model_joints(stored, command)) - stored.robot.tcp_position(q)).norm(dim=-1) < 1e-9
     assert converged.double().mean() > 0.8
     assert float((tcp(torch.from_numpy(ort_command)) - tcp(command)).norm(dim=-1)[converged].max()) * 1e3 <= 1e-9
+
+
+def test_a_production_tcp_keeps_the_gravity_point_the_terms_were_fitted_at(sagging):
+    """The 'tcp' gravity term describes the calibration's payload where it was measured: a view ending in a
+    production TCP 150 mm further and turned must deflect the joints as the fitted model does, in torch and
+    in the graphs (its torques used to follow the production TCP)."""
+    from torchcal.compensate.compensator import _TwoModels
+
+    _twin, folder, _manifest, _out = sagging
+    stored = load_model(folder)
+    terms = JointSpaceErrors.from_metadata(stored.metadata)
+    assert terms.compliance is not None and "tcp" in terms.compliance.points
+    view = production_view(stored, tcp_transform([30.0, -20.0, 150.0], [10.0, 80.0, -30.0]))
+    q = stored.robot.sample_joints(300, torch.Generator().manual_seed(12))
+    fitted = model_joints(stored, q) - q
+    assert float(fitted.abs().max()) > 1e-5
+    torch.testing.assert_close(model_joints(view, q) - q, fitted, rtol=0, atol=1e-13)
+    graph = _TwoModels(view.model, view.x, None, torch.float64, "cpu", JointSpaceErrors.from_metadata(view.metadata))
+    nominal, nominal_frames = graph.nominal(q, with_frames=True)
+    point = nominal[:, 0, :3, 3] + (nominal[:, 0, :3, :3] @ graph.gravity_point_shift)[..., 0]
+    dq, _ = graph.joint_errors(q, nominal_frames[:, 0], point)
+    torch.testing.assert_close(dq, fitted, rtol=0, atol=1e-13)
+    # the same view without the pinned point moves the torques with the TCP: a different deflection
+    unpinned = dataclasses.replace(view, metadata={**view.metadata, **JointSpaceErrors(
+        dataclasses.replace(JointSpaceErrors.from_metadata(view.metadata).compliance, tcp_point=None),
+        terms.harmonics).to_metadata()})
+    assert float((model_joints(unpinned, q) - q - fitted).abs().max()) > 1e-6

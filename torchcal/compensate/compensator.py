@@ -177,7 +177,8 @@ class _TwoModels(nn.Module):
     by ``q + dq(q)``; without them every method reduces to the plain chains, node for node.
     """
 
-    turn_selector: torch.Tensor  # a buffer (with joint-space errors): declared for the type checker
+    turn_selector: torch.Tensor  # buffers (with joint-space errors): declared for the type checker
+    gravity_point_shift: torch.Tensor
 
     def __init__(self, model: ErrorModel, x: torch.Tensor, residual: nn.Module | None, dtype: torch.dtype, device,
                  joint_errors: JointSpaceErrors | None = None, orient_by_geometry: bool = False) -> None:
@@ -192,11 +193,18 @@ class _TwoModels(nn.Module):
         self.residual = _residual_copy(residual, dtype, device)
         self.n_joints = robot.dof
         self.joint_errors = None
+        self.shifts_gravity_point = False
         self.orient_by_geometry = False
         if joint_errors is not None and not joint_errors.empty:
             self.joint_errors = JointErrorGraph(joint_errors, robot.dof, dtype=dtype, device=device)
             self.nominal = ChainGraph(tables[:1], t0, end_nominal.unsqueeze(0), dtype=dtype, device=device)
             self.orient_by_geometry = bool(orient_by_geometry)
+            # a gravity term's 'tcp' point where it was fitted, from the nominal TCP: p + R (point - tool)
+            point = None if joint_errors.compliance is None else joint_errors.compliance.tcp_point
+            self.shifts_gravity_point = point is not None
+            if point is not None:
+                shift = point.to(torch.float64) - robot.tool.to(torch.float64)
+                self.register_buffer("gravity_point_shift", shift.reshape(3, 1).to(device=device, dtype=dtype))
             # picks the joint axes z_i (entries 2, 6, 10 of a row-major frame) into the orientation rows of an error
             selector = torch.zeros(16, 6, dtype=dtype, device=device)
             for r in range(3):
@@ -213,7 +221,10 @@ class _TwoModels(nn.Module):
             return poses[:, 0], poses[:, 1], frames[:, 1], None, None
         nominal, nominal_frames = self.nominal(q, with_frames=True)
         nominal = nominal[:, 0]
-        dq, slope = self.joint_errors(q, nominal_frames[:, 0], nominal[:, :3, 3])
+        point = nominal[:, :3, 3]
+        if self.shifts_gravity_point:  # structural, fixed at construction
+            point = point + (nominal[:, :3, :3] @ self.gravity_point_shift)[..., 0]
+        dq, slope = self.joint_errors(q, nominal_frames[:, 0], point)
         pose, frames = self.calibrated.single(q + dq)
         return nominal, pose.reshape(-1, 4, 4), frames, slope, self.turn(frames, dq)
 

@@ -55,7 +55,11 @@ def tcp_transform(position_mm: list[float] | None, rpy_deg: list[float] | None) 
 
 
 def production_view(stored, T_flange_tcp: torch.Tensor):
-    """``stored`` with both chains ending in the production TCP (the fitted tool entries set to zero)."""
+    """``stored`` with both chains ending in the production TCP (the fitted tool entries set to zero).
+
+    A gravity-compliance term at the ``tcp`` point keeps the point it was fitted at (the payload of
+    the calibration): its torques do not follow the production TCP.
+    """
     robot = replace(stored.robot, T_n_flange=stored.robot.T_n_flange.to(torch.float64) @ T_flange_tcp,
                     tool=torch.zeros(3, dtype=torch.float64))
     model = ErrorModel(robot, with_orientation=stored.model.with_orientation,
@@ -63,7 +67,15 @@ def production_view(stored, T_flange_tcp: torch.Tensor):
                        T_instrument_base=stored.model.T_reference, device=stored.model.device)
     x = stored.x.clone()
     x[model.layout.tool_slice] = 0.0
-    return replace(stored, robot=robot, model=model, x=x)
+    metadata = stored.metadata
+    terms = JointSpaceErrors.from_metadata(metadata)
+    if terms.compliance is not None:
+        compliance = terms.compliance
+        fitted = stored.robot.tool.to(torch.float64) if compliance.tcp_point is None else compliance.tcp_point
+        rotation, shift = T_flange_tcp[:3, :3].to(torch.float64), T_flange_tcp[:3, 3].to(torch.float64)
+        pinned = replace(compliance, tcp_point=rotation.T @ (fitted - shift))  # in the new flange frame
+        metadata = {**metadata, **JointSpaceErrors(pinned, terms.harmonics).to_metadata()}
+    return replace(stored, robot=robot, model=model, x=x, metadata=metadata)
 
 
 def tcp_entry(T_flange_tcp: torch.Tensor, position_mm, rpy_deg, stored) -> dict:

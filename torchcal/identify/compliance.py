@@ -46,8 +46,13 @@ FRAME_POINTS: dict[str, tuple[int, int]] = {"elbow": (ELBOW_FRAME, ELBOW_FRAME -
 _ZERO_COLUMN = 1e-9  # a basis column below this norm (m) has no effect: joint axis along gravity
 
 
-def gravity_torque_basis(robot: RobotModel, q: torch.Tensor, points: tuple[str, ...]) -> torch.Tensor:
-    """Unit-weight gravity torques ``(B, len(points), N)`` in m about each joint, nominal chain, ``base`` z up."""
+def gravity_torque_basis(robot: RobotModel, q: torch.Tensor, points: tuple[str, ...],
+                         tcp_point: torch.Tensor | None = None) -> torch.Tensor:
+    """Unit-weight gravity torques ``(B, len(points), N)`` in m about each joint, nominal chain, ``base`` z up.
+
+    ``tcp_point``: where the ``tcp`` point lies in the robot's flange frame (m; default: the robot's
+    tool point), so that a view ending in another TCP keeps the point the terms were fitted at.
+    """
     model = ErrorModel(robot)
     x = model.nominal_vector()
     frames = chain_frames(q, model.table(x), r_start=model.T_base_0[:3, :3].to(q), p_start=model.T_base_0[:3, 3].to(q))
@@ -60,7 +65,12 @@ def gravity_torque_basis(robot: RobotModel, q: torch.Tensor, points: tuple[str, 
             raise ValueError(f"unknown gravity point '{label}'; choose one of {sorted(POINT_FUNCTIONS)}")
         name, power = POINT_FUNCTIONS[label]
         if name == "tcp":
-            point, beyond = model.tcp_position(q, x), torch.ones(n, dtype=q.dtype)
+            beyond = torch.ones(n, dtype=q.dtype)
+            if tcp_point is None:
+                point = model.tcp_position(q, x)
+            else:
+                flange = robot.flange_pose(q)
+                point = flange[..., :3, :3] @ tcp_point.to(q) + flange[..., :3, 3]
         else:
             frame, loaded = FRAME_POINTS[name]
             point = origins[:, min(frame, n) - 1]
@@ -77,10 +87,14 @@ class GravityCompliance:
 
     points: tuple[str, ...]
     coefficients: torch.Tensor
+    #: The ``tcp`` point in the robot's flange frame (m), where a view of the model ends in another TCP
+    #: than the one fitted (:func:`~torchcal.compensate.production_tcp.production_view`); ``None``: the
+    #: robot's tool point, as fitted.
+    tcp_point: torch.Tensor | None = None
 
     def deflection(self, robot: RobotModel, q: torch.Tensor) -> torch.Tensor:
         """Joint deflection ``(B, N)`` rad at commanded joints ``q`` ``(B, N)`` rad."""
-        basis = gravity_torque_basis(robot, q, self.points)
+        basis = gravity_torque_basis(robot, q, self.points, self.tcp_point)
         return (basis * self.coefficients.to(q)).sum(1)
 
     def effective_joints(self, robot: RobotModel, q: torch.Tensor) -> torch.Tensor:
@@ -88,10 +102,15 @@ class GravityCompliance:
         return q + self.deflection(robot, q)
 
     def to_json(self) -> dict:
-        return {"points": list(self.points), "coefficients_rad_per_m": self.coefficients.tolist(),
-                "model": "dq_j = sum_k c_kj * f_k(tau_j), tau_j unit-weight gravity torque about joint j (m), base z up; "
-                         "point tcp3: the tcp torque cubed (m^3)"}
+        out = {"points": list(self.points), "coefficients_rad_per_m": self.coefficients.tolist(),
+               "model": "dq_j = sum_k c_kj * f_k(tau_j), tau_j unit-weight gravity torque about joint j (m), base z up; "
+                        "point tcp3: the tcp torque cubed (m^3)"}
+        if self.tcp_point is not None:
+            out["tcp_point_m"] = self.tcp_point.tolist()
+        return out
 
     @classmethod
     def from_json(cls, data: dict) -> GravityCompliance:
-        return cls(tuple(data["points"]), torch.tensor(data["coefficients_rad_per_m"], dtype=torch.float64))
+        point = data.get("tcp_point_m")
+        return cls(tuple(data["points"]), torch.tensor(data["coefficients_rad_per_m"], dtype=torch.float64),
+                   None if point is None else torch.tensor(point, dtype=torch.float64))

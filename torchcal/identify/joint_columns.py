@@ -14,6 +14,25 @@ import torch
 from torchcal.kinematics.error_model import ErrorModel
 
 
+def pose_and_columns(model: ErrorModel, q: torch.Tensor, x: torch.Tensor, columns: torch.Tensor, size: int,
+                     joint_column: Callable[[int, torch.Tensor], torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
+    """TCP pose ``(B, 4, 4)`` at joints ``q`` (rad) and the Jacobian ``(B, 6, len(columns))`` of
+    ``[p, rotation vector]`` (m, rad; :meth:`~torchcal.kinematics.error_model.ErrorModel.pose_jacobian`),
+    the joint-space columns made as in :func:`position_and_columns` from the ``theta_j`` columns ``(B, 6, N)``."""
+    theta = torch.tensor([model.layout.index(f"theta{j + 1}") for j in range(model.robot.dof)])
+    geo = columns[columns < size]
+    pose, jac = model.pose_jacobian(q, x, torch.cat([geo, theta]))
+    jac_geo, jac_theta = jac[..., : len(geo)], jac[..., len(geo) :]
+    parts, g = [], 0
+    for col in columns.tolist():
+        if col < size:
+            parts.append(jac_geo[..., g])
+            g += 1
+        else:
+            parts.append(joint_column(col - size, jac_theta))
+    return pose, torch.stack(parts, -1)
+
+
 def position_and_columns(model: ErrorModel, q: torch.Tensor, x: torch.Tensor, columns: torch.Tensor, size: int,
                          joint_column: Callable[[int, torch.Tensor], torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
     """Predicted TCP positions ``(B, 3)`` (m) at joints ``q`` (rad) and the Jacobian ``(B, 3, len(columns))``.

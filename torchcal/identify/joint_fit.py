@@ -39,12 +39,13 @@ from torchcal.identify.harmonics import (
     term_order,
 )
 from torchcal.identify.identifiability import analyze
-from torchcal.identify.joint_columns import position_and_columns
+from torchcal.identify.joint_columns import pose_and_columns, position_and_columns
 from torchcal.identify.joint_errors import JointSpaceErrors
 from torchcal.identify.lm import LevenbergMarquardt
 from torchcal.identify.prior import log_evidence, solve_map
 from torchcal.identify.series_frames import per_series_registered
 from torchcal.identify.uncertainty import covariance
+from torchcal.kinematics import transforms as tf
 from torchcal.kinematics.error_model import ErrorModel
 from torchcal.kinematics.robot import RobotModel
 
@@ -57,18 +58,24 @@ class JointErrorProblem:
     ``basis (n, R, N)`` holds the joint-error basis rows; ``columns`` the ``(row, joint)`` of each
     coefficient and ``column_names`` its name. Offers what an
     :class:`~torchcal.identify.base.Identifier` uses (``free``, ``names``, ``residuals``,
-    ``jacobian``, ``with_free``). Residuals in the instrument frame, m.
+    ``jacobian``, ``with_free``). Residuals in the instrument frame, m; where the model was fitted to
+    measured orientations (``model.with_orientation``) each pose adds its rotation rows, rad times
+    ``orientation_weight_m_per_rad``, as :class:`~torchcal.identify.problem.CalibrationProblem`'s:
+    the joint-space terms turn the tool as they move the point, and the orientations judge both.
     """
 
     def __init__(self, model: ErrorModel, data: Measurements, basis: torch.Tensor, free: torch.Tensor,
-                 columns: list[tuple[int, int]], column_names: list[str] | None = None) -> None:
+                 columns: list[tuple[int, int]], column_names: list[str] | None = None,
+                 orientation_weight_m_per_rad: float = 1.0) -> None:
         self.model, self.data, self.basis, self.free = model, data, basis, free
         self.columns = columns
         # flat (row, joint) index of each coefficient in the (R, N) coefficient table
         self._flat = torch.tensor([k * basis.shape[2] + j for k, j in columns], dtype=torch.long)
         self.column_names = column_names or [f"joint_error{k}_{j + 1}" for k, j in columns]
         self.size = model.layout.size
-        self.rows_per_pose = 3
+        self.use_orientation = bool(model.with_orientation and data.rotation is not None)
+        self.orientation_weight_m_per_rad = orientation_weight_m_per_rad
+        self.rows_per_pose = 6 if self.use_orientation else 3
 
     @property
     def names(self) -> list[str]:
@@ -82,8 +89,17 @@ class JointErrorProblem:
         c = c.reshape(self.basis.shape[1], self.basis.shape[2])
         return x, self.data.q + (self.basis * c).sum(1)
 
+    def _pose_rows(self, pose: torch.Tensor) -> torch.Tensor:
+        """``(n, 6)`` position and weighted rotation residuals of TCP poses ``(n, 4, 4)``."""
+        assert self.data.rotation is not None
+        dp = self.data.position.to(pose) - pose[..., :3, 3]
+        dr = tf.so3_log(self.data.rotation.to(pose) @ pose[..., :3, :3].transpose(-1, -2))
+        return torch.cat([dp, dr * self.orientation_weight_m_per_rad], -1)
+
     def residuals(self, xe: torch.Tensor) -> torch.Tensor:
         x, q = self._split(xe)
+        if self.use_orientation:
+            return self._pose_rows(self.model.tcp_pose(q, x)).reshape(-1)
         return per_series_registered(self.data, (self.data.position - self.model.tcp_position(q, x)).reshape(-1))[0]
 
     def jacobian(self, xe: torch.Tensor, columns: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
@@ -94,13 +110,19 @@ class JointErrorProblem:
             k, j = self.columns[i]
             return jac_theta[..., j] * self.basis[:, k, j : j + 1]
 
+        if self.use_orientation:  # as CalibrationProblem's 6-D rows (no pooled series: a 6-D fit has one frame)
+            pose, full = pose_and_columns(self.model, q, x, columns, self.size, joint_column)
+            full = full.clone()
+            full[:, 3:] *= self.orientation_weight_m_per_rad
+            return self._pose_rows(pose).reshape(-1), -full.reshape(-1, full.shape[-1])
         pred, full = position_and_columns(self.model, q, x, columns, self.size, joint_column)
         r, jac = per_series_registered(self.data, (self.data.position - pred).reshape(-1), -full.reshape(-1, full.shape[-1]))
         assert jac is not None
         return r, jac
 
     def with_free(self, free: torch.Tensor) -> JointErrorProblem:
-        return JointErrorProblem(self.model, self.data, self.basis, free, self.columns, self.column_names)
+        return JointErrorProblem(self.model, self.data, self.basis, free, self.columns, self.column_names,
+                                 self.orientation_weight_m_per_rad)
 
 
 def _candidate_columns(basis: torch.Tensor, points: tuple[str, ...], terms: tuple[str, ...]) -> tuple[list, list]:
@@ -176,7 +198,7 @@ def fit_joint_errors(robot: RobotModel, data: Measurements, geometric, points: t
 
         # the geometry's noise sigma as the start: the joint terms lower it, a warm solve or two follow
         prior_scale = scales[len(scales) // 2]
-        fit = solve_map(sized, prior_of(prior_scale), x0, LevenbergMarquardt(), units=units,
+        fit = solve_map(sized, prior_of(prior_scale), x0, LevenbergMarquardt(), units=units, rows_per_pose=sized.rows_per_pose,
                         start_sigma=geometric.noise_sigma_m)
         if smooth:
             # the evidence of every scale from one Gauss-Newton step at this solution (the series is
@@ -186,6 +208,7 @@ def fit_joint_errors(robot: RobotModel, data: Measurements, geometric, points: t
             if scales[best] != prior_scale:
                 prior_scale = scales[best]
                 fit = solve_map(sized, prior_of(prior_scale), starts[best], LevenbergMarquardt(), units=units,
+                                rows_per_pose=sized.rows_per_pose,
                                 start_sigma=fit.noise_sigma)
         sol, cov, sigma = fit.solve, fit.covariance, fit.noise_sigma
         if smooth:
