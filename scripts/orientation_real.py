@@ -1,4 +1,4 @@
-"""Does a position-only calibration know the tool's orientation? ``python scripts/orientation_real.py --data-root ../shared/data/real``.
+"""Does a position-only calibration know the tool's orientation? ``python scripts/orientation_real.py [--data-root ../shared/data/real]``.
 
 Two robots measured the orientation as well as the position; every fit here sees positions only:
 
@@ -87,7 +87,7 @@ def irb120_with_orientation(folder: Path, robot) -> Measurements:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
-    parser.add_argument("--data-root", default="../shared/data/real")
+    parser.add_argument("--data-root", default=str(Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real"))
     parser.add_argument("--out", default="docs/orientation_real")
     args = parser.parse_args()
     orientation_rows: list[dict] = []
@@ -224,7 +224,7 @@ def _tables(orientation_rows: list[dict], replay_rows: list[dict]) -> str:
     lines = [
         "# Orientation of a position-only calibration, measured on two robots",
         "",
-        "Written by `python scripts/orientation_real.py --data-root ../shared/data/real`. Every fit saw positions only.",
+        "Written by `python scripts/orientation_real.py` (the public sets read in place, `--data-root`, default ../shared/data/real). Every fit saw positions only.",
         "UR10: fitted on one series, scored on each other series' 6-D file (T-Mac orientation), every "
         f"{EVERY_A}th row of series A. IRB 120: grouped 5-fold CV on SMR 1's positions; the held-out poses' orientation",
         "is the nest frame of the three SMRs on the tool (150 mm apart, their distances constant to 0.005 mm).",

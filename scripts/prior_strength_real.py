@@ -1,6 +1,6 @@
 """What the prior's strength does on the small real sets, in-sample and on held-out poses.
 
-``python scripts/prior_strength_real.py --data-root ../shared/data/real``: for each set whose
+``python scripts/prior_strength_real.py [--data-root ../shared/data/real]``: for each set whose
 validation has an in-sample protocol (the sources' own: fit all poses, score some of them), a
 geometry-only fit at each prior strength (the evidence's choice, fixed scales of the tolerance
 sigmas, and the rank cut ``prior=none``) is scored twice: on the in-sample poses of that protocol
@@ -47,7 +47,7 @@ def _rms_mm(errors: torch.Tensor) -> float:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
-    parser.add_argument("--data-root", default="../shared/data/real")
+    parser.add_argument("--data-root", default=str(Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real"))
     parser.add_argument("--out", default="docs/prior_strength_real")
     args = parser.parse_args()
     rows = []
@@ -82,7 +82,7 @@ def main() -> None:
 
 def _table(rows: list[dict]) -> str:
     lines = ["# The prior's strength on the small real sets: in-sample against held out", "",
-             "Written by `python scripts/prior_strength_real.py --data-root ../shared/data/real`. Geometry only. In-sample:",
+             "Written by `python scripts/prior_strength_real.py` (the public sets read in place, default ../shared/data/real). Geometry only. In-sample:",
              "the source's protocol of `scripts/validate_real.py` (fit all poses, score the listed ones). Held out: grouped",
              "5-fold CV, whole configuration regions held out. `auto`: the default (the marginal likelihood chooses among",
              "the nominal robot and the tolerance sigmas x0.25, x1, x4, x16); numbers: fixed scales of the tolerance",

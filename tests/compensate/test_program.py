@@ -8,6 +8,8 @@ compensator's own (the exported runtime's), also where they do not reach 1 um; s
 from __future__ import annotations
 
 import json
+import math
+import warnings
 
 import numpy as np
 import pytest
@@ -275,3 +277,44 @@ def test_a_jump_between_targets_is_named_as_a_possible_change_of_configuration()
     assert len(lines) == 1 and lines[0].startswith("row 3: joint 4 turns 180.0 deg from row 2")
     first = configuration_jumps(q[1:], start, [3, 4])
     assert len(first) == 1 and "from --start" in first[0]
+
+
+def test_tcp_pose_angles_that_look_like_radians_are_warned_about(twin, model_dir, tmp_path):
+    from torchcal.kinematics.error_model import ErrorModel
+
+    stored = production_view(load_model(model_dir), tcp_transform(None, None))
+    start = twin.robot.sample_joints(1, torch.Generator().manual_seed(5), margin=0.4)[0]
+    q = start + torch.linspace(0, 1, 5, dtype=torch.float64)[:, None] * torch.deg2rad(torch.tensor([5.0, -5, 5, 5, -5, 5]))
+    nominal = ErrorModel(stored.robot, T_instrument_base=torch.eye(4, dtype=torch.float64))
+    poses = nominal.tcp_pose(q, nominal.nominal_vector())
+    _poses(tmp_path / "deg.csv", poses, True)
+    start_deg = torch.rad2deg(start).tolist()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # degrees: no warning
+        compensate_program(model_dir, tmp_path / "deg.csv", tmp_path / "a.csv", start_deg=start_deg)
+    lines = (tmp_path / "deg.csv").read_text().splitlines()
+    header = lines[0].split(",")
+    cols = [header.index(c) for c in ("rx", "ry", "rz")]
+    rows = []
+    for line in lines[1:]:
+        cells = line.split(",")
+        for c in cols:
+            cells[c] = repr(math.radians(float(cells[c])))
+        rows.append(",".join(cells))
+    (tmp_path / "rad.csv").write_text("\n".join([lines[0], *rows]) + "\n")
+    with pytest.warns(UserWarning, match="if they are radians, give them in degrees"):
+        try:
+            compensate_program(model_dir, tmp_path / "rad.csv", tmp_path / "b.csv", start_deg=start_deg)
+        except TorchcalError:
+            pass  # the radians may also be unreachable: the warning came first
+
+
+def test_compensate_names_itself_when_it_refuses_large_corrections():
+    from torchcal.compensate.production_tcp import check_corrections
+
+    large = {"median_joint_correction_deg": 5.0, "largest_joint_correction_deg": 37.0, "joint": 3,
+             "median_tool_rotation_deg": 0.1, "largest_tool_rotation_deg": 1.0}
+    with pytest.raises(TorchcalError, match="^compensate refused"):
+        check_corrections({"training poses": large}, allow=False, command="compensate")
+    with pytest.raises(TorchcalError, match="^export refused"):
+        check_corrections({"training poses": large}, allow=False)

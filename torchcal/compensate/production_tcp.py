@@ -214,8 +214,9 @@ def correction_sigma(stored, graph, q: torch.Tensor, step: float = 0.01) -> torc
     return variance.sqrt()
 
 
-def check_corrections(extent: dict[str, dict], allow: bool) -> list[str]:
-    """Lines naming the limits an export exceeds; raises :class:`TorchcalError` unless ``allow``."""
+def check_corrections(extent: dict[str, dict], allow: bool, command: str = "export") -> list[str]:
+    """Lines naming the limits an export exceeds; raises :class:`TorchcalError` unless ``allow``
+    (``command``: the command that refuses, ``export`` or ``compensate``)."""
     found = []
     # the training poses are judged; a model without them (a tracer fit keeps none) by the joint range.
     # The other sets are reported, not judged: near (not at) singular poses any orientation step is large
@@ -231,7 +232,7 @@ def check_corrections(extent: dict[str, dict], allow: bool) -> list[str]:
             found.append(f"tool orientation off by {e['median_tool_rotation_deg']:.3g} deg (median; up to "
                          f"{e['largest_tool_rotation_deg']:.3g}) over the {where} (limit {MAX_TOOL_ROTATION_DEG:g} deg)")
     if found and not allow:
-        raise TorchcalError("export refused: " + "; ".join(found) + ". Corrections this large come from parameters the "
+        raise TorchcalError(f"{command} refused: " + "; ".join(found) + ". Corrections this large come from parameters the "
                             "data did not determine or from a wrong robot file; check the calibration's prior report, or "
                             "pass --allow-large-corrections to export anyway")
     return found

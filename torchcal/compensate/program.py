@@ -188,6 +188,10 @@ def is_tcp_program(path: Path) -> bool:
                                                                    for h in header)
 
 
+#: A program of at least this many TCP poses whose angles all lie within +-pi gets a warning (radians?).
+RADIANS_HINT_TARGETS = 3
+
+
 def read_tcp_targets(path: Path, robot, start_deg: list[float]) -> tuple[torch.Tensor, list[int], dict[str, list[str]]]:
     """Nominal joint targets ``(B, N)`` rad of a file of TCP poses, solved in order from ``start_deg``,
     their file lines and the file's other columns (:func:`other_columns`).
@@ -213,7 +217,14 @@ def read_tcp_targets(path: Path, robot, start_deg: list[float]) -> tuple[torch.T
     check_targets_not_metres(position, nominal_reach(robot), what="TCP target", path=str(path),
                              advice="the targets look like metres; a program file's x, y, z are in mm")
     if oriented:
-        angles = torch.from_numpy(np.radians(np.stack([table.column(c) for c in ROTATION_COLUMNS], 1)))
+        degrees = np.stack([table.column(c) for c in ROTATION_COLUMNS], 1)
+        if len(degrees) >= RADIANS_HINT_TARGETS and float(np.abs(degrees).max()) <= math.pi:
+            import warnings
+
+            warnings.warn(f"{path}: every rx, ry, rz lies within +-{math.pi:.4f}: if they are radians, give them in "
+                          "degrees (fixed-axis XYZ); as degrees every target's tool is within 3.2 deg of the base "
+                          "axes' orientation", stacklevel=2)
+        angles = torch.from_numpy(np.radians(degrees))
         targets = tf.homogeneous(tf.euler_xyz_to_matrix(angles), position)
     model = ErrorModel(robot, T_instrument_base=torch.eye(4, dtype=torch.float64))
     x = model.nominal_vector()
@@ -345,7 +356,7 @@ def compensate_program(
     extent = {}  # the export's check, on the poses it judges (training poses less the singular ones: _regular)
     if stored.training_q is not None and len(regular_poses(stored.robot, stored.training_q)):
         extent["training poses"] = correction_extent(graph, regular_poses(stored.robot, stored.training_q))
-    allowed = check_corrections(extent, allow_large_corrections)
+    allowed = check_corrections(extent, allow_large_corrections, command="compensate")
     start = time.perf_counter()
     q_c, residual = [], []
     with torch.no_grad():
