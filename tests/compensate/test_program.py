@@ -303,9 +303,9 @@ def test_tcp_pose_angles_that_look_like_radians_are_warned_about(twin, model_dir
             cells[c] = repr(math.radians(float(cells[c])))
         rows.append(",".join(cells))
     (tmp_path / "rad.csv").write_text("\n".join([lines[0], *rows]) + "\n")
-    with pytest.warns(UserWarning, match="if they are radians, give them in degrees"):
-        with contextlib.suppress(TorchcalError):  # the radians may also be unreachable: the warning came first
-            compensate_program(model_dir, tmp_path / "rad.csv", tmp_path / "b.csv", start_deg=start_deg)
+    # the radians may also be unreachable: the warning comes first
+    with pytest.warns(UserWarning, match="if they are radians, give them in degrees"), contextlib.suppress(TorchcalError):
+        compensate_program(model_dir, tmp_path / "rad.csv", tmp_path / "b.csv", start_deg=start_deg)
 
 
 def test_compensate_names_itself_when_it_refuses_large_corrections():
