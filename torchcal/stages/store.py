@@ -382,6 +382,44 @@ def _joint_covariance(path: Path, tensors: dict[str, torch.Tensor], n_free: int,
     return cov, index
 
 
+def _check_joint_terms(path: Path, meta: dict, n_joints: int) -> None:
+    """Refuse joint-space entries of ``calibration.json`` a fit could not have written, in one line naming
+    the entry: unknown gravity points, coefficients that are not finite numbers or not one row per point
+    (per harmonic term) and one column per joint, a harmonic on the last joint (which has none)."""
+    from torchcal.identify.compliance import POINT_FUNCTIONS
+
+    def table(entry: str, values, rows: int | None) -> torch.Tensor:
+        try:
+            t = torch.tensor(values, dtype=torch.float64)
+        except (TypeError, ValueError):
+            raise ModelError(f"{path}: {entry} must be a table of numbers") from None
+        if t.ndim != 2 or t.shape[1] != n_joints or (rows is not None and t.shape[0] != rows) or not bool(torch.isfinite(t).all()):
+            raise ModelError(f"{path}: {entry} must hold finite numbers, {rows if rows is not None else 'a row'} per term "
+                             f"and {n_joints} per row (one per joint); got shape {tuple(t.shape)}")
+        return t
+
+    compliance = meta.get("gravity_compliance")
+    if compliance:
+        points = compliance.get("points") if isinstance(compliance, dict) else None
+        if not isinstance(points, list) or not all(isinstance(p, str) and p in POINT_FUNCTIONS for p in points):
+            raise ModelError(f"{path}: gravity_compliance.points must list points among {sorted(POINT_FUNCTIONS)}, "
+                             f"got {points!r}")
+        table("gravity_compliance.coefficients_rad_per_m", compliance.get("coefficients_rad_per_m"), len(points))
+        point = compliance.get("tcp_point_m")
+        if point is not None and (not isinstance(point, list) or len(point) != 3
+                                  or not all(isinstance(v, (int, float)) and math.isfinite(v) for v in point)):
+            raise ModelError(f"{path}: gravity_compliance.tcp_point_m must be 3 finite numbers (m), got {point!r}")
+    harmonics = meta.get("joint_harmonics")
+    if harmonics:
+        values = harmonics.get("coefficients_rad") if isinstance(harmonics, dict) else None
+        t = table("joint_harmonics.coefficients_rad", values, None)
+        if t.shape[0] % 2:
+            raise ModelError(f"{path}: joint_harmonics.coefficients_rad must hold sine and cosine rows in pairs, got "
+                             f"{t.shape[0]} rows")
+        if bool((t[:, -1] != 0).any()):
+            raise ModelError(f"{path}: joint_harmonics.coefficients_rad has a term on the last joint, which has none")
+
+
 def load_model(folder: str | Path, device: str | torch.device = "cpu") -> StoredModel:
     """Read a model folder written by :func:`save_model` (safetensors + JSON only).
 
@@ -414,9 +452,13 @@ def load_model(folder: str | Path, device: str | torch.device = "cpu") -> Stored
     threshold = meta.get("parallel_threshold_deg", 2.0)
     if not isinstance(threshold, (int, float)) or not math.isfinite(threshold) or threshold < 0:
         raise ModelError(f"{meta_path}: parallel_threshold_deg must be a finite number >= 0, got {threshold!r}")
+    with_orientation = meta.get("with_orientation", False)
+    if not isinstance(with_orientation, bool):
+        raise ModelError(f"{meta_path}: with_orientation must be true or false, got {with_orientation!r}")
+    _check_joint_terms(meta_path, meta, robot.dof)
     model = ErrorModel(
         robot,
-        with_orientation=bool(meta.get("with_orientation", False)),
+        with_orientation=with_orientation,
         parallel_threshold_deg=threshold,
         T_instrument_base=tensors["T_reference"],
         device=device,
