@@ -21,6 +21,7 @@ from torchcal.core.errors import DataError, IdentifiabilityWarning
 from torchcal.data.measurements import Measurements
 from torchcal.identify.calibrate import calibrate
 from torchcal.identify.lm import LevenbergMarquardt
+from torchcal.kinematics import transforms as tf
 from torchcal.kinematics.robot import RobotModel
 
 #: A row is set aside above this multiple of the median row error ...
@@ -116,3 +117,65 @@ def check_orientation_columns(robot: RobotModel, data: Measurements, *, parallel
                         f"misses the points by {rms[True]:.3f} mm RMS, without them by {rms[False]:.3f} mm; check "
                         "their convention (fixed-axis XYZ in deg, R = Rz(rz) Ry(ry) Rx(rx), tool in the instrument "
                         "frame) or remove the columns to fit positions only", path=data.source)
+
+
+#: A row's orientation is set aside above this angle (deg) besides ``RATIO`` times the median: real arms
+#: and probes leave hundredths to tenths of a degree, a mistyped or mis-signed angle tens of degrees.
+FLOOR_DEG = 1.0
+
+
+@dataclass(frozen=True)
+class OrientationOutlierRows:
+    """Rows whose measured orientation the calibrated geometry cannot explain: indices, file lines, angles (deg)."""
+
+    index: tuple[int, ...]
+    lines: tuple[int, ...]
+    angles_deg: tuple[float, ...]
+    median_deg: float
+
+    def message(self, source: str) -> str:
+        shown = ", ".join(f"line {line} ({a:.1f} deg)" for line, a in zip(self.lines[:8], self.angles_deg[:8]))
+        more = f" and {len(self.lines) - 8} more" if len(self.lines) > 8 else ""
+        return (f"{source}: {len(self.index)} row(s) whose orientation (rx, ry, rz) misses the calibrated geometry by far "
+                f"more than the others (median {self.median_deg:.3f} deg) are left out of the fit: {shown}{more}; check "
+                "their angles")
+
+
+def find_orientation_outlier_rows(robot: RobotModel, data: Measurements, *, parallel_threshold_deg: float,
+                                  ratio: float = RATIO, floor_deg: float = FLOOR_DEG,
+                                  max_share: float = MAX_SHARE) -> OrientationOutlierRows | None:
+    """The rows whose ``rx, ry, rz`` the position-fitted geometry cannot explain (``None``: all plausible, or none measured).
+
+    The geometry is fitted to the positions (the orientation rows would follow a bad angle), the
+    probe's rotation on the flange is fitted to the orientations twice (the second time without the
+    rows beyond ``ratio`` times the median angle, so that a bad row cannot pull it), and a row whose
+    angle then exceeds both ``ratio`` times the median and ``floor_deg`` is set aside.
+
+    Raises:
+        DataError: more than ``max_share`` of the rows are such rows (another convention or unit).
+    """
+    if data.rotation is None:
+        return None
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", IdentifiabilityWarning)
+        result = calibrate(robot, data, identifier=LevenbergMarquardt(max_iterations=30), use_orientation=False,
+                           parallel_threshold_deg=parallel_threshold_deg)
+    predicted = result.model.tcp_pose(data.q, result.x)[..., :3, :3]
+    measured = data.rotation.to(predicted)
+    keep = torch.ones(len(data), dtype=torch.bool)
+    for _ in range(2):
+        probe = tf.project_to_so3((predicted[keep].transpose(-1, -2) @ measured[keep]).sum(0))
+        angles = torch.rad2deg(tf.rotation_angle((predicted @ probe).transpose(-1, -2) @ measured))
+        keep = angles <= ratio * float(angles.median())
+    median = float(angles.median())
+    bad = (angles > ratio * median) & (angles > floor_deg)
+    if not bool(bad.any()):
+        return None
+    index = tuple(int(i) for i in torch.nonzero(bad).squeeze(-1).tolist())
+    lines = tuple(data.line_numbers[i] for i in index) if data.line_numbers else tuple(i + 2 for i in index)
+    found = OrientationOutlierRows(index, lines, tuple(float(angles[i]) for i in index), float(angles[~bad].median()))
+    if len(index) > max_share * len(data):
+        raise DataError(f"{len(index)} of {len(data)} rows' orientations miss the calibrated geometry by more than "
+                        f"{ratio:g}x the median ({found.median_deg:.3f} deg): check the rx, ry, rz convention (fixed-axis "
+                        f"XYZ in deg); e.g. {', '.join(f'line {x}' for x in lines[:5])}", path=data.source)
+    return found

@@ -99,7 +99,11 @@ class TrackerInstrument(Instrument):
 
     def _checked(self, file: Path, robot: Any, request: FitRequest, config: Any) -> tuple[Any, dict]:
         """One file loaded, its rows the geometry cannot explain set aside; returns the poses and what was set aside."""
-        from torchcal.identify.outliers import check_orientation_columns, find_outlier_rows
+        from torchcal.identify.outliers import (
+            check_orientation_columns,
+            find_orientation_outlier_rows,
+            find_outlier_rows,
+        )
 
         data = self.load(file, robot, request.overrides)
         still = still_joints(data, robot.joint_names)
@@ -114,6 +118,12 @@ class TrackerInstrument(Instrument):
             data = data.subset([i for i in range(len(data)) if i not in set(outliers.index)])
             set_aside["rows_left_out"] = {"file_lines": list(outliers.lines), "errors_mm": list(outliers.errors_mm),
                                            "median_mm_of_the_others": outliers.median_mm}
+        turned = find_orientation_outlier_rows(robot, data, parallel_threshold_deg=config.parallel_threshold_deg)
+        if turned is not None:
+            warnings.warn(turned.message(str(file)), stacklevel=3)
+            data = data.subset([i for i in range(len(data)) if i not in set(turned.index)])
+            set_aside["orientation_rows_left_out"] = {"file_lines": list(turned.lines), "angles_deg": list(turned.angles_deg),
+                                                      "median_deg_of_the_others": turned.median_deg}
         return data, set_aside
 
     def evaluate(self, request: EvaluateRequest) -> EvaluateOutcome:
