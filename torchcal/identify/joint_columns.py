@@ -19,18 +19,9 @@ def pose_and_columns(model: ErrorModel, q: torch.Tensor, x: torch.Tensor, column
     """TCP pose ``(B, 4, 4)`` at joints ``q`` (rad) and the Jacobian ``(B, 6, len(columns))`` of
     ``[p, rotation vector]`` (m, rad; :meth:`~torchcal.kinematics.error_model.ErrorModel.pose_jacobian`),
     the joint-space columns made as in :func:`position_and_columns` from the ``theta_j`` columns ``(B, 6, N)``."""
-    theta = torch.tensor([model.layout.index(f"theta{j + 1}") for j in range(model.robot.dof)])
-    geo = columns[columns < size]
+    geo, theta = _geometric_and_theta(model, columns, size)
     pose, jac = model.pose_jacobian(q, x, torch.cat([geo, theta]))
-    jac_geo, jac_theta = jac[..., : len(geo)], jac[..., len(geo) :]
-    parts, g = [], 0
-    for col in columns.tolist():
-        if col < size:
-            parts.append(jac_geo[..., g])
-            g += 1
-        else:
-            parts.append(joint_column(col - size, jac_theta))
-    return pose, torch.stack(parts, -1)
+    return pose, _assembled(jac, columns, size, len(geo), joint_column)
 
 
 def position_and_columns(model: ErrorModel, q: torch.Tensor, x: torch.Tensor, columns: torch.Tensor, size: int,
@@ -41,10 +32,21 @@ def position_and_columns(model: ErrorModel, q: torch.Tensor, x: torch.Tensor, co
     coefficient ``i``, whose column ``joint_column(i, jac_theta)`` combines the ``theta_j`` columns
     ``jac_theta`` ``(B, 3, N)`` into ``(B, 3)``.
     """
-    theta = torch.tensor([model.layout.index(f"theta{j + 1}") for j in range(model.robot.dof)])
-    geo = columns[columns < size]
+    geo, theta = _geometric_and_theta(model, columns, size)
     pred, jac = model.position_jacobian(q, x, torch.cat([geo, theta]), method="analytic")
-    jac_geo, jac_theta = jac[..., : len(geo)], jac[..., len(geo) :]
+    return pred, _assembled(jac, columns, size, len(geo), joint_column)
+
+
+def _geometric_and_theta(model: ErrorModel, columns: torch.Tensor, size: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """The geometric columns among ``columns`` and the indices of every joint offset ``theta_j``."""
+    theta = torch.tensor([model.layout.index(f"theta{j + 1}") for j in range(model.robot.dof)])
+    return columns[columns < size], theta
+
+
+def _assembled(jac: torch.Tensor, columns: torch.Tensor, size: int, n_geo: int,
+               joint_column: Callable[[int, torch.Tensor], torch.Tensor]) -> torch.Tensor:
+    """``jac`` ``(B, R, n_geo + N)`` (the geometric columns, then the ``theta_j`` ones) as the columns of ``columns``."""
+    jac_geo, jac_theta = jac[..., :n_geo], jac[..., n_geo:]
     parts, g = [], 0
     for col in columns.tolist():
         if col < size:
@@ -52,4 +54,4 @@ def position_and_columns(model: ErrorModel, q: torch.Tensor, x: torch.Tensor, co
             g += 1
         else:
             parts.append(joint_column(col - size, jac_theta))
-    return pred, torch.stack(parts, -1)
+    return torch.stack(parts, -1)
