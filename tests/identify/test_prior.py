@@ -484,3 +484,28 @@ def test_a_parameter_off_by_12_prior_sigmas_and_only_it_is_named_beyond_toleranc
     assert re.search(r"alpha4 -0\.5\d* deg \(tolerance 0\.15\)", warning), warning
     others = [r["name"] for r in rows if r["name"] != "alpha4"]
     assert not any(re.search(rf"\b{n} ", warning) for n in others), warning
+
+
+def test_a_6d_probe_mounted_at_any_angle_is_found_without_a_tolerance_warning():
+    # the probe's rotation on the flange has no prior by default (the UR10's T-Mac sits at -90 deg about z):
+    # the orientations find it, and nothing is named beyond a tolerance it does not have
+    from torchcal.data.measurements import Measurements
+    from torchcal.kinematics import transforms as tf
+    from torchcal.stages.prior_options import prior_warning
+
+    twin = Twin.create(TwinConfig(seed=2, gravity=False, gear=False))
+    gen = torch.Generator().manual_seed(2)
+    q = twin.robot.sample_joints(80, gen)
+    probe = tf.so3_exp(torch.tensor([0.0, 0.0, -math.pi / 2], dtype=torch.float64))
+    flange = twin.T_instrument_base() @ twin.model.base_flange_pose(q, twin.x_true)
+    data = Measurements(q=q, position=twin.measure(q, gen), rotation=flange[..., :3, :3] @ probe)
+    assert math.isinf(Tolerances().tool_deg) and "rotation free" in Tolerances().describe()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        free = calibrate(twin.robot, data, prior=PriorSpec())
+        tight = calibrate(twin.robot, data, prior=PriorSpec(tolerances=Tolerances(tool_deg=5.0)))
+    found = tf.so3_exp(free.x[free.model.layout.tool_slice][3:])
+    assert math.degrees(float(tf.rotation_angle(found.T @ probe))) < 0.05
+    assert prior_warning(free) is None or "tool_r" not in prior_warning(free)
+    # a user who states a 5 deg tolerance is told the probe sits beyond it
+    assert "tool_rz" in (prior_warning(tight) or "")

@@ -137,7 +137,8 @@ class PriorOptions(_Checked):
         tolerance_angle_deg: prior 1-sigma of MDH angles alpha, beta (deg; default 0.05).
         tolerance_joint_offset_deg: prior 1-sigma of joint zero offsets theta (deg; default 0.1).
         tolerance_tool_mm: prior 1-sigma of the tool point per axis (mm; default 10).
-        tolerance_tool_deg: prior 1-sigma of the tool rotation, orientation data only (deg; default 5).
+        tolerance_tool_deg: prior 1-sigma of the tool rotation, orientation data only (deg; default: none,
+            the probe's mounting angle is the orientations' to find).
     """
 
     prior: str = "tolerance"

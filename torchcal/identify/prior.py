@@ -86,12 +86,16 @@ class Tolerances:
     angle_deg: float = 0.05
     joint_offset_deg: float = 0.1
     tool_mm: float = 10.0
-    tool_deg: float = 5.0
+    #: The tool's (probe's) rotation on the flange, fitted only where orientations were measured: no prior by
+    #: default (``inf``), as the instrument frame's. A 6-D probe is mounted at any angle (the UR10's T-Mac at
+    #: -90 deg about z), and the orientations determine it to hundredths of a degree.
+    tool_deg: float = math.inf
 
     def __post_init__(self) -> None:
         for f in fields(self):
             value = getattr(self, f.name)
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+            free = f.name == "tool_deg" and value == math.inf
+            if not (isinstance(value, (int, float)) and (math.isfinite(value) or free) and value > 0):
                 raise ModelError(f"tolerance {f.name} must be a positive number, got {value!r}")
 
     def sigma_si(self, name: str) -> float:
@@ -103,8 +107,9 @@ class Tolerances:
         return value * 1e-3 if kind.endswith("_mm") else math.radians(value)
 
     def describe(self) -> str:
+        rotation = "rotation free" if self.tool_deg == math.inf else f"{self.tool_deg:g} deg"
         return (f"lengths {self.length_mm:g} mm, angles {self.angle_deg:g} deg, joint offsets {self.joint_offset_deg:g} deg, "
-                f"tool {self.tool_mm:g} mm / {self.tool_deg:g} deg (1 sigma); instrument frame free")
+                f"tool {self.tool_mm:g} mm / {rotation} (1 sigma); instrument frame free")
 
 
 def robot_file_tolerances(source: str | None) -> dict[str, float]:
