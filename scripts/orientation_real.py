@@ -53,9 +53,8 @@ from torchcal.core.io import atomic_write_json, atomic_write_text
 from torchcal.data.folds import grouped_folds
 from torchcal.data.measurements import Measurements, load_measurements
 from torchcal.instruments.tracker.evaluate import score
-from torchcal.kinematics import transforms as tf
 from torchcal.kinematics.robot import load_robot
-from torchcal.stages.geometry import model_joints, predict_positions
+from torchcal.stages.geometry import model_joints, registered_frame
 from torchcal.stages.orientation import angles_to_measured
 from torchcal.stages.pipeline import fit_model
 from torchcal.stages.store import load_model
@@ -207,8 +206,7 @@ def _solved_part(parts: list[Replayed], masks: list[torch.Tensor]) -> Replayed:
 def _whole_chain_rms_deg(stored, data) -> float:
     """The orientation RMS (deg) of the whole calibrated chain, joint-space terms included (what the
     compensator oriented by before it oriented position-only models by their geometry)."""
-    frame = tf.rigid_registration(predict_positions(stored, data.q), data.position) @ stored.model.instrument_from_base(stored.x)
-    predicted = frame[:3, :3] @ stored.model.base_flange_pose(model_joints(stored, data.q), stored.x)[..., :3, :3]
+    predicted = registered_frame(stored, data)[:3, :3] @ stored.model.base_flange_pose(model_joints(stored, data.q), stored.x)[..., :3, :3]
     angles = angles_to_measured(predicted, data.rotation, fit_probe=True)
     return math.degrees(float(angles.pow(2).mean().sqrt()))
 

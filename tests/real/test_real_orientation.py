@@ -15,7 +15,7 @@ from torchcal.config.schema import FitConfig
 from torchcal.data.folds import grouped_folds
 from torchcal.data.measurements import load_measurements
 from torchcal.kinematics.robot import load_robot
-from torchcal.stages.geometry import model_joints, nominal_fit
+from torchcal.stages.geometry import model_joints, nominal_fit, registered_frame
 from torchcal.stages.orientation import (
     angles_to_measured,
     model_orientation_errors,
@@ -61,18 +61,10 @@ def test_a_position_only_default_fit_orients_the_tool_by_its_geometry(tmp_path):
             nominal.append(nominal_orientation_errors(robot, held_out, nominal_fit(robot, held_out)[1]).angles_rad)
             # the whole chain, joint-space terms included, as the compensator oriented the tool before
             flange = stored.model.base_flange_pose(model_joints(stored, held_out.q), stored.x)
-            frame = model_frame(stored, held_out)
+            frame = registered_frame(stored, held_out)
             whole.append(angles_to_measured(frame[:3, :3] @ flange[..., :3, :3], held_out.rotation, fit_probe=True))
             replayed = replay(stored, held_out, command_sets(stored, held_out.q))
             shares.append(confirmed_share(replayed["uncompensated"], replayed["compensator"]))
     assert _rms_deg(model) < 0.95 * _rms_deg(nominal)
     assert _rms_deg(whole) > 3 * _rms_deg(nominal)
     assert sum(shares) / len(shares) > 0.5  # the turn the commands give the tool is, on average, one the robot needed
-
-
-def model_frame(stored, data):
-    """``T_instrument_base`` of ``stored`` re-fitted to ``data``'s positions (``evaluate --register``)."""
-    from torchcal.kinematics import transforms as tf
-    from torchcal.stages.geometry import predict_positions
-
-    return tf.rigid_registration(predict_positions(stored, data.q), data.position) @ stored.model.instrument_from_base(stored.x)

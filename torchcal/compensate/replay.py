@@ -39,7 +39,7 @@ from torchcal.compensate.production_tcp import production_view, tcp_transform
 from torchcal.data.measurements import Measurements
 from torchcal.kinematics import transforms as tf
 from torchcal.kinematics.error_model import ErrorModel
-from torchcal.stages.geometry import model_joints, predict_positions
+from torchcal.stages.geometry import model_joints, registered_frame
 from torchcal.stages.store import StoredModel
 
 #: Floor of the orientation task's damping (rad/rad) that leaves a ``position only`` graph's orientation steps
@@ -111,8 +111,7 @@ def replay(stored: StoredModel, data: Measurements, commands: dict[str, torch.Te
     model, x = stored.model, stored.x
     q = data.q.to(torch.float64)
     with torch.no_grad():
-        frame = (tf.rigid_registration(predict_positions(stored, q, data.temperature, data.wrench), data.position)
-                 @ model.instrument_from_base(x))
+        frame = registered_frame(stored, data)
         at_q = frame @ model.base_flange_pose(model_joints(stored, q), x)
         tool = model.flange_from_tool(x)
         point_at_q = (at_q @ tool)[:, :3, 3]
@@ -151,12 +150,9 @@ def errors_of_true_poses(stored: StoredModel, data: Measurements, q_c: torch.Ten
                          position: torch.Tensor) -> Replayed:
     """The errors of poses measured *at* the commands ``q_c`` (a twin's truth there), against ``data``'s targets
     with the same frame and probe fit as :func:`replay`: the independent check of the replay."""
-    model, x = stored.model, stored.x
     q = data.q.to(torch.float64)
     with torch.no_grad():
-        frame = (tf.rigid_registration(predict_positions(stored, q, data.temperature, data.wrench), data.position)
-                 @ model.instrument_from_base(x))
-        return _against_target(stored, data, q, frame, rotation, position, (q_c - q).abs().amax(-1))
+        return _against_target(stored, data, q, registered_frame(stored, data), rotation, position, (q_c - q).abs().amax(-1))
 
 
 def confirmed_share(uncompensated: Replayed, compensated: Replayed) -> float:

@@ -412,6 +412,13 @@ def predict_positions(
     return p
 
 
+def registered_frame(stored: StoredModel, data: Measurements) -> torch.Tensor:
+    """``T_instrument_base`` ``(4, 4)`` of ``stored`` re-fitted to ``data``'s positions (``evaluate --register``):
+    the rigid transform that best puts the model's predicted points on the measured ones, after the model's frame."""
+    predicted = predict_positions(stored, data.q, data.temperature, data.wrench)
+    return rigid_registration(predicted, data.position) @ stored.model.instrument_from_base(stored.x)
+
+
 def held_out_errors(stored: StoredModel, data: Measurements, *, register: bool = False, residual: bool = True) -> torch.Tensor:
     """``measured - predicted`` (instrument frame, m) of a stored model on ``data``.
 

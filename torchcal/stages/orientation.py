@@ -28,7 +28,7 @@ from torchcal.data.measurements import Measurements
 from torchcal.kinematics import transforms as tf
 from torchcal.kinematics.error_model import ErrorModel
 from torchcal.kinematics.robot import RobotModel
-from torchcal.stages.geometry import model_joints, predict_positions
+from torchcal.stages.geometry import model_joints, registered_frame
 from torchcal.stages.store import StoredModel
 
 PROBE_FITTED = "probe rotation on the flange fitted to these orientations"
@@ -99,10 +99,8 @@ def model_orientation_errors(stored: StoredModel, data: Measurements, *, registe
         raise ValueError("the file has no orientation columns (rx, ry, rz)")
     model, x = stored.model, stored.x
     with torch.no_grad():
-        frame = model.instrument_from_base(x)
-        if register:  # the frame the position errors are scored in: re-fitted to the file's points
-            frame = tf.rigid_registration(predict_positions(stored, data.q, data.temperature, data.wrench),
-                                          data.position) @ frame
+        # with register, the frame the position errors are scored in: re-fitted to the file's points
+        frame = registered_frame(stored, data) if register else model.instrument_from_base(x)
         flange = model.base_flange_pose(oriented_joints(stored, data.q), x)
         predicted = frame[:3, :3] @ flange[..., :3, :3] @ model.flange_from_tool(x)[:3, :3]
         angles = angles_to_measured(predicted, data.rotation.to(predicted), fit_probe=not model.with_orientation)
