@@ -88,6 +88,23 @@ def _session(path: Path, threads: int | None, **config):
     return ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
 
 
+def bench_arguments(argv: list[str] | None, description: str, out: str) -> argparse.Namespace:
+    """The options both ONNX benchmarks take: ``--model``, ``--out`` (default ``out``), ``--quick``."""
+    parser = argparse.ArgumentParser(description=description)
+    parser.add_argument("--model", help="model folder (default: calibrate a twin: seed 0, 300 poses, geometry only)")
+    parser.add_argument("--out", default=out, help="output path without extension")
+    parser.add_argument("--quick", action="store_true", help="fewer calls (smoke run)")
+    return parser.parse_args(argv)
+
+
+def benchmark_pose(robot, rng: np.random.Generator | None = None) -> np.ndarray:
+    """``(1, N)`` rad: the single pose whose latency both ONNX benchmarks time, uniform within the limits, the
+    first draw of ``rng`` (default: a fresh ``default_rng(0)``, as every run of either benchmark starts)."""
+    rng = np.random.default_rng(0) if rng is None else rng
+    limits = robot.joint_limits.numpy()
+    return limits[:, 0] + rng.random((1, robot.dof)) * (limits[:, 1] - limits[:, 0])
+
+
 def _model_dir(tmp: Path) -> Path:
     import torch
 
@@ -327,11 +344,7 @@ VARIANTS: dict[str, tuple[dict, str, str]] = {
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description="onnxruntime vs torch eager for the exported compensator")
-    parser.add_argument("--model", help="model folder (default: calibrate a twin)")
-    parser.add_argument("--out", default="docs/bench_onnx", help="output path without extension")
-    parser.add_argument("--quick", action="store_true", help="fewer calls (smoke run)")
-    args = parser.parse_args(argv)
+    args = bench_arguments(argv, "onnxruntime vs torch eager for the exported compensator", "docs/bench_onnx")
 
     import torch
     from rich.console import Console
@@ -360,9 +373,9 @@ def main(argv: list[str] | None = None) -> int:
                     graphs[tag] = build_graphs(stored, **options)
             _floor_graph(tmp / "floor.onnx", stored.robot.dof)
             # the nodes the default compensator runs for the benchmark pose, and a chain of as many trivial ones
-            rng = np.random.default_rng(0)
+            rng = np.random.default_rng(0)  # the benchmark pose first, then the batches below
             limits = stored.robot.joint_limits.numpy()
-            q_one = limits[:, 0] + rng.random((1, stored.robot.dof)) * (limits[:, 1] - limits[:, 0])
+            q_one = benchmark_pose(stored.robot, rng)
             n_executed = executed_nodes(folders["default"] / GRAPHS["compensator"][0], GRAPHS["compensator"][2], q_one)
             _chain_graph(tmp / "chain.onnx", n_executed, stored.robot.dof)
         # Latency first, before any multi-threaded work: thread pools that have just run (torch's

@@ -25,7 +25,6 @@ Writes ``OUT.json`` and ``OUT.md`` (atomically).
 
 from __future__ import annotations
 
-import argparse
 import os
 import tempfile
 import warnings
@@ -39,6 +38,8 @@ from bench_onnx import (
     _floor_graph,
     _model_dir,
     _session,
+    bench_arguments,
+    benchmark_pose,
     executed_nodes,
     machine_info,
 )
@@ -150,11 +151,7 @@ def accuracy(graph, session, q: torch.Tensor) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description="the bare Newton steps of a compensator against the call floor")
-    parser.add_argument("--model", help="model folder (default: calibrate a twin, as bench_onnx.py)")
-    parser.add_argument("--out", default="docs/bench_onnx_lower_bound", help="output path without extension")
-    parser.add_argument("--quick", action="store_true", help="fewer calls (smoke run)")
-    args = parser.parse_args(argv)
+    args = bench_arguments(argv, "the bare Newton steps of a compensator against the call floor", "docs/bench_onnx_lower_bound")
 
     from rich.console import Console
 
@@ -176,9 +173,7 @@ def main(argv: list[str] | None = None) -> int:
             graph = CompensatorGraph.from_stored(stored)
             export_model(model_dir, tmp / "export")
             poses = robot.sample_joints(500 if args.quick else 2000, torch.Generator().manual_seed(9)).to(torch.float64)
-            rng = np.random.default_rng(0)  # the benchmark pose of bench_onnx.py
-            limits = robot.joint_limits.numpy()
-            q_one = limits[:, 0] + rng.random((1, n)) * (limits[:, 1] - limits[:, 0])
+            q_one = benchmark_pose(robot)
             coef, coef_error = monomial_coefficients(graph, robot, 4 * 3**n)
             graphs: dict[str, dict] = {}
             for form, counts in STEPS.items():
