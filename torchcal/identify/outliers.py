@@ -63,6 +63,17 @@ def _row_errors_mm(robot: RobotModel, data: Measurements, parallel_threshold_deg
     return (data.position - result.model.tcp_position(data.q, result.x)).norm(dim=-1) * 1e3
 
 
+def _beyond(values: torch.Tensor, data: Measurements, ratio: float, floor: float):
+    """The rows whose ``values`` ``(n,)`` exceed both ``ratio`` times their median and ``floor``: their indices,
+    file lines, values, and the median of the other rows (``None`` where no row does)."""
+    bad = (values > ratio * float(values.median())) & (values > floor)
+    if not bool(bad.any()):
+        return None
+    index = tuple(int(i) for i in torch.nonzero(bad).squeeze(-1).tolist())
+    lines = tuple(data.line_numbers[i] for i in index) if data.line_numbers else tuple(i + 2 for i in index)
+    return index, lines, tuple(float(values[i]) for i in index), float(values[~bad].median())
+
+
 def find_outlier_rows(robot: RobotModel, data: Measurements, *, parallel_threshold_deg: float,
                       ratio: float = RATIO, floor_mm: float = FLOOR_MM, max_share: float = MAX_SHARE,
                       rounds: int = 5) -> OutlierRows | None:
@@ -79,13 +90,11 @@ def find_outlier_rows(robot: RobotModel, data: Measurements, *, parallel_thresho
         errors = _row_errors_mm(robot, data, parallel_threshold_deg, weights=weights)
         scale = 2.0 * float(errors.median())
         weights = 1.0 / (1.0 + (errors / max(scale, 1e-9)) ** 2)
-    median = float(errors.median())
-    bad = (errors > ratio * median) & (errors > floor_mm)
-    if not bool(bad.any()):
+    beyond = _beyond(errors, data, ratio, floor_mm)
+    if beyond is None:
         return None
-    index = tuple(int(i) for i in torch.nonzero(bad).squeeze(-1).tolist())
-    lines = tuple(data.line_numbers[i] for i in index) if data.line_numbers else tuple(i + 2 for i in index)
-    found = OutlierRows(index, lines, tuple(float(errors[i]) for i in index), float(errors[~bad].median()))
+    found = OutlierRows(*beyond)
+    index, lines = found.index, found.lines
     if len(index) > max_share * n:
         raise DataError(f"{len(index)} of {n} rows miss the calibrated geometry by more than {ratio:g}x the median "
                         f"row error ({found.median_mm:.3f} mm): the file mixes set-ups, robots or units (a share of "
@@ -167,13 +176,11 @@ def find_orientation_outlier_rows(robot: RobotModel, data: Measurements, *, para
         probe = tf.project_to_so3((predicted[keep].transpose(-1, -2) @ measured[keep]).sum(0))
         angles = torch.rad2deg(tf.rotation_angle((predicted @ probe).transpose(-1, -2) @ measured))
         keep = angles <= ratio * float(angles.median())
-    median = float(angles.median())
-    bad = (angles > ratio * median) & (angles > floor_deg)
-    if not bool(bad.any()):
+    beyond = _beyond(angles, data, ratio, floor_deg)
+    if beyond is None:
         return None
-    index = tuple(int(i) for i in torch.nonzero(bad).squeeze(-1).tolist())
-    lines = tuple(data.line_numbers[i] for i in index) if data.line_numbers else tuple(i + 2 for i in index)
-    found = OrientationOutlierRows(index, lines, tuple(float(angles[i]) for i in index), float(angles[~bad].median()))
+    found = OrientationOutlierRows(*beyond)
+    index, lines = found.index, found.lines
     if len(index) > max_share * len(data):
         raise DataError(f"{len(index)} of {len(data)} rows' orientations miss the calibrated geometry by more than "
                         f"{ratio:g}x the median ({found.median_deg:.3f} deg): check the rx, ry, rz convention (fixed-axis "
